@@ -1,0 +1,1 @@
+"""Transports and device front-ends (importable as ``setmem_hil.drivers``)."""

@@ -1,0 +1,81 @@
+"""Typed exceptions of setmem-hil.
+
+Every error subclasses a built-in (``ValueError``, ``RuntimeError``, ``TimeoutError``) so callers
+may catch either. Messages say what was wrong and where (file, line or key, frequency).
+The CLI maps them to exit codes (see ``setmem_hil.cli``): 2 for malformed input,
+3 for data inconsistent with the prior, 4 for device faults, 1 for anything else.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+
+class SetmemError(Exception):
+    """Base class of all setmem-hil errors."""
+
+
+class InputFormatError(SetmemError, ValueError):
+    """A malformed input file or argument.
+
+    Parameters
+    ----------
+    source : str
+        File name (or argument name) the problem is in.
+    location : str
+        Where in it: ``"line 7"``, ``"[[mode]] 2"``, ``"key 'gamma'"``; may be empty.
+    problem : str
+        What rule was broken and what was found.
+    """
+
+    def __init__(self, source: str, location: str, problem: str):
+        self.source = source
+        self.location = location
+        self.problem = problem
+        where = f"{source}: {location}: " if location else f"{source}: "
+        super().__init__(where + problem)
+
+
+class ProcedureError(InputFormatError):
+    """A procedure file that does not validate (names file, table and key)."""
+
+
+class InconsistentDataError(SetmemError, ValueError):
+    """No parameters fit the data and the prior: names the conflicting frequencies.
+
+    Attributes
+    ----------
+    omegas_rad_s : tuple of float
+        Frequencies of the data points involved in the conflict.
+    mode_index : int or None
+        Mode (0-based) whose one-mode problem became infeasible, if known.
+    """
+
+    def __init__(self, message: str, omegas_rad_s: Sequence[float] = (), mode_index: int | None = None):
+        self.omegas_rad_s = tuple(float(w) for w in omegas_rad_s)
+        self.mode_index = mode_index
+        super().__init__(message)
+
+
+class SolverError(SetmemError, RuntimeError):
+    """The conic solver failed for a reason other than infeasibility."""
+
+
+class DeviceError(SetmemError, RuntimeError):
+    """A device or transport fault (the exciter has been commanded to zero)."""
+
+
+class DeviceTimeoutError(DeviceError, TimeoutError):
+    """A device stopped answering within its timeout."""
+
+
+class FrameError(DeviceError, ValueError):
+    """A garbled, truncated or otherwise undecodable frame on a transport."""
+
+
+class SafetyLimitError(SetmemError, ValueError):
+    """A command that would exceed the procedure's amplitude or frequency limits (never sent)."""
+
+
+class DataQualityError(SetmemError, RuntimeError):
+    """A dwell whose samples are unusable (clipped, NaN, timestamp jumps); it is discarded."""

@@ -1,0 +1,1 @@
+"""Simulated structures and fake devices (importable as ``setmem_hil.sim_backends``)."""
