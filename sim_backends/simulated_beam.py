@@ -44,13 +44,12 @@ class SimulatedBeamExperiment:
     w1_num: tuple = W1_NUM
     w1_den: tuple = W1_DEN
     truth: ModalParameters = field(init=False)
-    n_measured: int = field(init=False, default=0)
+    n_measured: int = 0  # measurements taken so far; set it when resuming from a journal
 
     def __post_init__(self):
         full = beam_parameters()
         self.truth = full if self.unmodelled_dynamics else full.truncated(self.n_modelled)
         self._noise_bound = noise_bound_function(self.noise_profile, full, self.noise_scale)
-        self._rng = np.random.default_rng(self.seed)
 
     @property
     def modelled_truth(self) -> ModalParameters:
@@ -64,9 +63,20 @@ class SimulatedBeamExperiment:
             bound = bound + polynomial_magnitude(self.w1_num, self.w1_den, w)
         return bound
 
+    def noise_generator(self, index: int) -> np.random.Generator:
+        """Generator for the ``index``-th measurement (0-based).
+
+        Noise depends only on ``(seed, index)``, not on a running stream, so a campaign resumed
+        from its journal (``n_measured`` set to the number stored) measures exactly what an
+        uninterrupted run would have, and serial and distributed sweeps agree.
+        """
+        return np.random.default_rng((self.seed, index))
+
     def measure_many(self, omega_rad_s) -> list[Measurement]:
         w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
-        g = self.truth.frequency_response(w) + bounded_complex_noise(self._noise_bound(w), self._rng)
+        bound = self._noise_bound(w)
+        noise = np.array([bounded_complex_noise(bound[i : i + 1], self.noise_generator(self.n_measured + i))[0] for i in range(w.size)])
+        g = self.truth.frequency_response(w) + noise
         bounds = self.total_bound(w)
         self.n_measured += w.size
         return [Measurement(float(wi), complex(gi), float(bi)) for wi, gi, bi in zip(w, g, bounds)]
