@@ -1,0 +1,163 @@
+"""The campaign journal: round trips, append-only, refusal to overwrite, typed errors."""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+
+import numpy as np
+import pytest
+
+from setmem_hil.errors import InputFormatError
+from setmem_hil.experiment import Measurement
+from setmem_hil.journal import IterationRecord, Journal, JournalError
+
+
+def _create(tmp_path, **overrides):
+    kw = dict(procedure_text="name = 'x'\n", procedure_name="x", seed=7, software_version="9.9", backend="sim", strategy="mu")
+    kw.update(overrides)
+    return Journal.create(tmp_path / "run" / "journal.sqlite", **kw)
+
+
+def _record(k: int, rng: np.random.Generator, next_omega=2.5) -> IterationRecord:
+    lo = rng.uniform(0, 1, (3, 4))
+    return IterationRecord(
+        k=k, n_points=14 + k, lower=lo, upper=lo + rng.uniform(0, 1, (3, 4)),
+        mu_peak=float(rng.uniform(1, 3)), mu_peak_omega=1.01, mu_lower_peak=0.9,
+        omega=np.geomspace(0.1, 100, 50), mu=rng.uniform(0, 2, 50),
+        sensitivities={"a0_1": 0.3, "a1_2": 0.01}, next_omega=next_omega,
+        candidate_omega=np.geomspace(0.1, 100, 7), estimated_improvement=rng.uniform(0, 0.1, 7),
+        controller_order=6, safeguard="new-design", wall_s=1.5,
+        embedding_gamma=np.array([1.05, 1.1, 1.02]), mismatch_ratio=np.array([0.1, 0.2, 0.3]),
+    )
+
+
+def test_run_info_round_trip(tmp_path):
+    j = _create(tmp_path)
+    info = j.run_info()
+    assert info["procedure_text"] == "name = 'x'\n"
+    assert (info["procedure_name"], info["seed"], info["software_version"], info["backend"], info["strategy"]) == ("x", 7, "9.9", "sim", "mu")
+    assert info["finished"] is False and info["summary"] is None
+    assert "T" in info["created_utc"]
+    j.finish({"mu_peak": 0.98, "n_measurements": 3})
+    info = j.run_info()
+    assert info["finished"] is True and info["summary"] == {"mu_peak": 0.98, "n_measurements": 3}
+    with pytest.raises(JournalError, match="already finished"):
+        j.finish({})
+    j.close()
+
+
+def test_measurements_round_trip_in_order(tmp_path):
+    rng = np.random.default_rng(1)
+    ms = [Measurement(float(w), complex(*rng.normal(size=2)), float(rng.uniform(0.01, 0.1))) for w in rng.uniform(0.1, 50, 20)]
+    j = _create(tmp_path)
+    seqs = [j.add_measurement(m, iteration=0 if i < 15 else i - 14, role="initial" if i < 15 else "added") for i, m in enumerate(ms)]
+    assert seqs == list(range(1, 21))
+    j.close()
+    j = Journal.open(tmp_path / "run")  # a directory opens its journal.sqlite
+    assert j.measurements() == ms  # exact floats survive
+    rows = j.measurement_rows()
+    assert [r["seq"] for r in rows] == list(range(1, 21))
+    assert [r["role"] for r in rows] == ["initial"] * 15 + ["added"] * 5
+    assert rows[16]["iteration"] == 2
+    assert set(rows[0]) == {"seq", "iteration", "role", "omega_rad_s", "re", "im", "bound", "utc"}
+    assert j.integrity_problems() == []
+    j.close()
+
+
+def test_iteration_round_trip(tmp_path):
+    rng = np.random.default_rng(2)
+    recs = [_record(1, rng), _record(2, rng, next_omega=None)]
+    j = _create(tmp_path)
+    for r in recs:
+        j.add_iteration(r)
+    with pytest.raises(JournalError, match="iteration 2 is already stored"):
+        j.add_iteration(recs[1])
+    got = j.iterations()
+    assert [g.k for g in got] == [1, 2]
+    for a, b in zip(recs, got):
+        for name in ("lower", "upper", "omega", "mu", "candidate_omega", "estimated_improvement", "embedding_gamma", "mismatch_ratio"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        assert b.lower.shape == (3, 4)
+        assert (a.mu_peak, a.sensitivities, a.next_omega, a.safeguard, a.controller_order) == (b.mu_peak, b.sensitivities, b.next_omega, b.safeguard, b.controller_order)
+    assert got[1].next_omega is None
+    j.close()
+
+
+def test_infinite_bounds_survive(tmp_path):
+    """The prior's box has +-inf residue bounds before the first identification."""
+    rng = np.random.default_rng(3)
+    r = _record(1, rng)
+    lo = r.lower.copy()
+    lo[:, 3] = -np.inf
+    r = IterationRecord(**{**r.__dict__, "lower": lo, "mu_peak": math.nan})
+    j = _create(tmp_path)
+    j.add_iteration(r)
+    got = j.iterations()[0]
+    assert np.all(np.isneginf(got.lower[:, 3])) and math.isnan(got.mu_peak)
+    j.close()
+
+
+def test_discrepancies_and_events(tmp_path):
+    j = _create(tmp_path)
+    j.add_discrepancy(3, {"consistent": False, "omegas_rad_s": [1.0, 2.0]})
+    j.add_event("fault", "timeout on dwell 4; retried")
+    j.add_event("interrupted", "Ctrl-C")
+    assert j.discrepancies() == [(3, {"consistent": False, "omegas_rad_s": [1.0, 2.0]})]
+    assert [(e["kind"], e["message"]) for e in j.events()] == [("fault", "timeout on dwell 4; retried"), ("interrupted", "Ctrl-C")]
+    j.close()
+
+
+def test_refuses_to_overwrite(tmp_path):
+    _create(tmp_path).close()
+    with pytest.raises(InputFormatError, match="already exists"):
+        _create(tmp_path)
+
+
+def test_open_rejects_missing_and_foreign_files(tmp_path):
+    with pytest.raises(InputFormatError, match="no journal"):
+        Journal.open(tmp_path / "nowhere")
+    text = tmp_path / "text.sqlite"
+    text.write_text("hello")
+    with pytest.raises(InputFormatError, match="not an SQLite database"):
+        Journal.open(text)
+    other = tmp_path / "other.sqlite"
+    sqlite3.connect(other).execute("CREATE TABLE t (x)").connection.close()
+    with pytest.raises(InputFormatError, match="not a setmem-hil journal"):
+        Journal.open(other)
+
+
+def test_append_only(tmp_path):
+    j = _create(tmp_path)
+    j.add_measurement(Measurement(1.0, 1 + 1j, 0.1), iteration=0, role="initial")
+    j.close()
+    conn = sqlite3.connect(tmp_path / "run" / "journal.sqlite")
+    for sql in ("UPDATE measurement SET re = 0", "DELETE FROM measurement", "UPDATE run SET seed = 3"):
+        with pytest.raises(sqlite3.DatabaseError, match="append-only"):
+            conn.execute(sql)
+    conn.close()
+    j = Journal.open(tmp_path / "run")
+    assert j.measurements() == [Measurement(1.0, 1 + 1j, 0.1)]
+    j.close()
+
+
+def test_rejects_bad_role_and_non_finite(tmp_path):
+    j = _create(tmp_path)
+    with pytest.raises(JournalError, match="role"):
+        j.add_measurement(Measurement(1.0, 1j, 0.1), iteration=0, role="extra")
+    with pytest.raises(JournalError, match="non-finite"):
+        j.add_measurement(Measurement(1.0, complex(math.nan, 0), 0.1), iteration=0, role="initial")
+    assert j.measurements() == []
+    j.close()
+    with pytest.raises(JournalError, match="closed"):
+        j.add_event("x", "y")
+
+
+def test_wal_mode_and_reader_during_writes(tmp_path):
+    j = _create(tmp_path)
+    assert j._db().execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    reader = Journal.open(tmp_path / "run")
+    j.add_measurement(Measurement(2.0, 1j, 0.1), iteration=0, role="initial")
+    assert reader.measurements() == [Measurement(2.0, 1j, 0.1)]  # committed, visible to another connection
+    reader.close()
+    j.close()
