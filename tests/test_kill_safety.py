@@ -1,0 +1,116 @@
+"""Kill safety of the journal (issue 8): SIGKILL at random moments never loses, duplicates
+or half-writes a record, and a restarted writer continues from what is stored.
+
+A child process replays a fixed sequence of actions (measurement n, and after every fifth
+measurement an iteration record), skipping what the journal already holds, exactly as the
+campaign's REPLAY resume does. The parent kills it at random instants and checks the journal
+after every kill against the sequence the child was meant to write (independent truth: the
+closed-form value of record n).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from setmem_hil.experiment import Measurement
+from setmem_hil.journal import Journal
+
+N_TOTAL = 120
+PER_ITERATION = 5
+
+CHILD = r"""
+import sys
+import time
+import numpy as np
+from pathlib import Path
+from setmem_hil.experiment import Measurement
+from setmem_hil.journal import IterationRecord, Journal
+
+path, n_total, per = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+if path.exists():
+    j = Journal.open(path)
+else:
+    j = Journal.create(path, procedure_text="x", procedure_name="kill", seed=3, software_version="t", backend="sim", strategy="mu")
+stored, stored_k = j.n_measurements(), len(j.iterations())
+print("ready", stored, stored_k, flush=True)
+for n in range(1, n_total + 1):
+    if n > stored:
+        time.sleep(0.002)  # a dwell stand-in, so that kills land mid-campaign
+        seq = j.add_measurement(Measurement(0.1 * n, complex(n, -0.5 * n), 1.0 / n), iteration=n // per, role="initial" if n <= 15 else "added")
+        if seq != n:
+            raise SystemExit(f"sequence {seq} != {n}")
+    k = n // per
+    if n % per == 0 and k > stored_k:
+        j.add_iteration(IterationRecord(
+            k=k, n_points=n, lower=np.full((3, 4), float(k)), upper=np.full((3, 4), k + 1.0),
+            mu_peak=1.0 / k, mu_peak_omega=float(k), mu_lower_peak=0.5 / k, omega=np.arange(1.0, 201.0),
+            mu=np.full(200, 1.0 / k), sensitivities={"a0_1": float(k)}, next_omega=0.1 * (n + 1),
+            candidate_omega=np.arange(1.0, 51.0), estimated_improvement=np.full(50, float(k)), controller_order=6,
+            safeguard="new-design", wall_s=0.0, embedding_gamma=np.ones(3), mismatch_ratio=np.zeros(3)))
+if not j.run_info()["finished"]:
+    j.finish({"n": n_total})
+j.close()
+print("done", flush=True)
+"""
+
+
+def expected_measurement(n: int) -> Measurement:
+    return Measurement(0.1 * n, complex(n, -0.5 * n), 1.0 / n)
+
+
+def check_journal(path) -> tuple[int, int]:
+    j = Journal.open(path)
+    try:
+        assert j.integrity_problems() == []
+        ms = j.measurements()
+        assert ms == [expected_measurement(n) for n in range(1, len(ms) + 1)]  # no gap, duplicate or torn row
+        its = j.iterations()
+        for rec in its:
+            assert rec.n_points == PER_ITERATION * rec.k
+            np.testing.assert_array_equal(rec.mu, np.full(200, 1.0 / rec.k))  # whole JSON arrays, never truncated
+            assert rec.upper.shape == (3, 4) and rec.upper[0, 0] == rec.k + 1.0
+        # iterations lag measurements by at most one record
+        assert len(ms) // PER_ITERATION - len(its) in (0, 1)
+        return len(ms), len(its)
+    finally:
+        j.close()
+
+
+def test_sigkill_at_random_moments_then_resume(tmp_path):
+    rng = np.random.default_rng(20261121)
+    path = tmp_path / "journal.sqlite"
+    cmd = [sys.executable, "-c", CHILD, str(path), str(N_TOTAL), str(PER_ITERATION)]
+    kills = 0
+    progress = []
+    for _ in range(12):
+        child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        line = child.stdout.readline()  # wait until it is writing, then kill after a random delay
+        if not line.startswith("ready"):
+            child.wait()
+            pytest.fail(f"child failed to start: {line!r} {child.stderr.read()}")
+        time.sleep(float(rng.uniform(0.0, 0.05)))
+        if child.poll() is None:
+            os.kill(child.pid, signal.SIGKILL)
+            kills += 1
+        child.wait()
+        child.stdout.close()
+        child.stderr.close()
+        progress.append(check_journal(path))
+    # the last run completes
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    n, k = check_journal(path)
+    assert (n, k) == (N_TOTAL, N_TOTAL // PER_ITERATION)
+    j = Journal.open(path)
+    assert j.run_info()["finished"]
+    j.close()
+    assert kills >= 6, f"only {kills} kills landed mid-write; make the child slower"
+    assert progress == sorted(progress)  # stored records only ever grow
+    print("kills", kills, "stored after each kill", progress)
