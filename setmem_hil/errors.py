@@ -49,11 +49,15 @@ class InconsistentDataError(SetmemError, ValueError):
         Frequencies of the data points involved in the conflict.
     mode_index : int or None
         Mode (0-based) whose one-mode problem became infeasible, if known.
+    suspects_rad_s : tuple of float
+        Points whose removal alone restores consistency of that mode's problem.
     """
 
-    def __init__(self, message: str, omegas_rad_s: Sequence[float] = (), mode_index: int | None = None):
+    def __init__(self, message: str, omegas_rad_s: Sequence[float] = (), mode_index: int | None = None,
+                 suspects_rad_s: Sequence[float] = ()):
         self.omegas_rad_s = tuple(float(w) for w in omegas_rad_s)
         self.mode_index = mode_index
+        self.suspects_rad_s = tuple(float(w) for w in suspects_rad_s)
         super().__init__(message)
 
 

@@ -138,7 +138,7 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
                     new_hi[p], argmax[p] = sol.upper[p], sol.argmax[p]
         if not np.all(np.isfinite(new_lo)):
             counter.n_solves += problem.n_solves
-            _raise_inconsistent(omega, certificates, mode_index)
+            _raise_inconsistent(omega, g_mode[usable], E_used, lo, hi, certificates, mode_index)
         new_lo, new_hi = np.maximum(lo, new_lo), np.minimum(hi, new_hi)
         new_hi = np.maximum(new_lo, new_hi)
         improved = _improved(lo[[A1, A0]], hi[[A1, A0]], new_lo[[A1, A0]], new_hi[[A1, A0]], settings.tolerance)
@@ -160,18 +160,29 @@ def _improved(lo, hi, new_lo, new_hi, tol) -> bool:
     return bool(np.any((hi - lo) - (new_hi - new_lo) > tol * width))
 
 
-def _raise_inconsistent(omega: np.ndarray, certificates: list, mode_index: int):
+def _raise_inconsistent(omega, g, E, lo, hi, certificates: list, mode_index: int):
+    """Name the points in the infeasibility certificate, and those whose removal alone helps."""
     weight = np.zeros(omega.size)
     for cert in certificates:
         if cert is not None and cert.size == omega.size and np.max(cert) > 0:
             weight = np.maximum(weight, cert / np.max(cert))
-    involved = omega[weight > 1e-3] if np.any(weight > 1e-3) else omega
-    freqs = ", ".join(f"{w:.6g}" for w in np.sort(involved))
+    involved = np.flatnonzero(weight > 1e-3) if np.any(weight > 1e-3) else np.arange(omega.size)
+    suspects = []
+    C = embedding_bound(omega, E, lo[A0], hi[A0], hi[A1])
+    for j in involved:  # leave-one-out over the certificate's points (a handful of solves)
+        keep = np.arange(omega.size) != j
+        if keep.any() and OneModeProblem(omega[keep], g[keep], lo != hi, lo).is_feasible(C[keep], lo, hi):
+            suspects.append(omega[j])
+    freqs = ", ".join(f"{w:.6g}" for w in np.sort(omega[involved]))
+    hint = ""
+    if suspects:
+        hint = "; removing the point at " + " or ".join(f"{w:.6g}" for w in suspects) + " rad/s alone restores consistency"
     raise InconsistentDataError(
         f"mode {mode_index + 1}: no parameters within the prior fit the data points at omega = {freqs} rad/s "
-        "within their error bounds (check those measurements and bounds, or widen the prior)",
-        omegas_rad_s=np.sort(involved),
+        f"within their error bounds{hint} (check those measurements and bounds, or widen the prior)",
+        omegas_rad_s=np.sort(omega[involved]),
         mode_index=mode_index,
+        suspects_rad_s=suspects,
     )
 
 

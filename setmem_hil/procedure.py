@@ -84,10 +84,15 @@ class Procedure:
     source_path: str = ""
 
 
-def thesis_beam_prior(b1_fixed: bool = True) -> Prior:
-    """Section 6.1 prior: omega_n bounds of the first three modes, zeta <= 0.5; b1 = 0 (6.2.2)."""
+def thesis_beam_prior(b1_fixed: bool = True, b1_limit: float = 1.0) -> Prior:
+    """Section 6.1 prior: omega_n bounds of the first three modes, zeta <= 0.5; b1 = 0 (6.2.2).
+
+    With ``b1_fixed=False`` (section 6.2.1) ``b1`` is bounded by ``+-b1_limit``: a guaranteed
+    start needs some bound on it (the thesis started from an "engineering judgment" constant,
+    section 3.2.1); 1.0 is seven times wider than the thesis's final b1 intervals (Table 6-2).
+    """
     bounds = ((0.884, 1.125), (5.41, 7.34), (16.35, 19.81))
-    extra = {"b1_min": 0.0, "b1_max": 0.0} if b1_fixed else {}
+    extra = {"b1_min": 0.0, "b1_max": 0.0} if b1_fixed else {"b1_min": -b1_limit, "b1_max": b1_limit}
     return Prior(tuple(ModePrior(lo, hi, 0.5, **extra) for lo, hi in bounds))
 
 

@@ -41,7 +41,9 @@ def bootstrap_residue_bounds(data: FrequencyData, box: IntervalModel) -> Interva
     with np.errstate(divide="ignore"):
         inv_dmin = np.where(dmin > 0, 1.0 / np.where(dmin > 0, dmin, 1.0), np.inf)
 
-    b1_free = ~(lo[:, B1] == hi[:, B1])
+    # b1 with finite prior bounds enters as the known term max|b1| w; only an unbounded b1 is
+    # bounded from the data (|b1| w_ref <= beta)
+    b1_free = ~(np.isfinite(lo[:, B1]) & np.isfinite(hi[:, B1]))
     # Known modes contribute |N_l(jw)| <= max|b0| + max|b1| w as a constant.
     known_num = np.where(
         unknown[:, None], 0.0,
@@ -51,7 +53,8 @@ def bootstrap_residue_bounds(data: FrequencyData, box: IntervalModel) -> Interva
         known_term = np.where(unknown[:, None], 0.0, known_num * inv_dmin).sum(axis=0)
     unknown_idx = np.flatnonzero(unknown)
     # |N_l(jw)| <= beta_l * (1 + w / w_ref_l) for an unknown mode with free b1 (beta_l bounds |N_l(j w_ref)|)
-    fixed_b1 = np.where(b1_free, 0.0, np.abs(lo[:, B1]))
+    with np.errstate(invalid="ignore"):
+        fixed_b1 = np.where(b1_free, 0.0, np.maximum(np.abs(lo[:, B1]), np.abs(hi[:, B1])))
 
     def plan(choice):
         """Build (b, T) of beta <= b + T beta for a choice of one point per unknown mode."""
@@ -87,7 +90,7 @@ def bootstrap_residue_bounds(data: FrequencyData, box: IntervalModel) -> Interva
     if not np.isfinite(rho) or rho >= 1.0 or not np.all(np.isfinite(b)):
         raise InputFormatError(
             "prior", "[[mode]]",
-            f"cannot bound the residues from the data (mode coupling {rho:.3g} >= 1); give b0_min/b0_max for the modes",
+            f"cannot bound the residues from the data (mode coupling {rho:.3g} >= 1); give b0_min/b0_max (and b1 = 0 or b1_min/b1_max) for the modes",
         )
     beta = np.linalg.solve(np.eye(len(b)) - T, b)
     for r, k in enumerate(unknown_idx):
