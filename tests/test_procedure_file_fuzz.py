@@ -114,7 +114,8 @@ def test_documents_with_one_bad_value(path, action, value, new_key):
 def test_zz_report_fuzz_case_count():
     total = FUZZ_CASES["text"] + FUZZ_CASES["edits"] + FUZZ_CASES["documents"]
     print(f"\nprocedure parser fuzz: {total} cases ({FUZZ_CASES}); only ProcedureError escaped")
-    assert total == 0 or total >= 3 * _N  # all three fuzz tests ran their examples (0 if run alone)
+    for kind in ("text", "edits", "documents"):  # each fuzz test that ran, ran its examples
+        assert FUZZ_CASES[kind] == 0 or FUZZ_CASES[kind] >= _N // 2, FUZZ_CASES
 
 
 def test_fuzz_generators_reach_the_validator():
