@@ -62,3 +62,42 @@ class Rig(Protocol):
     def close(self) -> None:
         """Command the exciter to zero and release the device (idempotent)."""
         ...
+
+
+# --- Optional capabilities (checked with isinstance; a rig need not have them) -----------------
+
+
+@runtime_checkable
+class RateConfigurableSensor(Protocol):
+    """A sensor whose sample rate may be set per acquisition (coherent stepped-sine sampling)."""
+
+    def set_sample_rate(self, rate_hz: float) -> None:
+        ...
+
+
+@runtime_checkable
+class WaitingSensor(Protocol):
+    """A sensor that can let time pass without returning samples (settling)."""
+
+    def wait(self, duration_s: float) -> None:
+        ...
+
+
+@runtime_checkable
+class MeasurementIndexedRig(Protocol):
+    """A (simulated) rig told which measurement and attempt starts, so it can seed its noise.
+
+    Fake devices reseed their sensor noise with ``(seed, index, attempt)``; a campaign resumed
+    from its journal then measures exactly what an uninterrupted one would.
+    """
+
+    def begin_measurement(self, index: int, attempt: int = 0) -> None:
+        ...
+
+
+@runtime_checkable
+class ReconnectableRig(Protocol):
+    """A rig that can reopen its transport after a disconnect (the dwell is then re-run)."""
+
+    def reconnect(self) -> None:
+        ...

@@ -19,7 +19,7 @@ API (what a transport wrapper calls)
     Simulation control: reseeds the sensor noise with ``default_rng((seed, index, attempt))``
     and the fault draws with ``default_rng((fault_seed, index, attempt))``, and lets the
     structure come to rest (the loop's computation between dwells is modelled as long compared
-    with the slowest decay). Noise of dwell ``n`` therefore depends only on ``(seed, n,
+    with the slowest decay); the virtual clock restarts at 0. Noise of dwell ``n`` therefore depends only on ``(seed, n,
     attempt)``, so a campaign resumed from its journal measures exactly what an uninterrupted
     one would. Idempotent.
 ``core.capture(n_samples, request_id=None) -> int``
@@ -301,6 +301,7 @@ class FakeDeviceCore:
         self._noise_rng = np.random.default_rng((self.seed, self.measurement_index, self.attempt))
         self.faults.reseed(self.measurement_index, self.attempt)
         self.beam.reset()
+        self.time_s = 0.0  # the virtual clock restarts with each measurement (bit-identical resumes)
         self._buffer = SampleBlock(np.zeros(0), np.zeros(0), np.zeros(0))
         self._last_request_id = None
 

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import expm
 
+from setmem_hil.blas_threads import blas_one_thread
 from setmem_hil.modal_model import ModalParameters
 
 
@@ -113,7 +114,8 @@ class TimeDomainBeam:
             M[:n, n] = self._B[:, 0]
             M[n, n + 1] = self.omega_rad_s
             M[n + 1, n] = -self.omega_rad_s
-            phi = expm(M * dt_s)
+            with blas_one_thread():
+                phi = expm(M * dt_s)
             if len(self._phi_cache) > 64:
                 self._phi_cache.clear()
             self._phi_cache[key] = phi
