@@ -23,7 +23,10 @@ DATA_COLUMNS = ("omega", "re", "im", "bound")
 
 def parse_data_csv(text: str, source: str = "<data>") -> FrequencyData:
     """Parse the text of a data CSV; raise :class:`InputFormatError` naming line and column."""
-    rows = list(csv.reader(io.StringIO(text)))
+    try:
+        rows = list(csv.reader(io.StringIO(text, newline="")))
+    except csv.Error as exc:
+        raise InputFormatError(source, "", f"not a CSV file: {exc}") from None
     rows = [(i + 1, r) for i, r in enumerate(rows) if any(cell.strip() for cell in r)]
     if not rows:
         raise InputFormatError(source, "", f"empty file; expected header {','.join(DATA_COLUMNS)}")
