@@ -174,3 +174,21 @@ def test_every_schema_key_is_documented():
             assert f"### `{heading}`" in doc, f"table {heading} has no section in docs/procedures.md"
         else:
             assert f"| `{spec.key}` |" in doc, f"{spec.table or 'top level'} {spec.key} is not documented in docs/procedures.md"
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
+def test_format_procedure_round_trips(path):
+    from setmem_hil.procedure_file import format_procedure
+
+    p = dataclasses.replace(load_procedure(path), source_text="", source_path="")
+    q = parse_procedure_text(format_procedure(p), "<written>")
+    assert dataclasses.replace(q, source_text="") == p
+
+
+def test_format_procedure_round_trips_free_form_options():
+    from setmem_hil.procedure_file import format_procedure
+
+    text = FAULTY_LOOPBACK.replace("[safety]", 'url = "loop://"\nnested = { a = [1, 2.5], "odd key" = "x\\"y" }\n\n[backend.faults]\nrate = 0.1\n\n[safety]', 1)
+    p = dataclasses.replace(parse_procedure_text(text, SRC), source_text="")
+    q = dataclasses.replace(parse_procedure_text(format_procedure(p), SRC), source_text="")
+    assert q == p and q.backend.transport["nested"]["odd key"] == 'x"y'

@@ -1,0 +1,156 @@
+"""Live progress of a campaign on the terminal (rich), from ``run_campaign``'s progress events.
+
+Events (see :func:`setmem_hil.campaign.run_campaign`): ``"measure"`` (index, total, omega_rad_s,
+replayed) just before a dwell starts (or a stored measurement is replayed), ``"iteration"``
+(k, n_points, mu_peak, mu_peak_omega, safeguard) after each identification and analysis
+(Algorithm 5.1 steps 2-3), ``"chosen"`` (k, next_omega) after the input design (steps 5-7),
+``"finished"`` (summary).
+
+On a terminal a progress bar shows the measurements done, the dwell under way (frequency,
+planned duration when the experiment can tell, elapsed time), the iteration, the current peak of
+mu-bar and the next frequency; iteration results are printed as lines above it. Elsewhere (a
+pipe, a log file, CI) the same information is printed as plain lines, one per event.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+__all__ = ["CampaignProgress", "format_mu"]
+
+
+def format_mu(mu: float) -> str:
+    """mu-bar for humans: ``inf`` when the nominal loop is unstable."""
+    return "inf (nominal loop unstable)" if not math.isfinite(mu) else f"{mu:.4f}"
+
+
+class CampaignProgress:
+    """Callable ``progress(event, **info)`` that renders a campaign; a context manager.
+
+    Parameters
+    ----------
+    console : rich.console.Console, optional
+        Where to draw (default: stdout).
+    planned_dwell_s : callable, optional
+        ``planned_dwell_s(omega_rad_s) -> float`` (seconds) for the dwell line, e.g. from
+        :meth:`setmem_hil.drivers.sine_dwell.SineDwellExperiment.plan`.
+    on_event : callable, optional
+        Called with every event after rendering (the run command uses it to log device
+        counters to the journal).
+    live : bool, optional
+        Draw a live bar (default: when the console is a terminal).
+    """
+
+    def __init__(
+        self,
+        console: Console | None = None,
+        *,
+        planned_dwell_s: Callable[[float], float] | None = None,
+        on_event: Callable[..., None] | None = None,
+        live: bool | None = None,
+    ):
+        self.console = console or Console()
+        self.planned_dwell_s = planned_dwell_s
+        self.on_event = on_event
+        self.live = self.console.is_terminal if live is None else live
+        self.k = 0
+        self.mu_peak = math.nan
+        self.next_omega: float | None = None
+        self.replayed = 0
+        self.measured = 0
+        self.last_index = 0
+        self._progress: Progress | None = None
+        self._task = None
+
+    # -- context -------------------------------------------------------------------------
+    def __enter__(self) -> "CampaignProgress":
+        if self.live:
+            self._progress = Progress(
+                SpinnerColumn(),
+                TextColumn("{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeElapsedColumn(),
+                TextColumn("{task.fields[status]}"),
+                console=self.console,
+                transient=False,
+            )
+            self._progress.start()
+            self._task = self._progress.add_task("measurements", total=None, status="starting")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+            self._progress = None
+
+    # -- events --------------------------------------------------------------------------
+    def _status(self) -> str:
+        parts = []
+        if self.k:
+            parts.append(f"iteration {self.k}, mu-bar {format_mu(self.mu_peak)}")
+        if self.next_omega is not None:
+            parts.append(f"next {self.next_omega:.4g} rad/s")
+        return "; ".join(parts)
+
+    def _line(self, text: str) -> None:
+        self.console.print(text, highlight=False, markup=False)
+
+    def __call__(self, event: str, **info: Any) -> None:
+        if event == "measure":
+            self._measure(**info)
+        elif event == "iteration":
+            self.k = int(info.get("k", self.k))
+            self.mu_peak = float(info.get("mu_peak", math.nan))
+            safeguard = info.get("safeguard")
+            extra = f" [{safeguard}]" if safeguard and safeguard != "new-design" else ""
+            self._line(
+                f"iteration {self.k}: {info.get('n_points')} points, mu-bar peak {format_mu(self.mu_peak)}"
+                f" at {float(info.get('mu_peak_omega', math.nan)):.4g} rad/s{extra}"
+            )
+        elif event == "chosen":
+            self.next_omega = float(info["next_omega"])
+            self._line(f"iteration {info.get('k')}: next frequency {self.next_omega:.6g} rad/s")
+        elif event == "finished":
+            summary = info.get("summary")
+            if self._progress is not None and self._task is not None:
+                self._progress.update(self._task, total=self.last_index, completed=self.last_index, description="done", status=self._status())
+            if summary is not None:
+                reached = "goal reached" if getattr(summary, "reached_goal", False) else f"stopped ({getattr(summary, 'stop_reason', '?')})"
+                self._line(
+                    f"finished: {reached}; mu-bar {format_mu(float(getattr(summary, 'final_mu_peak', math.nan)))} after "
+                    f"{getattr(summary, 'experiments_added', '?')} added experiments"
+                )
+        if self.on_event is not None:
+            self.on_event(event, **info)
+
+    def _measure(self, index: int, total: int, omega_rad_s: float, replayed: bool = False, **_: Any) -> None:
+        self.last_index = int(index)
+        if replayed:
+            self.replayed += 1
+        else:
+            self.measured += 1
+        if self._progress is not None and self._task is not None:
+            if replayed:
+                desc = f"replaying stored measurement {index} ({omega_rad_s:.4g} rad/s)"
+            else:
+                planned = self._planned(omega_rad_s)
+                desc = f"dwell {index} at {omega_rad_s:.4g} rad/s" + (f" (planned {planned:.3g} s)" if planned else "")
+            self._progress.update(self._task, total=total, completed=index - 1, description=desc, status=self._status())
+        elif not replayed:
+            planned = self._planned(omega_rad_s)
+            self._line(f"dwell {index}/{total} at {omega_rad_s:.6g} rad/s" + (f" (planned {planned:.3g} s)" if planned else ""))
+        elif index == 1:
+            self._line("replaying the measurements stored in the journal")
+
+    def _planned(self, omega_rad_s: float) -> float | None:
+        if self.planned_dwell_s is None:
+            return None
+        try:
+            return float(self.planned_dwell_s(omega_rad_s))
+        except Exception:  # a display nicety must never stop a campaign
+            return None
