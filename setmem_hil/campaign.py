@@ -66,6 +66,7 @@ class IterationSummary:
     safeguard: str
     basis: str
     compute_s: float
+    compute_cpu_s: float = 0.0
 
     def to_document(self) -> dict:
         return {
@@ -77,6 +78,7 @@ class IterationSummary:
             "safeguard": self.safeguard,
             "basis": self.basis,
             "compute_s": self.compute_s,
+            "compute_cpu_s": self.compute_cpu_s,
         }
 
 
@@ -117,6 +119,7 @@ class CampaignSummary:
             "max_experiments": int(self.max_experiments),
             "stop_reason": self.stop_reason,
             "compute_s_per_iteration": self.compute_s_per_iteration,
+            "compute_cpu_s_per_iteration": float(np.mean([it.compute_cpu_s for it in self.iterations])) if self.iterations else 0.0,
             "replayed_measurements": int(self.replayed_measurements),
             **self.extra,
         }
@@ -303,7 +306,7 @@ def run_campaign(
     rows: list[IterationSummary] = []
     k, n_added = 1, 0
     while True:
-        t_it = time.perf_counter()
+        t_it, cpu_it = time.perf_counter(), time.process_time()
         data = FrequencyData.from_measurements(measured)
         try:
             result = identify(data, procedure.prior, previous=previous_model, settings=_identify_settings(procedure))
@@ -323,6 +326,7 @@ def run_campaign(
             choice = next_frequency(strategy, k, n_added, procedure, result, data, outcome, experiment, measured, seed)
         next_omega = None if choice is None else choice.next_omega_rad_s
         compute_s = time.perf_counter() - t_it
+        compute_cpu_s = time.process_time() - cpu_it
 
         if journal is not None:
             stored = stored_iterations.get(k)
@@ -360,7 +364,7 @@ def run_campaign(
         rows.append(IterationSummary(
             k=k, n_points=len(measured), mu_peak=float(outcome.mu_peak), mu_peak_omega=float(analysis.mu_peak_omega),
             next_omega=next_omega, safeguard=outcome.branch, basis="" if choice is None else choice.basis,
-            compute_s=float(compute_s),
+            compute_s=float(compute_s), compute_cpu_s=float(compute_cpu_s),
         ))
         if choice is None:
             break
