@@ -13,11 +13,16 @@ scalings returned (a certificate), whatever the optimiser's accuracy.
 Algorithm (ours): all frequencies are solved at once, vectorised over the frequency axis.
 Variables are ``y = log d`` (``y_1 = 0``) and ``g``; the nonsmooth ``lambda_max`` is replaced by
 the smooth log-sum-exp of the eigenvalues, ``f_tau = tau log sum_i exp(lambda_i / tau)``
-(``lambda_max <= f_tau <= lambda_max + tau log n``), whose gradient needs one Hermitian eigen
-decomposition (Theorem 4.2 applied to each eigenvalue, weighted by its softmax weight). It is
-minimised by BFGS with Armijo backtracking while ``tau`` is driven to ``1e-7`` of the value, starting
-from the Perron-Frobenius ``D`` of ``|M|``. Each matrix is first normalised by its largest
-singular value so that one set of tolerances fits every frequency.
+(``lambda_max <= f_tau <= lambda_max + tau log n``). Its gradient (Theorem 4.2 applied to each
+eigenvalue, weighted by its softmax weight) and its exact Hessian (divided differences of the
+softmax over the eigen-decomposition plus ``trace(W d^2 H)``) come from one Hermitian eigen
+decomposition per frequency; damped Newton steps follow ``tau`` down to ``tol`` times the value
+(a path-following scheme, as in interior-point methods). The infimum of eq. (2.15) is often
+approached along a ray (``d_k -> 0``, ``|g_k| -> inf`` for a real block, where Assumption 4.1
+fails); accepted steps are therefore extrapolated (x2, x4, ...) while the value keeps falling.
+The start is the Perron-Frobenius ``D`` of ``|M|`` with ``G = 0``. Each matrix is first normalised
+by its largest singular value so one set of tolerances fits every frequency. A BFGS variant
+(``method="bfgs"``) is kept for comparison.
 
 The certificate in the form of Lemma 2.1 (eq. 2.16, and of SLICOT AB13MD) is
 ``M^* D_L M + j (G_L M - M^* G_L) <= beta^2 D_L`` with ``D_L = D^2`` and ``G_L = D^2 G``.
@@ -28,6 +33,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+
+PARAM_H = False
+Y_LIMIT = 12.0  # |log d_k| bound for the extrapolated steps (keeps H well scaled)
 
 
 @dataclass(frozen=True)
@@ -119,12 +128,19 @@ class _Problem:
         self.n = M.shape[-1]
         self.p = structure.n_real
         self.ny = self.n - 1
+        self.param_h = PARAM_H
 
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``x = (y_2..y_n, h_1..h_p)`` -> ``(d, g)`` with ``d = exp(y)``, ``g = h / d^2``.
+
+        ``h = D^2 G`` is the ``G`` of the Lemma 2.1 form (eq. 2.16): it stays bounded where the
+        optimal ``g`` of eq. (2.15) runs off along ``d_k -> 0``, which keeps Newton's steps short.
+        """
         K = x.shape[0]
         y = np.concatenate([np.zeros((K, 1)), x[:, : self.ny]], axis=1)
         g = np.zeros((K, self.n))
-        g[:, : self.p] = x[:, self.ny :]
+        h = x[:, self.ny :]
+        g[:, : self.p] = h * np.exp(-2.0 * y[:, : self.p]) if self.param_h else h
         return np.exp(y), g
 
     def eig(self, x: np.ndarray, idx: np.ndarray):
@@ -142,21 +158,7 @@ class _Problem:
         return top + tau * np.log(np.exp((lam - top[:, None]) / tau[:, None]).sum(axis=1)), top
 
     def value_grad(self, x, idx, tau):
-        lam, U, MD, g = self.eig(x, idx)
-        top = lam[:, -1]
-        e = np.exp((lam - top[:, None]) / tau[:, None])
-        s = e.sum(axis=1)
-        f = top + tau * np.log(s)
-        w = e / s[:, None]  # softmax weights of the eigenvalues
-        V = MD @ U
-        MDh = np.conj(np.swapaxes(MD, -1, -2))
-        W = MDh @ V
-        Z = MDh @ (g[:, :, None] * U)
-        Uc = np.conj(U)
-        # d lambda_i / d y_k (eq. 4.27 per eigenvalue) and d lambda_i / d g_k
-        dy = 2.0 * (np.abs(V) ** 2 - np.real(np.conj(W) * U)) - 2.0 * np.imag(g[:, :, None] * Uc * V - np.conj(Z) * U)
-        dg = -2.0 * np.imag(Uc[:, : self.p, :] * V[:, : self.p, :])
-        grad = np.concatenate([np.einsum("kji,ki->kj", dy[:, 1:, :], w), np.einsum("kji,ki->kj", dg, w)], axis=1)
+        f, top, grad, _ = _smoothed_derivatives(self, x, idx, tau, hessian=False)
         return f, top, grad
 
 
@@ -165,6 +167,7 @@ def mixed_mu_upper(
     structure: MuStructure,
     tol: float = 1e-7,
     max_iter: int = 400,
+    method: str = "newton",
 ) -> MixedMuBound:
     """Mixed-mu upper bound (Definition 2.2) for a stack of matrices, all solved at once.
 
@@ -206,7 +209,7 @@ def mixed_mu_upper(
     nv = prob.ny + prob.p
     x = np.concatenate([_perron_start(Mn)[:, 1:], np.zeros((K, prob.p))], axis=1)
     if nv > 0:
-        x = _bfgs(prob, x, tol, max_iter)
+        x = _newton(prob, x, tol, max_iter) if method == "newton" else _bfgs(prob, x, tol, max_iter)
     d, g = prob.unpack(x)
     lam, U, _, _ = prob.eig(x, np.arange(K))
     lam = lam[:, ::-1] * (scale**2)[:, None]
@@ -256,6 +259,7 @@ def _bfgs(prob: _Problem, x: np.ndarray, tol: float, max_iter: int) -> np.ndarra
             fn_t, top_t = prob.value(xn[t], idx[t], ta[t])
             fn[t], topn[t] = fn_t, top_t
             todo[t] = fn_t > fa[t] + 1e-4 * step[t] * slope[t]
+        _expand_steps(prob, xa, dirn, idx, ta, xn, fn, topn, (step == 1.0) & ~todo)
         fn, topn, gn = prob.value_grad(xn, idx, ta)
         s = xn - xa
         yv = gn - ga
@@ -283,4 +287,176 @@ def _bfgs(prob: _Problem, x: np.ndarray, tol: float, max_iter: int) -> np.ndarra
                 tau[more] = np.maximum(tau[more] * 0.1, tau_final)
                 stall[more] = 0
                 f[more], _, gr[more] = prob.value_grad(x[more], more, tau[more])
+    return best_x
+
+
+def _expand_steps(prob, xa, dirn, idx, ta, xn, fn, topn, accepted, factors=(2.0, 4.0, 8.0, 16.0, 32.0)):
+    """Try longer steps where the full step was accepted: the infimum of eq. (2.15) is often
+    approached along a ray (``d_k -> 0``, ``|g_k| -> inf`` for a real block), where Newton and
+    BFGS otherwise creep. Keeps the best value found (in place)."""
+    a = np.flatnonzero(accepted)
+    if a.size == 0:
+        return
+    for fac in factors:
+        xt = xa[a] + fac * dirn[a]
+        if prob.ny:
+            ok = np.abs(xt[:, : prob.ny]).max(axis=1) < Y_LIMIT
+            if not np.any(ok):
+                break
+        else:
+            ok = np.ones(a.size, dtype=bool)
+        with np.errstate(all="ignore"):
+            try:
+                ft, tt = prob.value(xt, idx[a], ta[a])
+            except np.linalg.LinAlgError:
+                break
+        better = ok & np.isfinite(ft) & (ft < fn[a])
+        if not np.any(better):
+            break
+        b = a[better]
+        xn[b], fn[b], topn[b] = xt[better], ft[better], tt[better]
+        a = b
+
+
+def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: np.ndarray, hessian: bool = True):
+    """Value, gradient and exact Hessian of ``f_tau = tau log sum exp(lambda_i / tau)``.
+
+    The first-order part uses the divided differences of the softmax weights over the
+    eigen-decomposition (Daleckii-Krein); the second-order part is ``trace(W d^2 H)`` with the
+    softmax matrix ``W = U diag(w) U^*``.
+    """
+    lam, U, MD, g = prob.eig(x, idx)
+    K, n = lam.shape
+    p = prob.p
+    top = lam[:, -1]
+    e = np.exp((lam - top[:, None]) / tau[:, None])
+    s = e.sum(axis=1)
+    f = top + tau * np.log(s)
+    w = e / s[:, None]
+    MDh = np.conj(np.swapaxes(MD, -1, -2))
+    V = MD @ U
+    W = MDh @ V
+    Z = MDh @ (g[:, :, None] * U)
+    Uc, Vc = np.conj(U), np.conj(V)
+    # E_a = U^* (dH / dx_a) U = X_a + X_a^* for every variable a, with rank-one-sum X_a built
+    # from rows k of U, V = M_D U, W = M_D^* V, Z = M_D^* G U (y_k) and of U, V (g_k)
+    a = Vc + 1j * g[:, :, None] * Uc
+    b = np.conj(W) + 1j * np.conj(Z)
+    X = np.empty((K, n - 1 + p, n, n), dtype=complex)
+    X[:, : n - 1] = a[:, 1:, :, None] * V[:, 1:, None, :] - b[:, 1:, :, None] * U[:, 1:, None, :]
+    X[:, n - 1 :] = 1j * Uc[:, :p, :, None] * V[:, :p, None, :]
+    E = X + np.conj(np.swapaxes(X, -1, -2))  # (K, nv, n, n)
+    grad_yg = (np.diagonal(E, axis1=2, axis2=3).real * w[:, None, :]).sum(axis=2)
+    # chain rule to x = (y, h), g_k = h_k exp(-2 y_k)
+    ny = n - 1
+    nv = ny + p
+    e2 = np.exp(-2.0 * np.log(prob.unpack(x)[0][:, :p]))  # exp(-2 y_k), k < p
+    J = np.broadcast_to(np.eye(nv), (K, nv, nv)).copy()
+    kk = np.arange(1, p)
+    if prob.param_h:
+        J[:, ny + kk, kk - 1] = -2.0 * g[:, kk]
+        J[:, ny + np.arange(p), ny + np.arange(p)] = e2
+        grad = np.einsum("kij,ki->kj", J, grad_yg)
+    else:
+        grad = grad_yg
+    if not hessian:
+        return f, top, grad, None
+    # divided differences of the softmax: Gamma_ij = (w_i - w_j) / (lambda_i - lambda_j)
+    dl = lam[:, :, None] - lam[:, None, :]
+    adl = np.abs(dl)
+    whi = np.where(dl >= 0, w[:, :, None], w[:, None, :])
+    t = tau[:, None, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        Gam = np.where(adl > 1e-12 * t, whi * (-np.expm1(-adl / t)) / np.where(adl > 0, adl, 1.0), whi / t)
+    Er = np.concatenate([E.real.reshape(K, nv, n * n), E.imag.reshape(K, nv, n * n)], axis=2)
+    G2 = np.concatenate([Gam.reshape(K, 1, n * n)] * 2, axis=2)
+    H1 = Er @ np.swapaxes(Er * G2, 1, 2)
+    H1 -= grad_yg[:, :, None] * grad_yg[:, None, :] / tau[:, None, None]
+    # trace(Ws d^2 H)
+    Ws = (U * w[:, None, :]) @ np.conj(np.swapaxes(U, -1, -2))
+    Ws = 0.5 * (Ws + np.conj(np.swapaxes(Ws, -1, -2)))
+    eye = np.eye(n)
+
+    def phi(P):
+        return (P.sum(axis=2) + P.sum(axis=1))[:, :, None] * eye - P - np.swapaxes(P, 1, 2)
+
+    Q = Ws @ MDh
+    P1 = np.swapaxes(Q, 1, 2) * MD
+    P2 = np.swapaxes(Ws, 1, 2) * g[:, :, None] * MD
+    # trace(C_l Ws C_k^*) with C_l = dM_D / dy_l = e_l M_D[l, :] - M_D[:, l] e_l^T, in n x n products
+    MWs = MD @ Ws
+    MDt = np.swapaxes(MD, 1, 2)
+    Tb = (
+        np.einsum("kij,kij->ki", MWs, np.conj(MD))[:, :, None] * eye
+        - MDt * Q
+        - np.conj(MD) * MWs
+        + np.swapaxes(MDh @ MD, 1, 2) * Ws
+    )
+    Hyy = 2.0 * np.real(phi(P1)) + 2.0 * np.real(Tb) - 2.0 * np.imag(phi(P2))
+    Hyg = -2.0 * np.imag(np.diagonal(MWs, axis1=1, axis2=2)[:, :, None] * eye - np.swapaxes(MD, 1, 2) * Ws)
+    H2 = np.zeros((K, nv, nv))
+    ny = n - 1
+    H2[:, :ny, :ny] = Hyy[:, 1:, 1:]
+    H2[:, :ny, ny:] = Hyg[:, 1:, :p]
+    H2[:, ny:, :ny] = np.swapaxes(Hyg[:, 1:, :p], 1, 2)
+    Hs = H1 + H2
+    if not prob.param_h:
+        return f, top, grad, 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
+    Hs = np.swapaxes(J, 1, 2) @ Hs @ J
+    fg = grad_yg[:, ny:]
+    Hs[:, kk - 1, kk - 1] += 4.0 * fg[:, kk] * g[:, kk]
+    Hs[:, kk - 1, ny + kk] += -2.0 * fg[:, kk] * e2[:, kk]
+    Hs[:, ny + kk, kk - 1] += -2.0 * fg[:, kk] * e2[:, kk]
+    return f, top, grad, 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
+
+
+def _newton(prob: _Problem, x: np.ndarray, tol: float, max_iter: int) -> np.ndarray:
+    """Damped Newton on the smoothed ``lambda_max`` while ``tau`` follows a path down to ``tol``."""
+    K, nv = x.shape
+    allidx = np.arange(K)
+    _, top0, _, _ = _smoothed_derivatives(prob, x, allidx, np.ones(K), hessian=False)
+    tau = 0.05 * np.maximum(top0, 1e-12)
+    best_x, best_top = x.copy(), top0.copy()
+    active = np.ones(K, dtype=bool)
+    for _ in range(max_iter):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        xa, ta = x[idx], tau[idx]
+        f, top, gr, Hs = _smoothed_derivatives(prob, xa, idx, ta)
+        ev, evec = np.linalg.eigh(Hs)
+        scale = np.maximum(np.abs(ev).max(axis=1), 1e-300)
+        ev = np.maximum(ev, 1e-10 * scale[:, None]) + 1e-12 * scale[:, None]  # make positive definite
+        dirn = -np.einsum("kij,kj,klj,kl->ki", evec, 1.0 / ev, evec, gr)
+        dec = -np.einsum("ki,ki->k", dirn, gr)  # Newton decrement squared
+        ymax = np.abs(dirn[:, : prob.ny]).max(axis=1) if prob.ny else np.zeros(idx.size)
+        dirn *= np.minimum(1.0, 4.0 / np.maximum(ymax, 1e-300))[:, None]  # keep exp(y) finite
+        slope = np.einsum("ki,ki->k", dirn, gr)
+        step = np.ones(idx.size)
+        xn = xa + dirn
+        fn, topn = prob.value(xn, idx, ta)
+        todo = ~(fn <= f + 1e-4 * slope)
+        for _ls in range(40):
+            if not np.any(todo):
+                break
+            step[todo] *= 0.5
+            tt = np.flatnonzero(todo)
+            xn[tt] = xa[tt] + step[tt, None] * dirn[tt]
+            fn[tt], topn[tt] = prob.value(xn[tt], idx[tt], ta[tt])
+            todo[tt] = ~(fn[tt] <= f[tt] + 1e-4 * step[tt] * slope[tt])
+        _expand_steps(prob, xa, dirn, idx, ta, xn, fn, topn, step == 1.0)
+        failed = todo  # no decrease found: treat the stage as converged
+        xn[failed] = xa[failed]
+        topn[failed] = top[failed]
+        x[idx] = xn
+        improved = topn < best_top[idx]
+        best_top[idx[improved]] = topn[improved]
+        best_x[idx[improved]] = xn[improved]
+        # stage converged when the decrement is small against tau; then shrink tau
+        conv = (dec <= 1e-2 * ta) | failed
+        c = idx[conv]
+        final = c[tau[c] <= tol * np.maximum(best_top[c], 1e-300) * 1.0001]
+        active[final] = False
+        nxt = c[tau[c] > tol * np.maximum(best_top[c], 1e-300) * 1.0001]
+        tau[nxt] = np.maximum(0.1 * tau[nxt], tol * best_top[nxt])
     return best_x
