@@ -21,7 +21,8 @@ One :meth:`SineDwellExperiment.measure` call (a *dwell*):
    uncertainty (chi-square test at ``settle_confidence``); otherwise the window is extended
    (up to ``safety.max_dwell_s``);
 6. returns ``g(j omega) = Y_response / Y_force`` with the absolute bound
-   ``R = radius(confidence) + transient term + extra_bound(omega)`` (eq. 3.7: the identification
+   ``R = radius(confidence) + transient terms + extra_bound(omega)`` (transient terms: the
+   fixed poles' worst case and ``mismatch_factor`` times the halves' difference) (eq. 3.7: the identification
    needs ``|g - g_0| <= R``), and stops the exciter, also on every abort path.
 
 Faults: a :class:`setmem_hil.errors.DataQualityError` discards the dwell and re-measures; a
@@ -93,6 +94,8 @@ class DwellSettings:
     min_samples_per_period : int
     min_periods : int
         Shortest fit window, in excitation periods.
+    min_window_s : float
+        Shortest fit window in seconds (lets unmodelled fast modes ring down and be resolved).
     separation_cycles : float
         Fit window of at least this many beat periods ``2 pi / |omega - omega_k|`` with the
         nearest modelled mode (so its ringing is separable from the steady state).
@@ -109,6 +112,9 @@ class DwellSettings:
         Times the window may be extended when the halves disagree.
     max_attempts : int
         Dwells tried per measurement (discarded data, device faults) before giving up.
+    mismatch_factor : float
+        The bound includes ``mismatch_factor * |g_first_half - g_second_half|`` (transient
+        mismatch: unmodelled modes and pole errors that the fitted covariance misses).
     unmodelled_band : float
         A further transient pole (an unmodelled mode) is searched in ``omega / b .. omega b``.
     fixed_pole_phase_limit : float
@@ -121,6 +127,7 @@ class DwellSettings:
     max_samples: int = 2048
     min_samples_per_period: int = 6
     min_periods: int = 12
+    min_window_s: float = 10.0
     separation_cycles: float = 2.0
     max_window_s: float = 120.0
     skip_periods: float = 2.0
@@ -131,6 +138,7 @@ class DwellSettings:
     max_attempts: int = 5
     fixed_pole_phase_limit: float = 0.05
     unmodelled_band: float = 1.5
+    mismatch_factor: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -248,12 +256,12 @@ class SineDwellExperiment:
         s = self.settings
         w = float(omega_rad_s)
         period = 2 * math.pi / w
-        window = s.min_periods * period
+        window = max(s.min_periods * period, s.min_window_s)
         for band in pole_bands(self.model):
             gap = max(band.omega_min_rad_s - w, w - band.omega_max_rad_s, abs(w - band.guess.omega_d_rad_s) * 0.5, 0.0)
             gap = max(gap, 1e-9)
             window = max(window, s.separation_cycles * 2 * math.pi / gap)
-        window = min(window, max(s.max_window_s, s.min_periods * period))
+        window = min(window, max(s.max_window_s, s.min_periods * period, s.min_window_s))
         rate = s.samples_per_period / period
         if rate * window > s.max_samples:
             rate = max(s.max_samples / window, s.min_samples_per_period / period)
@@ -390,6 +398,7 @@ class SineDwellExperiment:
         h, cov = phasor_ratio(rfit, ffit)
         # settling: the halves must agree within their uncertainty
         half = t.size // 2
+        mismatch = 0.0
         if half >= 16 and rfit.n_params < half - 4:
             ra = fit_sine(t[:half], y[:half], w, rfit.poles, t_ref_s=t_ref)
             rb = fit_sine(t[half:], y[half:], w, rfit.poles, t_ref_s=t_ref)
@@ -405,9 +414,13 @@ class SineDwellExperiment:
                 stat = math.inf
             if stat > -2.0 * math.log1p(-self.settings.settle_confidence):
                 return None
+            # transient-mismatch term: what remains of an unmodelled or mis-modelled transient
+            # shows as a difference between the halves (the later half has less of it)
+            mismatch = self.settings.mismatch_factor * abs(ha - hb)
         radius = confidence_radius(cov, self.settings.confidence)
         t_term = transient_term / abs(ffit.phasor)
         extra = float(self.extra_bound(w)) if self.extra_bound is not None else 0.0
+        t_term += mismatch
         bound = radius + t_term + extra
         if not (math.isfinite(bound) and math.isfinite(h.real) and math.isfinite(h.imag)):
             raise DataQualityError(f"dwell at {w:g} rad/s: non-finite estimate")
