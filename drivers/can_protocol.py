@@ -13,6 +13,7 @@ Identifiers (``node`` = device node id, 1..127):
 ``0x280 + node``   device -> host      reply ``[op][seq][status][value u32][crc]``
 ``0x300 + node``   device -> host      force sample ``[acq][index u16][value i32][crc]``
 ``0x380 + node``   device -> host      response sample (same layout)
+``0x400 + node``   device -> host      sample time stamp (same layout, value = us since block start)
 ``0x700 + node``   device -> host      heartbeat ``[state][flags][counter][tick u32][crc]``
 ``0x77F``          host -> device      host heartbeat ``[counter][0 * 6][crc]``
 =================  ==================  =========================================
@@ -35,6 +36,7 @@ COMMAND_BASE = 0x200
 REPLY_BASE = 0x280
 FORCE_DATA_BASE = 0x300
 RESPONSE_DATA_BASE = 0x380
+TIME_DATA_BASE = 0x400
 HEARTBEAT_BASE = 0x700
 HOST_HEARTBEAT_ID = 0x77F
 MAX_NODE = 0x7F
@@ -44,6 +46,9 @@ AMPLITUDE_LSB_N = 1e-6
 RANGE_LSB = 1e-6  # force range (N) and response range (response unit) in GET_INFO
 SAMPLE_RATE_LSB_HZ = 1e-3
 SAMPLE_FULL_SCALE = 2**31 - 1
+INVALID_SAMPLE = -(2**31)  # a sample the DAQ marks invalid (NaN); decodes to NaN
+BLOCK_START_LSB_S = 1e-5  # START_ACQUISITION reply value: block start on the device clock
+TIME_OFFSET_LSB_S = 1e-6  # time-stamp frames: offset from the block start
 MAX_BLOCK_SAMPLES = 0xFFFF
 U32_MAX = 0xFFFFFFFF
 
@@ -59,6 +64,8 @@ class Opcode(enum.IntEnum):
     GET_INFO = 0x06  # arg: InfoItem; reply value: the item
     STOP = 0x07  # zero output now and disable (emergency stop, always accepted)
     ACQUISITION_COMPLETE = 0x08  # unsolicited reply: seq = acquisition id, value = samples sent
+    SET_SAMPLE_RATE = 0x09  # arg: sample rate, mHz
+    BEGIN_MEASUREMENT = 0x0A  # arg: measurement index; aux: attempt (simulation control, see docs)
 
 
 class InfoItem(enum.IntEnum):
@@ -157,14 +164,36 @@ def scale_unsigned(value: float, lsb: float, name: str) -> int:
 
 
 def sample_to_counts(value: float, full_range: float) -> int:
-    """Quantise a sample to i32 counts of ``full_range / 2**31``, saturating at full scale."""
-    counts = round(value / full_range * SAMPLE_FULL_SCALE) if value == value else 0
-    return int(max(-SAMPLE_FULL_SCALE, min(SAMPLE_FULL_SCALE, counts)))
+    """Quantise a sample to i32 counts of ``full_range / (2**31 - 1)``.
+
+    Values beyond the range (and infinities) saturate at full scale, as a clipping ADC does;
+    NaN becomes :data:`INVALID_SAMPLE`.
+    """
+    value = float(value)
+    if value != value:
+        return INVALID_SAMPLE
+    if value >= full_range:
+        return SAMPLE_FULL_SCALE
+    if value <= -full_range:
+        return -SAMPLE_FULL_SCALE
+    return int(max(-SAMPLE_FULL_SCALE, min(SAMPLE_FULL_SCALE, round(value / full_range * SAMPLE_FULL_SCALE))))
 
 
 def counts_to_sample(counts: int, full_range: float) -> float:
-    """Inverse of :func:`sample_to_counts` (exact to one least significant bit)."""
+    """Inverse of :func:`sample_to_counts` (to one least significant bit); invalid -> NaN."""
+    if counts == INVALID_SAMPLE:
+        return float("nan")
     return counts * full_range / SAMPLE_FULL_SCALE
+
+
+def encode_block_start(t_s: float) -> int:
+    """Block start time (device clock, s) as u32 counts of 10 us, wrapping after ~11.9 h."""
+    return int(round(float(t_s) / BLOCK_START_LSB_S)) & U32_MAX
+
+
+def time_offset_to_counts(dt_s: float) -> int:
+    """Offset of a sample from its block start as i32 microseconds (saturating)."""
+    return int(max(-SAMPLE_FULL_SCALE, min(SAMPLE_FULL_SCALE, round(float(dt_s) / TIME_OFFSET_LSB_S))))
 
 
 # --- frames ----------------------------------------------------------------------------------
@@ -191,7 +220,7 @@ class Reply:
 
 @dataclass(frozen=True)
 class SampleFrame:
-    """One sample of one channel (``channel`` is ``"force"`` or ``"response"``)."""
+    """One sample of one channel (``"force"``, ``"response"`` or ``"time"``)."""
 
     channel: str
     acquisition_id: int
@@ -254,12 +283,12 @@ def encode_reply(node: int, reply: Reply) -> tuple[int, bytes]:
 
 def encode_sample(node: int, sample: SampleFrame) -> tuple[int, bytes]:
     _check_node(node)
-    base = {"force": FORCE_DATA_BASE, "response": RESPONSE_DATA_BASE}.get(sample.channel)
+    base = {"force": FORCE_DATA_BASE, "response": RESPONSE_DATA_BASE, "time": TIME_DATA_BASE}.get(sample.channel)
     if base is None:
-        raise ValueError(f"sample channel: expected 'force' or 'response', found {sample.channel!r}")
+        raise ValueError(f"sample channel: expected 'force', 'response' or 'time', found {sample.channel!r}")
     if not 0 <= sample.index <= 0xFFFF:
         raise ValueError(f"sample index: expected 0..65535, found {sample.index}")
-    if not -SAMPLE_FULL_SCALE - 1 <= sample.counts <= SAMPLE_FULL_SCALE:
+    if not INVALID_SAMPLE <= sample.counts <= SAMPLE_FULL_SCALE:
         raise ValueError(f"sample counts: expected an i32, found {sample.counts}")
     body = struct.pack("<BHi", _u8("acquisition id", sample.acquisition_id), sample.index, sample.counts)
     return base + node, _seal(base + node, body)
@@ -318,6 +347,7 @@ def decode_frame(
         REPLY_BASE + node: "reply",
         FORCE_DATA_BASE + node: "force sample",
         RESPONSE_DATA_BASE + node: "response sample",
+        TIME_DATA_BASE + node: "time sample",
         HEARTBEAT_BASE + node: "heartbeat",
         HOST_HEARTBEAT_ID: "host heartbeat",
     }
@@ -339,7 +369,7 @@ def decode_frame(
         if status not in ReplyStatus._value2member_map_:
             raise FrameError(f"CAN reply frame 0x{arbitration_id:03X}: unknown status {status}")
         return Reply(Opcode(opcode), seq, ReplyStatus(status), value)
-    if what in ("force sample", "response sample"):
+    if what in ("force sample", "response sample", "time sample"):
         acq, index, counts = struct.unpack("<BHi", data[:7])
         return SampleFrame(what.split()[0], acq, index, counts)
     if what == "heartbeat":

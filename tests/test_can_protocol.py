@@ -134,3 +134,14 @@ def test_every_single_bit_flip_of_a_sample_frame_is_detected(acq, index, counts,
     # a CRC-8 with polynomial 0x07 detects every single-bit error
     with pytest.raises(FrameError):
         cp.decode_frame(NODE, arb, bytes(corrupted))
+
+
+def test_invalid_and_out_of_range_samples_keep_their_meaning_on_the_wire():
+    assert cp.sample_to_counts(float("nan"), 10.0) == cp.INVALID_SAMPLE
+    assert cp.counts_to_sample(cp.INVALID_SAMPLE, 10.0) != cp.counts_to_sample(cp.INVALID_SAMPLE, 10.0)  # NaN
+    assert cp.counts_to_sample(cp.sample_to_counts(float("inf"), 10.0), 10.0) == 10.0  # clipped at full scale
+    assert cp.counts_to_sample(cp.sample_to_counts(-12.0, 10.0), 10.0) == -10.0
+    arb, data = cp.encode_sample(NODE, cp.SampleFrame("time", 1, 2, cp.time_offset_to_counts(0.0123456)))
+    assert arb == 0x421
+    assert cp.decode_frame(NODE, arb, data).counts == 12346
+    assert cp.encode_block_start(1.23456) == 123456

@@ -1,0 +1,531 @@
+"""CAN front-end: a :class:`~setmem_hil.drivers.protocols.Rig` speaking ``can_wire_format.md``.
+
+:class:`CanLink` is the host side of the wire format: it sends commands with a sequence number,
+waits for the matching reply with bounded retries and backoff (every command is safe to
+repeat: arguments are absolute and the device answers a repeated sequence number without
+acting twice), discards frames that fail to decode (CRC, length, opcode: counted, never used),
+discards duplicates and stale frames (by acquisition id and sample index), assembles sample
+blocks in any arrival order, asks for ``RESEND`` of missing samples, and reopens the bus after
+bus-off or a ``can.CanOperationError``.
+
+:class:`CanRig` adds the exciter (limits checked before sending, via
+:func:`~setmem_hil.drivers.fieldbus_common.check_sine_command`) and the sensor, and commands
+zero on every abort path and at exit. :func:`open_can_virtual_rig` starts the fake device on a
+uniquely named python-can ``virtual`` channel and returns a rig that owns it.
+
+The measured samples feed the sine-dwell estimate of one frequency-response point (thesis
+eq. 3.1); nothing here depends on the thesis' identification.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import uuid
+from typing import Callable
+
+import can
+import numpy as np
+
+from setmem_hil.drivers import can_protocol as cp
+from setmem_hil.drivers.fieldbus_common import (
+    RetryPolicy,
+    SafeShutdown,
+    TransportStats,
+    check_duration,
+    check_sine_command,
+    sleep_s,
+)
+from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
+from setmem_hil.errors import DeviceError, DeviceTimeoutError, FrameError
+
+
+HOST_HEARTBEAT_PERIOD_S = 0.5
+
+
+class _BusDown(Exception):
+    """Internal: the host's bus went bus-off or raised CanOperationError."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CanSettings:
+    """Host-side settings of the CAN link (``procedure.backend.transport`` keys of the same names).
+
+    Parameters
+    ----------
+    node : int
+        Device node id.
+    retry : RetryPolicy
+        Command retries.
+    gap_timeout_s : float
+        Silence during a block after which missing samples are requested again.
+    max_resend_rounds : int
+        Rounds of ``RESEND`` before a block is given up (DeviceError).
+    max_block_samples : int
+        Samples per ``START_ACQUISITION`` (longer acquisitions are split; the device clock
+        runs on, so consecutive blocks are contiguous).
+    max_reconnects : int
+        Bus reopenings per request before giving up.
+    """
+
+    node: int = 0x21
+    retry: RetryPolicy = RetryPolicy()
+    gap_timeout_s: float = 0.2
+    max_resend_rounds: int = 12
+    max_block_samples: int = 8192
+    max_reconnects: int = 5
+
+
+class _Assembly:
+    """Samples of one block by index and channel; duplicates and other blocks are dropped."""
+
+    CHANNELS = ("time", "force", "response")
+
+    def __init__(self, acq_id: int, n: int):
+        self.acq_id = acq_id
+        self.n = n
+        self.values = {ch: np.zeros(n, dtype=np.int64) for ch in self.CHANNELS}
+        self.have = {ch: np.zeros(n, dtype=bool) for ch in self.CHANNELS}
+        self.complete_seen = False
+
+    def add(self, frame: cp.SampleFrame, stats: TransportStats) -> None:
+        if frame.acquisition_id != self.acq_id or frame.index >= self.n:
+            stats.add("stale_frames_discarded")
+            return
+        if self.have[frame.channel][frame.index]:
+            stats.add("duplicate_frames_discarded")
+            return
+        self.values[frame.channel][frame.index] = frame.counts
+        self.have[frame.channel][frame.index] = True
+
+    def missing(self) -> np.ndarray:
+        ok = self.have["time"] & self.have["force"] & self.have["response"]
+        return np.flatnonzero(~ok)
+
+
+def _runs(indices: np.ndarray, merge_gap: int = 16) -> list[tuple[int, int]]:
+    """Contiguous ``(first, count)`` runs covering ``indices`` (gaps up to merge_gap merged)."""
+    runs: list[tuple[int, int]] = []
+    for i in indices.tolist():
+        if runs and i - (runs[-1][0] + runs[-1][1]) <= merge_gap:
+            first, _ = runs[-1]
+            runs[-1] = (first, i - first + 1)
+        else:
+            runs.append((i, 1))
+    return [(f, min(c, 0xFFFF)) for f, c in runs]
+
+
+class CanLink:
+    """Host side of the CAN wire format over any python-can bus.
+
+    Parameters
+    ----------
+    bus_factory : callable
+        Returns a new open bus; called at start and after bus-off.
+    settings : CanSettings
+    where : str
+        Names the link in error messages (channel and node).
+    """
+
+    def __init__(self, bus_factory: Callable[[], can.BusABC], settings: CanSettings = CanSettings(), where: str = "CAN"):
+        self._bus_factory = bus_factory
+        self.settings = settings
+        self.where = where
+        self.stats = TransportStats()
+        self._seq = 0
+        self._acq_id = 0
+        self._assembly: _Assembly | None = None
+        self.last_heartbeat: cp.Heartbeat | None = None
+        self._last_host_heartbeat = time.monotonic()
+        self._hb_counter = 0
+        self._bus: can.BusABC | None = bus_factory()
+
+    # -- bus ---------------------------------------------------------------------------------------
+    def close(self) -> None:
+        if self._bus is not None:
+            try:
+                self._bus.shutdown()
+            finally:
+                self._bus = None
+
+    def _reconnect(self) -> None:
+        self.stats.add("reconnects")
+        if self._bus is not None:
+            try:
+                self._bus.shutdown()
+            except Exception:  # a bus that failed may fail to shut down too
+                pass
+            self._bus = None
+        self._bus = self._bus_factory()
+
+    def _send(self, arbitration_id: int, data: bytes) -> None:
+        if self._bus is None:
+            raise DeviceError(f"{self.where}: link is closed")
+        try:
+            self._bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False))
+        except can.CanError as exc:
+            raise _BusDown(str(exc)) from exc
+
+    def _recv(self, timeout_s: float):
+        """One decoded frame or None on timeout; bad frames are counted and skipped.
+
+        Also sends the host heartbeat (``0x77F``) every ``HOST_HEARTBEAT_PERIOD_S`` while the
+        host is listening, so the device's watchdog sees a live host during long blocks.
+        """
+        if self._bus is None:
+            raise DeviceError(f"{self.where}: link is closed")
+        now = time.monotonic()
+        if now - self._last_host_heartbeat > HOST_HEARTBEAT_PERIOD_S:
+            self._last_host_heartbeat = now
+            self._hb_counter = (self._hb_counter + 1) & 0xFF
+            self._send(*cp.encode_host_heartbeat(self._hb_counter))
+        try:
+            msg = self._bus.recv(timeout=max(timeout_s, 0.0))
+        except can.CanError as exc:  # CanOperationError: controller fault, bus-off
+            self.stats.add("bus_errors")
+            raise _BusDown(str(exc)) from exc
+        if msg is None:
+            return None
+        try:
+            frame = cp.decode_frame(
+                self.settings.node, msg.arbitration_id, bytes(msg.data), is_error_frame=msg.is_error_frame,
+                is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+            )
+        except FrameError as exc:
+            self.stats.add("crc_errors" if "CRC" in str(exc) else "malformed_frames")
+            return False
+        if isinstance(frame, cp.ErrorFrame):
+            if frame.bus_off:
+                self.stats.add("bus_off")
+                raise _BusDown("bus-off error frame")
+            self.stats.add("error_frames")
+            return False
+        if isinstance(frame, cp.Heartbeat):
+            self.last_heartbeat = frame
+            return False
+        if isinstance(frame, cp.SampleFrame):
+            if self._assembly is not None:
+                self._assembly.add(frame, self.stats)
+            else:
+                self.stats.add("stale_frames_discarded")
+            return frame
+        return frame
+
+    # -- commands ----------------------------------------------------------------------------------
+    def request(self, opcode: cp.Opcode, arg: int = 0, aux: int = 0, *, what: str) -> cp.Reply:
+        """Send a command and return its OK reply.
+
+        Raises
+        ------
+        DeviceError
+            The device rejected the command (status names why) or the bus could not be reopened.
+        DeviceTimeoutError
+            No valid reply after every retry.
+        """
+        self._seq = (self._seq + 1) & 0xFF
+        command = cp.Command(opcode, self._seq, arg, aux)
+        arb, data = cp.encode_command(self.settings.node, command)
+        policy = self.settings.retry
+        reconnects = 0
+        t_start = time.monotonic()
+        for attempt, delay in enumerate(policy.delays()):
+            sleep_s(delay)
+            if attempt:
+                self.stats.add("retries")
+            try:
+                self._send(arb, data)
+                reply = self._wait_reply(command, policy.reply_timeout_s)
+            except _BusDown:
+                reconnects += 1
+                if reconnects > self.settings.max_reconnects:
+                    raise DeviceError(f"{self.where}: bus down {reconnects} times during {what}; giving up") from None
+                self._reconnect()
+                continue
+            if reply is None:
+                self.stats.add("timeouts")
+                continue
+            if reply.status == cp.ReplyStatus.BUSY:
+                self.stats.add("busy_replies")
+                continue
+            if reply.status != cp.ReplyStatus.OK:
+                raise DeviceError(
+                    f"{self.where}: device rejected {what} (opcode 0x{int(opcode):02X}, arg {arg}) with status "
+                    f"{cp.ReplyStatus(reply.status).name} (value {reply.value})"
+                )
+            return reply
+        raise DeviceTimeoutError(
+            f"{self.where}: no valid reply to {what} after {policy.max_attempts} attempts "
+            f"({time.monotonic() - t_start:.2f} s, reply timeout {policy.reply_timeout_s:g} s)"
+        )
+
+    def _wait_reply(self, command: cp.Command, timeout_s: float) -> cp.Reply | None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            frame = self._recv(left)
+            if frame is None:
+                return None
+            if isinstance(frame, cp.Reply):
+                if frame.opcode == cp.Opcode.ACQUISITION_COMPLETE:
+                    self._note_complete(frame)
+                elif frame.opcode == command.opcode and frame.seq == command.seq:
+                    return frame
+                else:
+                    self.stats.add("stale_replies_discarded")
+
+    def _note_complete(self, frame: cp.Reply) -> None:
+        if self._assembly is not None and frame.seq == self._assembly.acq_id:
+            self._assembly.complete_seen = True
+        else:
+            self.stats.add("stale_replies_discarded")
+
+    def _collect(self) -> None:
+        """Read frames until the block's ACQUISITION_COMPLETE or ``gap_timeout_s`` of silence."""
+        asm = self._assembly
+        gap = self.settings.gap_timeout_s
+        last_progress = time.monotonic()
+        while not asm.complete_seen:
+            left = last_progress + gap - time.monotonic()
+            frame = self._recv(left) if left > 0 else None
+            if frame is None:  # silence (heartbeats do not count as progress)
+                self.stats.add("gap_timeouts")
+                return
+            if isinstance(frame, cp.SampleFrame):
+                last_progress = time.monotonic()
+            elif isinstance(frame, cp.Reply):
+                if frame.opcode == cp.Opcode.ACQUISITION_COMPLETE:
+                    self._note_complete(frame)
+                else:
+                    self.stats.add("stale_replies_discarded")
+
+    # -- acquisition -------------------------------------------------------------------------------
+    def acquire_block(self, n_samples: int) -> tuple[float, dict[str, np.ndarray]]:
+        """Acquire one block; return ``(start_s, counts per channel)`` with every sample verified."""
+        self._acq_id = (self._acq_id + 1) & 0xFF
+        self._assembly = asm = _Assembly(self._acq_id, n_samples)
+        try:
+            reply = self._request_collect(cp.Opcode.START_ACQUISITION, n_samples, asm.acq_id, what=f"START_ACQUISITION of {n_samples} samples")
+            start_s = reply.value * cp.BLOCK_START_LSB_S
+            for _ in range(self.settings.max_resend_rounds):
+                missing = asm.missing()
+                if missing.size == 0:
+                    return start_s, asm.values
+                self.stats.add("resend_rounds")
+                self.stats.add("samples_requested_again", int(missing.size))
+                for first, count in _runs(missing):
+                    self._request_collect(cp.Opcode.RESEND, first | count << 16, asm.acq_id, what=f"RESEND of samples {first}..{first + count - 1}")
+            missing = asm.missing()
+            if missing.size:
+                raise DeviceError(
+                    f"{self.where}: {missing.size} of {n_samples} samples of block {asm.acq_id} still missing "
+                    f"after {self.settings.max_resend_rounds} resend rounds"
+                )
+            return start_s, asm.values
+        finally:
+            self._assembly = None
+
+    def _request_collect(self, opcode, arg, aux, *, what: str) -> cp.Reply:
+        self._assembly.complete_seen = False
+        reply = self.request(opcode, arg, aux, what=what)
+        self._collect()
+        return reply
+
+
+def _options(procedure) -> dict:
+    return dict(procedure.backend.transport or {}) if procedure is not None else {}
+
+
+class CanExciter:
+    """Exciter over a :class:`CanLink`: limits checked before anything is sent."""
+
+    def __init__(self, rig: "CanRig"):
+        self._rig = rig
+
+    def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
+        rig = self._rig
+        check_sine_command(rig.limits, omega_rad_s, amplitude_n, rig.link.where)
+        with rig.guard.armed():
+            link = rig.link
+            link.request(cp.Opcode.SET_FREQUENCY, cp.scale_unsigned(omega_rad_s, cp.OMEGA_LSB_RAD_S, "omega_rad_s"), what="SET_FREQUENCY")
+            link.request(cp.Opcode.SET_AMPLITUDE, cp.scale_unsigned(amplitude_n, cp.AMPLITUDE_LSB_N, "amplitude_n"), what="SET_AMPLITUDE")
+            link.request(cp.Opcode.ENABLE, 1, what="ENABLE")
+            rig.output_on = True
+
+    def stop(self) -> None:
+        self._rig.link.request(cp.Opcode.STOP, what="STOP")
+        self._rig.output_on = False
+
+
+class CanSensor:
+    """Sensor over a :class:`CanLink`: timestamps, force and response of every sample."""
+
+    def __init__(self, rig: "CanRig"):
+        self._rig = rig
+
+    def set_sample_rate(self, rate_hz: float) -> None:
+        rig = self._rig
+        with rig.guard.armed():
+            rig.link.request(cp.Opcode.SET_SAMPLE_RATE, cp.scale_unsigned(rate_hz, cp.SAMPLE_RATE_LSB_HZ, "rate_hz"), what="SET_SAMPLE_RATE")
+            rig.refresh_metadata()
+
+    def acquire(self, duration_s: float) -> SampleBlock:
+        rig = self._rig
+        check_duration(rig.limits, duration_s, rig.link.where)
+        with rig.guard.armed():
+            rig.check_output()
+            md = rig.metadata
+            n_total = max(1, int(round(duration_s * md.sample_rate_hz)))
+            t_parts, f_parts, r_parts = [], [], []
+            done = 0
+            while done < n_total:
+                n = min(rig.link.settings.max_block_samples, n_total - done)
+                start_s, counts = rig.link.acquire_block(n)
+                t_parts.append(start_s + counts["time"] * cp.TIME_OFFSET_LSB_S)
+                f_parts.append(_to_units(counts["force"], md.force_range_n))
+                r_parts.append(_to_units(counts["response"], md.response_range))
+                done += n
+            return SampleBlock(np.concatenate(t_parts), np.concatenate(f_parts), np.concatenate(r_parts))
+
+
+def _to_units(counts: np.ndarray, full_range: float) -> np.ndarray:
+    values = counts.astype(float) * (full_range / cp.SAMPLE_FULL_SCALE)
+    values[counts == cp.INVALID_SAMPLE] = np.nan
+    return values
+
+
+class CanRig:
+    """A rig on a CAN link (see the module docstring).
+
+    Parameters
+    ----------
+    link : CanLink
+    limits : SafetyLimits
+        The procedure's limits, checked before any command is sent.
+    on_close : callable, optional
+        Called last by :meth:`close` (stops an owned fake device).
+    """
+
+    def __init__(self, link: CanLink, limits, on_close: Callable[[], None] | None = None, name: str = "can"):
+        self.link = link
+        self.limits = limits
+        self.output_on = False
+        self._on_close = on_close
+        self._closed = False
+        self.guard = SafeShutdown(self._stop_output)
+        self.exciter = CanExciter(self)
+        self.sensor = CanSensor(self)
+        self._name = name
+        self.metadata = RigMetadata(sample_rate_hz=1.0, force_range_n=1.0, response_range=1.0, name=name)
+        with self.guard.armed():
+            self.refresh_metadata()
+        self.guard.register_exit(self.close)
+
+    def _stop_output(self) -> None:
+        if self.link._bus is not None:
+            self.exciter.stop()
+
+    def refresh_metadata(self) -> None:
+        """Read sample rate and channel ranges with ``GET_INFO``."""
+        def info(item):
+            return self.link.request(cp.Opcode.GET_INFO, int(item), what=f"GET_INFO {item.name}").value
+
+        self.metadata = RigMetadata(
+            sample_rate_hz=info(cp.InfoItem.SAMPLE_RATE) * cp.SAMPLE_RATE_LSB_HZ,
+            force_range_n=info(cp.InfoItem.FORCE_RANGE) * cp.RANGE_LSB,
+            response_range=info(cp.InfoItem.RESPONSE_RANGE) * cp.RANGE_LSB,
+            name=self._name,
+        )
+
+    def check_output(self) -> None:
+        """Raise DeviceError if the device dropped an output the rig turned on (watchdog)."""
+        if not self.output_on:
+            return
+        status = self.link.request(cp.Opcode.GET_INFO, int(cp.InfoItem.STATUS), what="GET_INFO STATUS").value
+        if status & 0xFF != cp.DeviceState.EXCITING:
+            raise DeviceError(f"{self.link.where}: exciter output dropped by the device (status 0x{status:04X}); dwell aborted")
+
+    def begin_measurement(self, index: int, attempt: int = 0) -> None:
+        """Mark the start of measurement ``index`` (the fake device reseeds its noise; see docs)."""
+        with self.guard.armed():
+            self.link.request(cp.Opcode.BEGIN_MEASUREMENT, int(index), int(attempt) & 0xFF, what="BEGIN_MEASUREMENT")
+            self.output_on = False
+
+    def transport_statistics(self) -> dict[str, int]:
+        return self.link.stats.as_dict()
+
+    def close(self) -> None:
+        """Command zero, release the bus, stop an owned fake device (idempotent, never raises)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.guard.unregister_exit()
+        try:
+            self.guard.stop_quietly()
+        finally:
+            try:
+                self.link.close()
+            finally:
+                if self._on_close is not None:
+                    self._on_close()
+
+    def __enter__(self) -> "CanRig":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_can_virtual_rig(procedure, seed: int) -> CanRig:
+    """Start a fake CAN device on a unique ``virtual`` channel and return a rig that owns it.
+
+    Parameters
+    ----------
+    procedure : setmem_hil.procedure.Procedure
+        ``backend.simulation`` configures the simulated beam, ``backend.faults`` the fault
+        injection (core kinds plus ``error_frame``, ``bus_off``), ``backend.transport`` may set
+        ``node``, ``reply_timeout_s``, ``max_attempts``, ``gap_timeout_s``, ``channel``.
+        ``safety`` limits every command.
+    seed : int
+        Seed of the sensor noise.
+
+    Returns
+    -------
+    CanRig
+        ``close()`` commands zero, shuts the host bus down and stops the fake device.
+    """
+    from setmem_hil.sim_backends.fake_can_device import FakeCanDevice
+    from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
+    from setmem_hil.sim_backends.transport_faults import CAN_FAULT_KINDS, split_faults
+
+    opts = _options(procedure)
+    core_procedure, transport_faults = split_faults(procedure, CAN_FAULT_KINDS)
+    core = FakeDeviceCore.from_procedure(core_procedure, seed)
+    channel = str(opts.get("channel", f"setmem-can-{uuid.uuid4().hex[:12]}"))
+    node = int(opts.get("node", 0x21))
+    device = FakeCanDevice(core, channel, node, transport_faults).start()
+    settings = CanSettings(
+        node=node,
+        retry=RetryPolicy(
+            reply_timeout_s=float(opts.get("reply_timeout_s", 0.1)), max_attempts=int(opts.get("max_attempts", 7))
+        ),
+        gap_timeout_s=float(opts.get("gap_timeout_s", 0.2)),
+    )
+
+    def factory() -> can.BusABC:
+        return can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+
+    try:
+        link = CanLink(factory, settings, where=f"CAN channel {channel!r} node 0x{node:02X}")
+    except BaseException:
+        device.stop()
+        raise
+    try:
+        rig = CanRig(link, procedure.safety, on_close=device.stop, name=f"can-virtual:{channel}")
+    except BaseException:
+        link.close()
+        device.stop()
+        raise
+    rig.fake_device = device
+    return rig

@@ -1,0 +1,128 @@
+"""What the CAN and Modbus rigs share: retry policy, transport statistics, safe shutdown.
+
+Retries are bounded and back off exponentially; they are used only where repeating is safe
+(every command of both wire formats is absolute or carries an id the device de-duplicates,
+and reads are idempotent). The safe-shutdown helper commands the exciter to zero on every
+abort path (error, timeout, ``KeyboardInterrupt``) and at interpreter exit.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import dataclasses
+import math
+import time
+from collections import Counter
+from typing import Callable, Iterator
+
+from setmem_hil.errors import SafetyLimitError
+
+
+@dataclasses.dataclass(frozen=True)
+class RetryPolicy:
+    """Bounded retries with exponential backoff.
+
+    Parameters
+    ----------
+    reply_timeout_s : float
+        Wait for one reply.
+    max_attempts : int
+        Tries per request (first try included).
+    backoff_s, backoff_max_s : float
+        Sleep before retry ``k`` (1-based) is ``min(backoff_s * 2**(k-1), backoff_max_s)``.
+    """
+
+    reply_timeout_s: float = 0.1
+    max_attempts: int = 7
+    backoff_s: float = 0.01
+    backoff_max_s: float = 0.32
+
+    def delays(self) -> Iterator[float]:
+        """Sleep before each attempt: 0 for the first, then the backoff sequence."""
+        yield 0.0
+        for k in range(1, self.max_attempts):
+            yield min(self.backoff_s * 2 ** (k - 1), self.backoff_max_s)
+
+
+@dataclasses.dataclass
+class TransportStats:
+    """Counters of what a host-side link detected and recovered from (per kind)."""
+
+    counts: Counter = dataclasses.field(default_factory=Counter)
+
+    def add(self, kind: str, n: int = 1) -> None:
+        self.counts[kind] += n
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(sorted(self.counts.items()))
+
+
+def check_sine_command(limits, omega_rad_s: float, amplitude_n: float, where: str) -> None:
+    """Refuse a sine outside the procedure's :class:`~setmem_hil.procedure.SafetyLimits`.
+
+    Raises
+    ------
+    SafetyLimitError
+        Before anything is sent: names the quantity, the limit and the value.
+    """
+    if not (math.isfinite(omega_rad_s) and limits.omega_min_rad_s <= omega_rad_s <= limits.omega_max_rad_s):
+        raise SafetyLimitError(
+            f"{where}: omega {omega_rad_s!r} rad/s outside the procedure's limits "
+            f"[{limits.omega_min_rad_s:g}, {limits.omega_max_rad_s:g}]; nothing sent"
+        )
+    if not (math.isfinite(amplitude_n) and 0.0 <= amplitude_n <= limits.max_amplitude_n):
+        raise SafetyLimitError(
+            f"{where}: amplitude {amplitude_n!r} N outside the procedure's limit [0, {limits.max_amplitude_n:g}]; nothing sent"
+        )
+
+
+def check_duration(limits, duration_s: float, where: str) -> None:
+    if not (math.isfinite(duration_s) and 0.0 < duration_s <= limits.max_dwell_s):
+        raise SafetyLimitError(
+            f"{where}: acquisition of {duration_s!r} s outside (0, {limits.max_dwell_s:g}] (max_dwell_s); nothing sent"
+        )
+
+
+class SafeShutdown:
+    """Run ``stop`` on every abort path of a block and once at interpreter exit.
+
+    ``with guard.armed(): ...`` calls ``stop()`` (best effort: its own errors are swallowed,
+    the original exception propagates) if the block raises anything, ``KeyboardInterrupt``
+    included. :meth:`register_exit` / :meth:`unregister_exit` manage the ``atexit`` hook.
+    """
+
+    def __init__(self, stop: Callable[[], None]):
+        self._stop = stop
+        self._registered = False
+
+    @contextlib.contextmanager
+    def armed(self):
+        try:
+            yield
+        except BaseException:
+            self.stop_quietly()
+            raise
+
+    def stop_quietly(self) -> bool:
+        try:
+            self._stop()
+            return True
+        except Exception:  # the original fault is what the caller must see
+            return False
+
+    def register_exit(self, close: Callable[[], None]) -> None:
+        if not self._registered:
+            atexit.register(close)
+            self._registered = True
+            self._close = close
+
+    def unregister_exit(self) -> None:
+        if self._registered:
+            atexit.unregister(self._close)
+            self._registered = False
+
+
+def sleep_s(seconds: float) -> None:
+    if seconds > 0:
+        time.sleep(seconds)
