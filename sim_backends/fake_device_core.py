@@ -104,19 +104,35 @@ class FaultSettings:
         Enabled kinds, a subset of :data:`FAULT_KINDS` (default: all).
     seed : int
         Seed of the fault draws.
+    rates : tuple of (kind, rate)
+        Per-kind overrides of ``rate`` (TOML: ``rates = {disconnect = 0.002}``); e.g. a
+        disconnect ends the dwell, so it should be rarer per frame than a corrupted frame.
     """
 
     rate: float = 0.0
     kinds: tuple[str, ...] = FAULT_KINDS
     seed: int = 0
+    rates: tuple[tuple[str, float], ...] = ()
+
+    def rate_of(self, kind: str) -> float:
+        """Probability for ``kind``: its entry in ``rates`` if any, else ``rate``."""
+        return dict(self.rates).get(kind, self.rate)
 
     @classmethod
     def from_mapping(cls, mapping: Mapping[str, Any] | None, source: str = "procedure") -> "FaultSettings":
         """Parse ``{"rate": 0.05, "kinds": [...], "seed": 7}``; raises ProcedureError naming the key."""
         m = dict(mapping or {})
-        unknown = set(m) - {"rate", "kinds", "seed"}
+        unknown = set(m) - {"rate", "kinds", "seed", "rates"}
         if unknown:
-            raise ProcedureError(source, "[backend.faults]", f"unknown keys {sorted(unknown)}; expected rate, kinds, seed")
+            raise ProcedureError(source, "[backend.faults]", f"unknown keys {sorted(unknown)}; expected rate, kinds, seed, rates")
+        rates = m.get("rates", {})
+        if not isinstance(rates, Mapping):
+            raise ProcedureError(source, "[backend.faults] key 'rates'", f"expected a table of kind = rate, found {rates!r}")
+        for k, r in rates.items():
+            if k not in FAULT_KINDS:
+                raise ProcedureError(source, "[backend.faults.rates]", f"unknown kind {k!r}; expected some of {list(FAULT_KINDS)}")
+            if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 <= float(r) <= 1.0:
+                raise ProcedureError(source, f"[backend.faults.rates] key '{k}'", f"expected a number in [0, 1], found {r!r}")
         rate = m.get("rate", 0.0)
         if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0.0 <= float(rate) <= 1.0:
             raise ProcedureError(source, "[backend.faults] key 'rate'", f"expected a number in [0, 1], found {rate!r}")
@@ -129,7 +145,7 @@ class FaultSettings:
         seed = m.get("seed", 0)
         if isinstance(seed, bool) or not isinstance(seed, int):
             raise ProcedureError(source, "[backend.faults] key 'seed'", f"expected an integer, found {seed!r}")
-        return cls(float(rate), tuple(kinds), int(seed))
+        return cls(float(rate), tuple(kinds), int(seed), tuple((str(k), float(r)) for k, r in rates.items()))
 
 
 @dataclass
@@ -157,14 +173,14 @@ class FaultInjector:
         return self._rng
 
     def enabled(self, kind: str) -> bool:
-        return self.settings.rate > 0 and kind in self.settings.kinds and not self.suspended
+        return self.settings.rate_of(kind) > 0 and kind in self.settings.kinds and not self.suspended
 
     def draw(self, kind: str) -> bool:
         if kind not in FAULT_KINDS:
             raise ValueError(f"fault kind: expected one of {FAULT_KINDS}, found {kind!r}")
         if not self.enabled(kind):
             return False
-        hit = bool(self._rng.random() < self.settings.rate)
+        hit = bool(self._rng.random() < self.settings.rate_of(kind))
         if hit:
             self.injected[kind] += 1
         return hit
