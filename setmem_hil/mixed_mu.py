@@ -35,7 +35,6 @@ from dataclasses import dataclass
 import numpy as np
 
 
-PARAM_H = False
 Y_LIMIT = 12.0  # |log d_k| bound for the extrapolated steps (keeps H well scaled)
 
 
@@ -123,12 +122,12 @@ def _perron_start(A: np.ndarray) -> np.ndarray:
 class _Problem:
     """Smoothed objective and gradient, vectorised over the leading (frequency) axis."""
 
-    def __init__(self, M: np.ndarray, structure: MuStructure):
+    def __init__(self, M: np.ndarray, structure: MuStructure, param_h: bool = False):
         self.M = M
         self.n = M.shape[-1]
         self.p = structure.n_real
         self.ny = self.n - 1
-        self.param_h = PARAM_H
+        self.param_h = param_h
 
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``x = (y_2..y_n, h_1..h_p)`` -> ``(d, g)`` with ``d = exp(y)``, ``g = h / d^2``.
@@ -168,6 +167,7 @@ def mixed_mu_upper(
     tol: float = 1e-7,
     max_iter: int = 400,
     method: str = "newton",
+    variables: str = "both",
 ) -> MixedMuBound:
     """Mixed-mu upper bound (Definition 2.2) for a stack of matrices, all solved at once.
 
@@ -205,11 +205,24 @@ def mixed_mu_upper(
     scale = np.linalg.norm(M, ord=2, axis=(1, 2))
     scale = np.where(scale > 0, scale, 1.0)
     Mn = M / scale[:, None, None]
-    prob = _Problem(Mn, structure)
+    if variables not in ("g", "h", "both"):
+        raise ValueError(f"variables: expected 'g', 'h' or 'both', found {variables!r}")
+    prob = _Problem(Mn, structure, param_h=(variables == "h"))
     nv = prob.ny + prob.p
     x = np.concatenate([_perron_start(Mn)[:, 1:], np.zeros((K, prob.p))], axis=1)
     if nv > 0:
-        x = _newton(prob, x, tol, max_iter) if method == "newton" else _bfgs(prob, x, tol, max_iter)
+        solve = _newton if method == "newton" else _bfgs
+        x = solve(prob, x, tol, max_iter)
+        if variables == "both" and prob.p:
+            # second run in (y, h = d^2 g): it reaches the boundary optima D_L,k -> 0 with G_L
+            # finite (eq. 2.16) that the (y, g) run approaches only along a ray; keep the better
+            prob_h = _Problem(Mn, structure, param_h=True)
+            xh0 = np.concatenate([_perron_start(Mn)[:, 1:], np.zeros((K, prob.p))], axis=1)
+            xh = solve(prob_h, xh0, tol, max_iter)
+            dg, gg = prob.unpack(x)
+            dh, gh = prob_h.unpack(xh)
+            better = bound_at_scalings(Mn, dh, gh) < bound_at_scalings(Mn, dg, gg)
+            x[better] = np.concatenate([np.log(dh[better, 1:]), gh[better, : prob.p]], axis=1)
     d, g = prob.unpack(x)
     lam, U, _, _ = prob.eig(x, np.arange(K))
     lam = lam[:, ::-1] * (scale**2)[:, None]

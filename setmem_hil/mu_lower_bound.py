@@ -63,7 +63,9 @@ def _complex_only(M: np.ndarray, n_iter: int) -> tuple[np.ndarray, np.ndarray]:
         lam, x, y = _dominant(M * delta[:, None, :], False)
         val = np.abs(lam)
         better = val > best
-        best[better], best_delta[better] = val[better], delta[better]
+        # rotate the (all complex) blocks so that the eigenvalue is real positive
+        phase = np.exp(-1j * np.angle(lam))
+        best[better], best_delta[better] = val[better], delta[better] * phase[better, None]
         c = (np.conj(y)[:, :, None] * M).sum(axis=1) * x  # (y^* M)_k x_k, up to the common y^* x
         c = c / np.einsum("ki,ki->k", np.conj(y), x)[:, None]
         # d|lambda| ~ Re(conj(lambda) c_k d delta_k): align each delta_k with lambda conj(c_k)
@@ -153,9 +155,14 @@ def _real_axis_value(M: np.ndarray, delta: np.ndarray, p: int):
     lam = np.linalg.eigvals(M[:, None, :, :] * D[:, :, None, :])  # (K, T, n)
     # exact real eigenvalues (pure real structure, or lucky phases)
     real_ok = np.abs(lam.imag) <= 1e-10 * np.maximum(np.abs(lam), 1e-300)
-    cand = np.where(real_ok, np.abs(lam), 0.0).max(axis=(1, 2))
+    score0 = np.where(real_ok, np.abs(lam), 0.0)
+    flat0 = score0.reshape(K, -1).argmax(axis=1)
+    t0, e0 = np.unravel_index(flat0, (thetas.size, n))
+    cand = score0.reshape(K, -1).max(axis=1)
     upd = cand > best
     best[upd] = cand[upd]
+    lam0 = lam[np.arange(K), t0, e0]
+    best_delta[upd] = D[upd, t0[upd]] * np.sign(lam0.real[upd])[:, None]
     if n == p:
         return best, best_delta
     # secant refinement from the grid phase whose eigenvalue is closest to the real axis,
