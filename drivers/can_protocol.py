@@ -13,14 +13,19 @@ Identifiers (``node`` = device node id, 1..127):
 ``0x280 + node``   device -> host      reply ``[op][seq][status][value u32][crc]``
 ``0x300 + node``   device -> host      force sample ``[acq][index u16][value i32][crc]``
 ``0x380 + node``   device -> host      response sample (same layout)
-``0x400 + node``   device -> host      sample time stamp (same layout, value = us since block start)
+``0x400 + node``   device -> host      time stamp (same layout, value = ns off the nominal grid)
+``0x480 + node``   device -> host      block header ``[acq][t0 u48 ns][crc]``
 ``0x700 + node``   device -> host      heartbeat ``[state][flags][counter][tick u32][crc]``
 ``0x77F``          host -> device      host heartbeat ``[counter][0 * 6][crc]``
 =================  ==================  =========================================
 
 Scaled integers: frequency in units of 1e-5 rad/s (u32), amplitude in micronewtons (u32),
-samples as i32 with least significant bit ``range / 2**31`` (ranges read once with
-``GET_INFO``). The thesis's frequency-response points (eq. 3.1: one complex response per
+samples as i32 with least significant bit ``range / (2**31 - 1)`` (ranges read once with
+``GET_INFO``), wait durations in 0.1 ms (u32). The sample rate is the one float on the wire
+(IEEE-754 binary32 bits in the u32 argument): sample instants are ``t0 + k / rate`` exactly, and
+a scaled integer would shift them by more than a dwell's timestamp check tolerates (1e-6 of a
+sample period). Sample instants: block start ``t0`` (header frame, ns) plus ``k / rate`` plus
+the per-sample deviation from that grid (time-stamp frame, ns; 0 for a healthy clock). The thesis's frequency-response points (eq. 3.1: one complex response per
 frequency) are estimated from these samples by the sine-dwell measurement, not here.
 """
 
@@ -37,6 +42,7 @@ REPLY_BASE = 0x280
 FORCE_DATA_BASE = 0x300
 RESPONSE_DATA_BASE = 0x380
 TIME_DATA_BASE = 0x400
+HEADER_BASE = 0x480
 HEARTBEAT_BASE = 0x700
 HOST_HEARTBEAT_ID = 0x77F
 MAX_NODE = 0x7F
@@ -44,11 +50,11 @@ MAX_NODE = 0x7F
 OMEGA_LSB_RAD_S = 1e-5
 AMPLITUDE_LSB_N = 1e-6
 RANGE_LSB = 1e-6  # force range (N) and response range (response unit) in GET_INFO
-SAMPLE_RATE_LSB_HZ = 1e-3
 SAMPLE_FULL_SCALE = 2**31 - 1
 INVALID_SAMPLE = -(2**31)  # a sample the DAQ marks invalid (NaN); decodes to NaN
-BLOCK_START_LSB_S = 1e-5  # START_ACQUISITION reply value: block start on the device clock
-TIME_OFFSET_LSB_S = 1e-6  # time-stamp frames: offset from the block start
+BLOCK_START_LSB_S = 1e-9  # header frame: block start on the device clock (u48 ns)
+TIME_OFFSET_LSB_S = 1e-9  # time-stamp frames: deviation from the nominal grid (i32 ns)
+WAIT_LSB_S = 1e-4
 MAX_BLOCK_SAMPLES = 0xFFFF
 U32_MAX = 0xFFFFFFFF
 
@@ -64,14 +70,15 @@ class Opcode(enum.IntEnum):
     GET_INFO = 0x06  # arg: InfoItem; reply value: the item
     STOP = 0x07  # zero output now and disable (emergency stop, always accepted)
     ACQUISITION_COMPLETE = 0x08  # unsolicited reply: seq = acquisition id, value = samples sent
-    SET_SAMPLE_RATE = 0x09  # arg: sample rate, mHz
+    SET_SAMPLE_RATE = 0x09  # arg: sample rate, IEEE-754 binary32 bits (Hz)
     BEGIN_MEASUREMENT = 0x0A  # arg: measurement index; aux: attempt (simulation control, see docs)
+    WAIT = 0x0B  # arg: duration, 0.1 ms; excitation runs on, nothing is sampled
 
 
 class InfoItem(enum.IntEnum):
     """Items readable with ``GET_INFO`` (arg) and their units."""
 
-    SAMPLE_RATE = 0  # mHz
+    SAMPLE_RATE = 0  # IEEE-754 binary32 bits (Hz)
     FORCE_RANGE = 1  # uN
     RESPONSE_RANGE = 2  # 1e-6 response units
     STATUS = 3  # DeviceState in the low byte, flags in the next
@@ -186,14 +193,31 @@ def counts_to_sample(counts: int, full_range: float) -> float:
     return counts * full_range / SAMPLE_FULL_SCALE
 
 
-def encode_block_start(t_s: float) -> int:
-    """Block start time (device clock, s) as u32 counts of 10 us, wrapping after ~11.9 h."""
-    return int(round(float(t_s) / BLOCK_START_LSB_S)) & U32_MAX
+def float_to_u32(value: float) -> int:
+    """IEEE-754 binary32 bits of ``value`` (the sample rate's wire form)."""
+    return struct.unpack("<I", struct.pack("<f", float(value)))[0]
+
+
+def u32_to_float(bits: int) -> float:
+    return struct.unpack("<f", struct.pack("<I", _u32("float bits", bits)))[0]
+
+
+def wire_sample_rate(rate_hz: float) -> float:
+    """The sample rate both ends use: ``rate_hz`` rounded to binary32."""
+    return u32_to_float(float_to_u32(rate_hz))
 
 
 def time_offset_to_counts(dt_s: float) -> int:
-    """Offset of a sample from its block start as i32 microseconds (saturating)."""
-    return int(max(-SAMPLE_FULL_SCALE, min(SAMPLE_FULL_SCALE, round(float(dt_s) / TIME_OFFSET_LSB_S))))
+    """Deviation of a sample instant from the nominal grid as i32 nanoseconds (saturating)."""
+    dt = float(dt_s)
+    if dt != dt:
+        return INVALID_SAMPLE
+    return int(max(-SAMPLE_FULL_SCALE, min(SAMPLE_FULL_SCALE, round(dt / TIME_OFFSET_LSB_S))))
+
+
+def block_start_to_counts(t_s: float) -> int:
+    """Block start (device clock, s) as u48 nanoseconds (wraps after 78 h)."""
+    return int(round(float(t_s) / BLOCK_START_LSB_S)) & 0xFFFFFFFFFFFF
 
 
 # --- frames ----------------------------------------------------------------------------------
@@ -226,6 +250,14 @@ class SampleFrame:
     acquisition_id: int
     index: int
     counts: int
+
+
+@dataclass(frozen=True)
+class BlockHeader:
+    """Start of acquisition block ``acquisition_id`` on the device clock (u48 ns)."""
+
+    acquisition_id: int
+    start_counts: int
 
 
 @dataclass(frozen=True)
@@ -294,6 +326,14 @@ def encode_sample(node: int, sample: SampleFrame) -> tuple[int, bytes]:
     return base + node, _seal(base + node, body)
 
 
+def encode_header(node: int, header: BlockHeader) -> tuple[int, bytes]:
+    _check_node(node)
+    if not 0 <= header.start_counts <= 0xFFFFFFFFFFFF:
+        raise ValueError(f"block start: expected a u48, found {header.start_counts}")
+    body = bytes([_u8("acquisition id", header.acquisition_id)]) + header.start_counts.to_bytes(6, "little")
+    return HEADER_BASE + node, _seal(HEADER_BASE + node, body)
+
+
 def encode_heartbeat(node: int, heartbeat: Heartbeat) -> tuple[int, bytes]:
     _check_node(node)
     body = struct.pack(
@@ -307,7 +347,7 @@ def encode_host_heartbeat(counter: int) -> tuple[int, bytes]:
     return HOST_HEARTBEAT_ID, _seal(HOST_HEARTBEAT_ID, body)
 
 
-Frame = Command | Reply | SampleFrame | Heartbeat | HostHeartbeat | ErrorFrame
+Frame = Command | Reply | SampleFrame | BlockHeader | Heartbeat | HostHeartbeat | ErrorFrame
 
 
 def decode_frame(
@@ -327,7 +367,7 @@ def decode_frame(
 
     Returns
     -------
-    Command, Reply, SampleFrame, Heartbeat, HostHeartbeat, ErrorFrame or None
+    Command, Reply, SampleFrame, BlockHeader, Heartbeat, HostHeartbeat, ErrorFrame or None
         ``None`` for frames that are not part of this protocol or not for ``node``
         (other traffic on a shared bus is not an error).
 
@@ -348,6 +388,7 @@ def decode_frame(
         FORCE_DATA_BASE + node: "force sample",
         RESPONSE_DATA_BASE + node: "response sample",
         TIME_DATA_BASE + node: "time sample",
+        HEADER_BASE + node: "block header",
         HEARTBEAT_BASE + node: "heartbeat",
         HOST_HEARTBEAT_ID: "host heartbeat",
     }
@@ -372,6 +413,8 @@ def decode_frame(
     if what in ("force sample", "response sample", "time sample"):
         acq, index, counts = struct.unpack("<BHi", data[:7])
         return SampleFrame(what.split()[0], acq, index, counts)
+    if what == "block header":
+        return BlockHeader(data[0], int.from_bytes(data[1:7], "little"))
     if what == "heartbeat":
         state, flags, counter, tick = struct.unpack("<BBBI", data[:7])
         return Heartbeat(state, flags, counter, tick)

@@ -87,6 +87,15 @@ class _Assembly:
         self.values = {ch: np.zeros(n, dtype=np.int64) for ch in self.CHANNELS}
         self.have = {ch: np.zeros(n, dtype=bool) for ch in self.CHANNELS}
         self.complete_seen = False
+        self.start_counts: int | None = None
+
+    def add_header(self, header: cp.BlockHeader, stats: TransportStats) -> None:
+        if header.acquisition_id != self.acq_id:
+            stats.add("stale_frames_discarded")
+        elif self.start_counts is None:
+            self.start_counts = header.start_counts
+        elif self.start_counts != header.start_counts:
+            stats.add("conflicting_headers")
 
     def add(self, frame: cp.SampleFrame, stats: TransportStats) -> None:
         if frame.acquisition_id != self.acq_id or frame.index >= self.n:
@@ -203,11 +212,13 @@ class CanLink:
         if isinstance(frame, cp.Heartbeat):
             self.last_heartbeat = frame
             return False
-        if isinstance(frame, cp.SampleFrame):
-            if self._assembly is not None:
-                self._assembly.add(frame, self.stats)
-            else:
+        if isinstance(frame, (cp.SampleFrame, cp.BlockHeader)):
+            if self._assembly is None:
                 self.stats.add("stale_frames_discarded")
+            elif isinstance(frame, cp.BlockHeader):
+                self._assembly.add_header(frame, self.stats)
+            else:
+                self._assembly.add(frame, self.stats)
             return frame
         return frame
 
@@ -292,7 +303,7 @@ class CanLink:
             if frame is None:  # silence (heartbeats do not count as progress)
                 self.stats.add("gap_timeouts")
                 return
-            if isinstance(frame, cp.SampleFrame):
+            if isinstance(frame, (cp.SampleFrame, cp.BlockHeader)):
                 last_progress = time.monotonic()
             elif isinstance(frame, cp.Reply):
                 if frame.opcode == cp.Opcode.ACQUISITION_COMPLETE:
@@ -302,27 +313,38 @@ class CanLink:
 
     # -- acquisition -------------------------------------------------------------------------------
     def acquire_block(self, n_samples: int) -> tuple[float, dict[str, np.ndarray]]:
-        """Acquire one block; return ``(start_s, counts per channel)`` with every sample verified."""
+        """Acquire one block; return ``(start_s, counts per channel)`` with every sample verified.
+
+        Raises
+        ------
+        DeviceError
+            Samples (or the header) still missing after ``max_resend_rounds``.
+        """
         self._acq_id = (self._acq_id + 1) & 0xFF
         self._assembly = asm = _Assembly(self._acq_id, n_samples)
         try:
-            reply = self._request_collect(cp.Opcode.START_ACQUISITION, n_samples, asm.acq_id, what=f"START_ACQUISITION of {n_samples} samples")
-            start_s = reply.value * cp.BLOCK_START_LSB_S
+            reply = self._request_collect(
+                cp.Opcode.START_ACQUISITION, n_samples, asm.acq_id, what=f"START_ACQUISITION of {n_samples} samples"
+            )
+            if reply.value != n_samples:
+                raise DeviceError(f"{self.where}: device captured {reply.value} samples, {n_samples} requested")
             for _ in range(self.settings.max_resend_rounds):
                 missing = asm.missing()
-                if missing.size == 0:
-                    return start_s, asm.values
+                if missing.size == 0 and asm.start_counts is not None:
+                    break
                 self.stats.add("resend_rounds")
                 self.stats.add("samples_requested_again", int(missing.size))
-                for first, count in _runs(missing):
-                    self._request_collect(cp.Opcode.RESEND, first | count << 16, asm.acq_id, what=f"RESEND of samples {first}..{first + count - 1}")
+                for first, count in _runs(missing) or [(0, 0)]:
+                    self._request_collect(
+                        cp.Opcode.RESEND, first | count << 16, asm.acq_id, what=f"RESEND of {count} samples from {first}"
+                    )
             missing = asm.missing()
-            if missing.size:
+            if missing.size or asm.start_counts is None:
                 raise DeviceError(
-                    f"{self.where}: {missing.size} of {n_samples} samples of block {asm.acq_id} still missing "
-                    f"after {self.settings.max_resend_rounds} resend rounds"
+                    f"{self.where}: {missing.size} of {n_samples} samples (header {'missing' if asm.start_counts is None else 'ok'}) "
+                    f"of block {asm.acq_id} still missing after {self.settings.max_resend_rounds} resend rounds"
                 )
-            return start_s, asm.values
+            return asm.start_counts * cp.BLOCK_START_LSB_S, asm.values
         finally:
             self._assembly = None
 
@@ -367,8 +389,20 @@ class CanSensor:
     def set_sample_rate(self, rate_hz: float) -> None:
         rig = self._rig
         with rig.guard.armed():
-            rig.link.request(cp.Opcode.SET_SAMPLE_RATE, cp.scale_unsigned(rate_hz, cp.SAMPLE_RATE_LSB_HZ, "rate_hz"), what="SET_SAMPLE_RATE")
+            rate = float(rate_hz)
+            if not (np.isfinite(rate) and rate > 0):
+                raise ValueError(f"rate_hz: expected a finite positive rate, found {rate_hz!r}")
+            rig.link.request(cp.Opcode.SET_SAMPLE_RATE, cp.float_to_u32(rate), what="SET_SAMPLE_RATE")
             rig.refresh_metadata()
+
+    def wait(self, duration_s: float) -> None:
+        """Let ``duration_s`` pass on the device with the excitation on (settling), no samples."""
+        rig = self._rig
+        if duration_s == 0:
+            return
+        check_duration(rig.limits, duration_s, rig.link.where)
+        with rig.guard.armed():
+            rig.link.request(cp.Opcode.WAIT, cp.scale_unsigned(duration_s, cp.WAIT_LSB_S, "duration_s"), what="WAIT")
 
     def acquire(self, duration_s: float) -> SampleBlock:
         rig = self._rig
@@ -382,7 +416,9 @@ class CanSensor:
             while done < n_total:
                 n = min(rig.link.settings.max_block_samples, n_total - done)
                 start_s, counts = rig.link.acquire_block(n)
-                t_parts.append(start_s + counts["time"] * cp.TIME_OFFSET_LSB_S)
+                t = start_s + np.arange(n) / md.sample_rate_hz + counts["time"] * cp.TIME_OFFSET_LSB_S
+                t[counts["time"] == cp.INVALID_SAMPLE] = np.nan
+                t_parts.append(t)
                 f_parts.append(_to_units(counts["force"], md.force_range_n))
                 r_parts.append(_to_units(counts["response"], md.response_range))
                 done += n
@@ -432,7 +468,7 @@ class CanRig:
             return self.link.request(cp.Opcode.GET_INFO, int(item), what=f"GET_INFO {item.name}").value
 
         self.metadata = RigMetadata(
-            sample_rate_hz=info(cp.InfoItem.SAMPLE_RATE) * cp.SAMPLE_RATE_LSB_HZ,
+            sample_rate_hz=cp.u32_to_float(info(cp.InfoItem.SAMPLE_RATE)),
             force_range_n=info(cp.InfoItem.FORCE_RANGE) * cp.RANGE_LSB,
             response_range=info(cp.InfoItem.RESPONSE_RANGE) * cp.RANGE_LSB,
             name=self._name,
@@ -451,6 +487,11 @@ class CanRig:
         with self.guard.armed():
             self.link.request(cp.Opcode.BEGIN_MEASUREMENT, int(index), int(attempt) & 0xFF, what="BEGIN_MEASUREMENT")
             self.output_on = False
+
+    def reconnect(self) -> None:
+        """Reopen the bus and command zero output (the dwell is then re-run)."""
+        self.link._reconnect()
+        self.exciter.stop()
 
     def transport_statistics(self) -> dict[str, int]:
         return self.link.stats.as_dict()

@@ -4,8 +4,9 @@ A thread owns one virtual bus and translates frames (``setmem_hil.drivers.can_pr
 calls on a :class:`~setmem_hil.sim_backends.fake_device_core.FakeDeviceCore` (the time-domain
 beam with sensor noise on an accelerated clock). Samples are computed on demand: a
 ``START_ACQUISITION`` command simulates the whole block at once (virtual clock), then the device
-streams one time-stamp, one force and one response frame per sample and a closing
-``ACQUISITION_COMPLETE`` reply. ``RESEND`` repeats any range of the last block.
+streams a block header (start time), then one time-stamp, one force and one response frame
+per sample and a closing ``ACQUISITION_COMPLETE`` reply. ``RESEND`` repeats the header and any
+range of the last block. ``WAIT`` lets virtual time pass with the excitation on.
 
 Fault injection (issue 8), all seeded:
 
@@ -83,7 +84,8 @@ class FakeCanDevice:
         self._last_command: cp.Command | None = None
         self._last_reply: cp.Reply | None = None
         self._acq_id: int | None = None
-        self._acq_start_s = 0.0
+        self._acq_start_counts = 0
+        self._acq_rate_hz = 1.0
         self._held: can.Message | None = None
         self._offline_until = 0.0
         self._last_host_frame = time.monotonic()
@@ -247,7 +249,10 @@ class FakeCanDevice:
             self._enabled = False
             self._reply(c, cp.ReplyStatus.OK)
         elif op == cp.Opcode.SET_SAMPLE_RATE:
-            self.core.set_sample_rate(c.arg * cp.SAMPLE_RATE_LSB_HZ)
+            self.core.set_sample_rate(cp.u32_to_float(c.arg))
+            self._reply(c, cp.ReplyStatus.OK, c.arg)
+        elif op == cp.Opcode.WAIT:
+            self.core.wait(c.arg * cp.WAIT_LSB_S)
             self._reply(c, cp.ReplyStatus.OK, c.arg)
         elif op == cp.Opcode.BEGIN_MEASUREMENT:
             self.core.begin_measurement(c.arg, c.aux)
@@ -264,9 +269,9 @@ class FakeCanDevice:
                 return
             self.core.capture(c.arg, request_id=("can", c.aux, c.seq))
             self._acq_id = c.aux
-            block = self.core.read_buffer(0, 1)
-            self._acq_start_s = float(block.t_s[0])
-            self._reply(c, cp.ReplyStatus.OK, cp.encode_block_start(self._acq_start_s))
+            self._acq_start_counts = cp.block_start_to_counts(float(self.core.read_buffer(0, 1).t_s[0]))
+            self._acq_rate_hz = self.core.sample_rate_hz
+            self._reply(c, cp.ReplyStatus.OK, self.core.buffer_length)
             self._stream(0, self.core.buffer_length)
         elif op == cp.Opcode.RESEND:
             first, count = c.arg & 0xFFFF, c.arg >> 16
@@ -281,7 +286,7 @@ class FakeCanDevice:
     def _info(self, item: int) -> int:
         md = self.core.metadata
         if item == cp.InfoItem.SAMPLE_RATE:
-            return cp.scale_unsigned(self.core.sample_rate_hz, cp.SAMPLE_RATE_LSB_HZ, "sample rate")
+            return cp.float_to_u32(self.core.sample_rate_hz)
         if item == cp.InfoItem.FORCE_RANGE:
             return cp.scale_unsigned(md.force_range_n, cp.RANGE_LSB, "force range")
         if item == cp.InfoItem.RESPONSE_RANGE:
@@ -295,10 +300,12 @@ class FakeCanDevice:
         block = self.core.read_buffer(first, count)
         md = self.core.metadata
         acq = self._acq_id
+        self._send(*cp.encode_header(self.node, cp.BlockHeader(acq, self._acq_start_counts)))
+        t0 = self._acq_start_counts * cp.BLOCK_START_LSB_S
         for k in range(count):
             index = first + k
-            offset_us = cp.time_offset_to_counts(float(block.t_s[k]) - self._acq_start_s)
-            self._send(*cp.encode_sample(self.node, cp.SampleFrame("time", acq, index, offset_us)))
+            deviation = float(block.t_s[k]) - (t0 + index / self._acq_rate_hz)
+            self._send(*cp.encode_sample(self.node, cp.SampleFrame("time", acq, index, cp.time_offset_to_counts(deviation))))
             self._send(*cp.encode_sample(self.node, cp.SampleFrame("force", acq, index, cp.sample_to_counts(block.force[k], md.force_range_n))))
             self._send(
                 *cp.encode_sample(self.node, cp.SampleFrame("response", acq, index, cp.sample_to_counts(block.response[k], md.response_range)))

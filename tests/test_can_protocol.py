@@ -106,7 +106,7 @@ def test_encoders_reject_values_that_do_not_fit():
 
 @settings(max_examples=400, deadline=None)
 @given(
-    arb=st.sampled_from([0x221, 0x2A1, 0x321, 0x3A1, 0x721, 0x77F]) | st.integers(0, 0x7FF),
+    arb=st.sampled_from([0x221, 0x2A1, 0x321, 0x3A1, 0x421, 0x4A1, 0x721, 0x77F]) | st.integers(0, 0x7FF),
     data=st.binary(min_size=0, max_size=12),
     error=st.booleans(),
     remote=st.booleans(),
@@ -141,7 +141,20 @@ def test_invalid_and_out_of_range_samples_keep_their_meaning_on_the_wire():
     assert cp.counts_to_sample(cp.INVALID_SAMPLE, 10.0) != cp.counts_to_sample(cp.INVALID_SAMPLE, 10.0)  # NaN
     assert cp.counts_to_sample(cp.sample_to_counts(float("inf"), 10.0), 10.0) == 10.0  # clipped at full scale
     assert cp.counts_to_sample(cp.sample_to_counts(-12.0, 10.0), 10.0) == -10.0
-    arb, data = cp.encode_sample(NODE, cp.SampleFrame("time", 1, 2, cp.time_offset_to_counts(0.0123456)))
+    arb, data = cp.encode_sample(NODE, cp.SampleFrame("time", 1, 2, cp.time_offset_to_counts(-1.2345e-6)))
     assert arb == 0x421
-    assert cp.decode_frame(NODE, arb, data).counts == 12346
-    assert cp.encode_block_start(1.23456) == 123456
+    assert cp.decode_frame(NODE, arb, data).counts == -1234 or cp.decode_frame(NODE, arb, data).counts == -1235
+    assert cp.time_offset_to_counts(10.0) == 2**31 - 1  # saturates: a jump is still a jump
+
+
+def test_block_header_and_float_sample_rate():
+    start = cp.block_start_to_counts(3723.000000001)
+    assert start == 3_723_000_000_001
+    arb, data = cp.encode_header(NODE, cp.BlockHeader(9, start))
+    assert arb == 0x4A1 and data[1:7] == start.to_bytes(6, "little")
+    assert cp.decode_frame(NODE, arb, data) == cp.BlockHeader(9, start)
+    # binary32 bits of 10.5 are 0x41280000 (exact in binary)
+    assert cp.float_to_u32(10.5) == 0x41280000
+    assert cp.u32_to_float(0x41280000) == 10.5
+    rate = 32 * 2.0 / (2 * 3.141592653589793)
+    assert abs(cp.wire_sample_rate(rate) / rate - 1) < 2**-24

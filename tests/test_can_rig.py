@@ -89,7 +89,7 @@ def test_samples_through_can_equal_the_device_model_driven_directly_to_one_lsb()
         md = rig.metadata
     direct = FakeDeviceCore.from_procedure(proc, 4)
     direct.begin_measurement(3)
-    direct.set_sample_rate(round(32 * 40.0 / (2 * np.pi) * 1e3) * 1e-3)  # the rate as sent (mHz)
+    direct.set_sample_rate(cp.wire_sample_rate(32 * 40.0 / (2 * np.pi)))  # the rate as sent (binary32)
     direct.set_sine(40.0, 0.5)
     direct.capture(300)
     direct.capture(700)
@@ -98,7 +98,10 @@ def test_samples_through_can_equal_the_device_model_driven_directly_to_one_lsb()
     lsb_r = md.response_range / (2**31 - 1)
     assert np.max(np.abs(block.force - ref.force)) <= lsb_f
     assert np.max(np.abs(block.response - ref.response)) <= lsb_r
-    assert np.max(np.abs(block.t_s - ref.t_s)) <= 1e-5  # 10 us block start + 1 us offsets
+    assert np.max(np.abs(block.t_s - ref.t_s)) <= 2e-9  # ns block start and ns deviations
+    # the dwell's timestamp check (1e-6 of a period) holds for these times
+    dt = np.diff(block.t_s)
+    assert np.max(np.abs(dt * rig.metadata.sample_rate_hz - 1)) < 1e-6
 
 
 def test_limits_are_enforced_before_anything_is_sent():
