@@ -4,7 +4,11 @@
 set-membership condition of eq. (3.8) divided by its bound: ``rho_i <= 1`` at every point means
 the model is consistent with the data. Against an interval model we take the best point of its
 box (:func:`setmem_hil.discrepancy_fit.fit_minimax`), so ``max rho <= 1`` iff some member of
-the model explains every point. Disagreement bands are the runs of consecutive frequencies with
+the model explains every point. When the identification is infeasible there is no identified
+model; the "model built from the prior" is then a robust (soft-L1) least-squares fit inside the
+prior's box, which leaves a localised discrepancy where it is (a minimax fit would spread it
+over every resonance); the smallest worst residual over the prior's box is reported as well
+(``best_fit_in_prior_max_normalized_residual``, the exact-structure inflation factor). Disagreement bands are the runs of consecutive frequencies with
 ``rho_i > 1``. Consistency of the identification itself: :func:`setmem_hil.identification.identify`
 failing (``InconsistentDataError``) is evidence of a missing effect; we report the smallest
 bound inflation factor with which it succeeds (bisection).
@@ -322,8 +326,8 @@ def check_discrepancy(
     # before: the best point of the model's box (or of the prior's box without a model)
     if model is not None:
         old = fit_none(data, ModalBox(model.lower, model.upper, model.midpoint.values))
-    else:
-        old = fit_none(data, _prior_box(prior, data, None))
+    else:  # no identified model: the robust fit in the prior's box localises the disagreement
+        old = fit_none(data, _prior_box(prior, data, None), robust=True)
     if identification_feasible is None:
         identification_feasible = (model is not None) if given_prior else bool(old.max_normalized_residual <= 1.0)
     bands = disagreement_bands(data.omega_rad_s, old.normalized_residual)
@@ -383,7 +387,7 @@ def check_discrepancy(
         f"worst normalised residual {none.max_normalized_residual:.3g} without an effect (best point in the prior), "
         f"{chosen.max_normalized_residual:.3g} with {decision} ({chosen.n_added_params} added parameter"
         f"{'s' if chosen.n_added_params != 1 else ''}); other candidates: {others or 'not needed'}; "
-        f"identification {'feasible' if identification_feasible else 'infeasible'} before"
+        f"{'identification' if given_prior else 'model consistency'} {'feasible' if identification_feasible else 'infeasible'} before"
         + (f" (bounds must be inflated x{before['bound_inflation_factor']:.3g})" if not identification_feasible and 'bound_inflation_factor' in before else "")
         + (f", {'feasible' if after['feasible'] else 'infeasible'} after" if after["feasible"] is not None else "")
     )

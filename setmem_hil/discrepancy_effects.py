@@ -185,11 +185,16 @@ def initial_modal_estimate(data: FrequencyData, lower: np.ndarray, upper: np.nda
     return np.clip(vals, lo, hi)
 
 
-def fit_none(data: FrequencyData, box: ModalBox, polish: bool = True) -> CandidateFit:
-    """Best fit of the modal structure alone inside ``box``."""
+def fit_none(data: FrequencyData, box: ModalBox, polish: bool = True, robust: bool = False) -> CandidateFit:
+    """Best fit of the modal structure alone inside ``box``.
+
+    ``robust``: instead of the minimax fit, a robust least-squares fit (soft-L1 loss on the
+    normalised residuals) that keeps a localised discrepancy in place (for "where").
+    """
     n = box.n_modes
     fit = fit_minimax("none", n, np.asarray(box.start).ravel(), np.asarray(box.lower).ravel(),
-                      np.asarray(box.upper).ravel(), data.omega_rad_s, data.response, data.bound, polish=polish)
+                      np.asarray(box.upper).ravel(), data.omega_rad_s, data.response, data.bound, polish=polish,
+                      minimax=not robust, loss="soft_l1" if robust else "linear")
     return _candidate("none", fit, n, 0)
 
 

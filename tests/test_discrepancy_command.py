@@ -1,0 +1,72 @@
+"""``setmem-hil discrepancy`` end to end: exit codes, report keys, plot file."""
+
+import json
+
+import numpy as np
+
+from setmem_hil.cli import main
+from setmem_hil.data_file import write_data_csv
+from setmem_hil.modal_model import IntervalModel
+from setmem_hil.result_file import write_json
+from setmem_hil.sim_backends.hidden_effects import draw_hidden_effect_case
+
+PRIOR_TOML = """
+[[mode]]
+omega_min = 0.884
+omega_max = 1.125
+zeta_max = 0.5
+b1 = 0
+[[mode]]
+omega_min = 5.41
+omega_max = 7.34
+zeta_max = 0.5
+b1 = 0
+[[mode]]
+omega_min = 16.35
+omega_max = 19.81
+zeta_max = 0.5
+b1 = 0
+"""
+CONTRACT_KEYS = {"disagreement_bands", "effects", "before", "after"}
+
+
+def test_prior_path_names_a_lag_and_writes_report_and_plot(tmp_path):
+    case = draw_hidden_effect_case("first_order_lag", 31)
+    write_data_csv(case.data, tmp_path / "d.csv")
+    (tmp_path / "p.toml").write_text(PRIOR_TOML)
+    rc = main(["discrepancy", "--data", str(tmp_path / "d.csv"), "--prior", str(tmp_path / "p.toml"),
+               "--out", str(tmp_path / "r.json"), "--plot", str(tmp_path / "f.png")])
+    assert rc == 0
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert CONTRACT_KEYS <= set(doc)
+    assert [e["name"] for e in doc["effects"]] == ["first_order_lag"]
+    tau = doc["effects"][0]["params"]["tau"]
+    assert abs(tau / case.params["tau"] - 1) < 0.1
+    assert doc["before"]["feasible"] is False and doc["after"]["feasible"] is True
+    assert doc["after"]["max_normalized_residual"] <= 1.05 < doc["before"]["max_normalized_residual"]
+    assert all(lo <= hi for lo, hi in doc["disagreement_bands"]) and doc["disagreement_bands"]
+    assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_model_path_with_zero_width_truth_on_clean_data_says_none(tmp_path):
+    case = draw_hidden_effect_case("none", 32)
+    write_data_csv(case.data, tmp_path / "d.csv")
+    write_json({"modes": IntervalModel.point(case.truth).named_intervals()}, tmp_path / "m.json")
+    rc = main(["discrepancy", "--data", str(tmp_path / "d.csv"), "--model", str(tmp_path / "m.json"),
+               "--out", str(tmp_path / "r.json")])
+    assert rc == 0
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert doc["effects"] == [] and doc["disagreement_bands"] == []
+    # the truth itself is the model: its residual is the noise over the bound, <= 1
+    noise = np.abs(case.data.response - case.truth.frequency_response(case.data.omega_rad_s)) / case.data.bound
+    assert abs(doc["before"]["max_normalized_residual"] - noise.max()) < 1e-9
+    assert doc["before"]["feasible"] is True
+
+
+def test_malformed_data_exits_2(tmp_path, capsys):
+    (tmp_path / "d.csv").write_text("omega,re,im,bound\n1.0,abc,0,1\n")
+    (tmp_path / "p.toml").write_text(PRIOR_TOML)
+    rc = main(["discrepancy", "--data", str(tmp_path / "d.csv"), "--prior", str(tmp_path / "p.toml"),
+               "--out", str(tmp_path / "r.json")])
+    assert rc == 2
+    assert "line 2" in capsys.readouterr().err
