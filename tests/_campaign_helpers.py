@@ -90,11 +90,12 @@ def install_fast_analysis(monkeypatch=None) -> None:
 class InterruptingExperiment:
     """Wraps an experiment; raises KeyboardInterrupt (or DeviceError) on its ``interrupt_at``-th dwell.
 
-    Records whether ``close()`` (exciter to zero) was called.
+    Records whether ``close()`` (exciter to zero) was called; ``delay_s`` makes each dwell take time.
     """
 
-    def __init__(self, inner, interrupt_at: int | None, error: type[BaseException] = KeyboardInterrupt):
+    def __init__(self, inner, interrupt_at: int | None, error: type[BaseException] = KeyboardInterrupt, delay_s: float = 0.0):
         self.inner = inner
+        self.delay_s = delay_s
         self.interrupt_at = interrupt_at
         self.error = error
         self.calls = 0
@@ -117,6 +118,10 @@ class InterruptingExperiment:
             if self.error is DeviceError:
                 raise DeviceError(f"fake rig stopped answering at {omega_rad_s:g} rad/s")
             raise self.error()
+        if self.delay_s:
+            import time
+
+            time.sleep(self.delay_s)  # a dwell takes time: lets a test kill the process mid-campaign
         return self.inner.measure(omega_rad_s)
 
     def close(self):

@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,6 +29,7 @@ PER_ITERATION = 5
 CHILD = r"""
 import sys
 import time
+from pathlib import Path
 import numpy as np
 from pathlib import Path
 from setmem_hil.experiment import Measurement
@@ -114,3 +116,88 @@ def test_sigkill_at_random_moments_then_resume(tmp_path):
     assert kills >= 6, f"only {kills} kills landed mid-write; make the child slower"
     assert progress == sorted(progress)  # stored records only ever grow
     print("kills", kills, "stored after each kill", progress)
+
+
+# ------------------------------------------------------------------------------------------
+# The whole campaign: `setmem-hil run` killed with SIGKILL again and again, then resumed.
+# ------------------------------------------------------------------------------------------
+HELPERS = Path(__file__).with_name("_campaign_helpers.py")
+KILL_ROUNDS = int(os.environ.get("SETMEM_CAMPAIGN_KILLS", "5"))
+
+CAMPAIGN_CHILD = r"""
+import runpy, sys
+h = runpy.run_path(sys.argv[1])
+h["install_fast_analysis"]()
+import setmem_hil.campaign, setmem_hil.identification, setmem_hil.input_design  # noqa: F401  (imports before "ready")
+import setmem_hil.commands.run as run_cmd
+from setmem_hil.cli import main
+real_open = run_cmd.open_backend
+run_cmd.open_backend = lambda p, s: h["InterruptingExperiment"](real_open(p, s), None, delay_s=0.04)
+print("ready", flush=True)
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.slow
+def test_campaign_killed_repeatedly_then_resumed_equals_uninterrupted(tmp_path, monkeypatch):
+    """SIGKILL ``setmem-hil run`` at random moments KILL_ROUNDS times (SETMEM_CAMPAIGN_KILLS=20
+    for the full issue-8 run), resuming each time; the final journal equals an uninterrupted run."""
+    import importlib.util
+
+    from setmem_hil.campaign import run_campaign
+    from setmem_hil.procedure_file import load_procedure
+
+    spec = importlib.util.spec_from_file_location("_campaign_helpers", HELPERS)
+    h = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(h)
+    h.install_fast_analysis(monkeypatch)
+    proc_path = tmp_path / "cheap.toml"
+    proc_path.write_text(h.cheap_procedure_text(3))
+    p = load_procedure(proc_path)
+    ref = Journal.create(tmp_path / "ref" / "journal.sqlite", procedure_text=p.source_text, procedure_name=p.name, seed=p.seed,
+                         software_version="ref", backend="sim", strategy="mu")
+    run_campaign(p, h.simulated(p, p.seed), ref)
+    ref_ms, ref_its = ref.measurements(), ref.iterations()
+    ref.close()
+
+    run_dir = tmp_path / "run"
+    rng = np.random.default_rng(8)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    mid_campaign = 0
+    for _ in range(KILL_ROUNDS):
+        started = (run_dir / "journal.sqlite").exists()
+        argv = ["run", "--resume", str(run_dir), "--quiet"] if started else ["run", str(proc_path), "--out", str(run_dir), "--quiet"]
+        child = subprocess.Popen([sys.executable, "-c", CAMPAIGN_CHILD, str(HELPERS), *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        line = child.stdout.readline()
+        if not line.startswith("ready"):
+            child.wait()
+            pytest.fail(f"child failed to start: {line!r} {child.stderr.read()}")
+        time.sleep(float(rng.uniform(0.0, 1.6)))
+        if child.poll() is None:
+            os.kill(child.pid, signal.SIGKILL)
+        child.wait()
+        child.stdout.close()
+        child.stderr.close()
+        if (run_dir / "journal.sqlite").exists():
+            j = Journal.open(run_dir)
+            try:
+                assert j.integrity_problems() == []
+                ms, its = j.measurements(), j.iterations()
+                assert ms == ref_ms[: len(ms)]  # a prefix: nothing lost in between, duplicated or torn
+                assert [(r.k, r.next_omega) for r in its] == [(r.k, r.next_omega) for r in ref_its[: len(its)]]
+                if 0 < len(ms) < len(ref_ms):
+                    mid_campaign += 1
+            finally:
+                j.close()
+    done = subprocess.run([sys.executable, "-c", CAMPAIGN_CHILD, str(HELPERS), "run", "--resume", str(run_dir), "--quiet"]
+                          if (run_dir / "journal.sqlite").exists() else
+                          [sys.executable, "-c", CAMPAIGN_CHILD, str(HELPERS), "run", str(proc_path), "--out", str(run_dir), "--quiet"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    j = Journal.open(run_dir)
+    assert j.measurements() == ref_ms
+    assert [(r.k, r.n_points, r.next_omega, r.mu_peak) for r in j.iterations()] == [(r.k, r.n_points, r.next_omega, r.mu_peak) for r in ref_its]
+    assert j.run_info()["finished"] and (run_dir / "summary.json").exists()
+    j.close()
+    print(f"campaign killed {KILL_ROUNDS} times ({mid_campaign} mid-campaign), resumed to the uninterrupted result")
+    assert mid_campaign >= max(1, KILL_ROUNDS // 4)
