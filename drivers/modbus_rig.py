@@ -1,0 +1,379 @@
+"""Modbus front-end: a :class:`~setmem_hil.drivers.protocols.Rig` on the register map of
+``drivers/modbus_wire_format.md`` (pymodbus client, Modbus TCP or RTU framing over TCP).
+
+:class:`ModbusLink` wraps pymodbus's synchronous client with the retry policy of
+:mod:`setmem_hil.drivers.fieldbus_common`: every request is safe to repeat (register writes are
+absolute; the one-shot commands WAIT and ACQUIRE carry a request id the device executes once),
+so a timeout, a dropped connection, a BUSY/ACKNOWLEDGE exception or a reply that fails to
+decode (wrong length, page CRC, stale page) is retried with backoff. After a timeout or a
+malformed reply the connection is closed and reopened: that discards any late or partial reply
+still in the stream (with RTU framing there is no transaction id to recognise it by). Other
+exception codes (illegal address/value, device failure) are device errors, not retried.
+
+:class:`ModbusRig` checks the procedure's limits before any write, commands zero on every
+abort path and at exit, and implements the optional rig capabilities of
+:mod:`setmem_hil.drivers.protocols` (sample rate, wait, measurement index, reconnect).
+:func:`open_modbus_loopback_rig` starts the fake device (a pymodbus server on 127.0.0.1 at a
+free port) and returns a rig that owns it. The samples feed the sine-dwell estimate of one
+frequency-response point (thesis eq. 3.1).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+from pymodbus.client import ModbusTcpClient
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
+from pymodbus.framer import FramerType
+
+from setmem_hil.drivers import modbus_registers as mr
+from setmem_hil.drivers.fieldbus_common import (
+    RetryPolicy,
+    SafeShutdown,
+    TransportStats,
+    check_duration,
+    check_sine_command,
+    sleep_s,
+)
+from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
+from setmem_hil.errors import DeviceError, DeviceTimeoutError, FrameError
+
+
+class _Retry(Exception):
+    """Internal: this attempt failed in a way that is safe to retry."""
+
+
+class ModbusLink:
+    """Requests with bounded retries over a pymodbus synchronous TCP client.
+
+    Parameters
+    ----------
+    host, port : str, int
+    framer : str
+        ``"socket"`` (Modbus TCP) or ``"rtu"`` (RTU framing over TCP).
+    unit : int
+        Device id.
+    retry : RetryPolicy
+    """
+
+    def __init__(self, host: str, port: int, framer: str = "socket", unit: int = 1, retry: RetryPolicy = RetryPolicy()):
+        if framer not in ("socket", "rtu"):
+            raise ValueError(f"framer: expected 'socket' or 'rtu', found {framer!r}")
+        self.host, self.port, self.framer, self.unit, self.retry = host, int(port), framer, int(unit), retry
+        self.where = f"Modbus {framer} {host}:{port} unit {unit}"
+        self.stats = TransportStats()
+        self._client: ModbusTcpClient | None = None
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # it logs every skipped late reply
+        self._open()
+
+    def _open(self) -> None:
+        self._client = ModbusTcpClient(
+            self.host, port=self.port, framer=FramerType.RTU if self.framer == "rtu" else FramerType.SOCKET,
+            timeout=self.retry.reply_timeout_s, retries=0,
+        )
+        self._client.connect()  # a failed connect is retried by the first request
+
+    def reconnect(self) -> None:
+        self.stats.add("reconnects")
+        self.close()
+        self._open()
+
+    def close(self) -> None:
+        if self._client is not None:
+            try:
+                self._client.close()
+            finally:
+                self._client = None
+
+    def _call(self, what: str, attempt_fn: Callable[[ModbusTcpClient], object]):
+        t_start = time.monotonic()
+        last = ""
+        for attempt, delay in enumerate(self.retry.delays()):
+            sleep_s(delay)
+            if attempt:
+                self.stats.add("retries")
+            if self._client is None:
+                raise DeviceError(f"{self.where}: link is closed")
+            try:
+                if not self._client.connected and not self._client.connect():
+                    raise ConnectionException("connect failed")
+                return attempt_fn(self._client)
+            except _Retry as exc:
+                last = str(exc)
+                continue
+            except (ModbusIOException, ConnectionException) as exc:
+                self.stats.add("timeouts" if isinstance(exc, ModbusIOException) else "connection_errors")
+                last = f"{type(exc).__name__}: {exc}"
+                self.reconnect()  # discard late or partial replies
+            except FrameError as exc:
+                self.stats.add("crc_errors" if "CRC" in str(exc) else "malformed_replies")
+                last = str(exc)
+                self.reconnect()
+            except mr.ModbusExceptionError as exc:
+                if not exc.retryable:
+                    raise
+                self.stats.add("busy_exceptions")
+                last = str(exc)
+            except ModbusException as exc:  # anything else pymodbus raises on a garbled stream
+                self.stats.add("malformed_replies")
+                last = f"{type(exc).__name__}: {exc}"
+                self.reconnect()
+        raise DeviceTimeoutError(
+            f"{self.where}: {what} failed after {self.retry.max_attempts} attempts "
+            f"({time.monotonic() - t_start:.2f} s); last error: {last}"
+        )
+
+    def _check(self, response, what: str):
+        if response.isError():
+            code = getattr(response, "exception_code", None)
+            if code is None:
+                raise FrameError(f"{self.where}: {what}: unexpected error reply {response!r}")
+            raise mr.ModbusExceptionError(response.function_code & 0x7F, int(code), f"{self.where}: {what}")
+        return response
+
+    def read(self, address: int, count: int, what: str, decode: Callable[[list[int]], object] | None = None):
+        """Read ``count`` holding registers (and decode them; decoding errors are retried)."""
+
+        def attempt(client):
+            response = self._check(client.read_holding_registers(address, count=count, device_id=self.unit), what)
+            regs = list(response.registers)
+            if len(regs) != count:
+                raise FrameError(f"{self.where}: {what}: {len(regs)} registers in the reply, {count} requested")
+            return decode(regs) if decode is not None else regs
+
+        return self._call(what, attempt)
+
+    def write(self, address: int, values: list[int], what: str) -> None:
+        """Write holding registers with function 16 (safe to repeat: see the module docstring)."""
+
+        def attempt(client):
+            self._check(client.write_registers(address, list(values), device_id=self.unit), what)
+
+        self._call(what, attempt)
+
+
+class ModbusExciter:
+    def __init__(self, rig: "ModbusRig"):
+        self._rig = rig
+
+    def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
+        rig = self._rig
+        check_sine_command(rig.limits, omega_rad_s, amplitude_n, rig.link.where)
+        values = (
+            mr.u32_to_registers(mr.scale_unsigned(omega_rad_s, mr.OMEGA_LSB_RAD_S, "omega_rad_s"))
+            + mr.u32_to_registers(mr.scale_unsigned(amplitude_n, mr.AMPLITUDE_LSB_N, "amplitude_n"))
+            + [1]
+        )
+        with rig.guard.armed():
+            rig.link.write(mr.REG_OMEGA, values, "write omega, amplitude, enable")
+            rig.output_on = True
+
+    def stop(self) -> None:
+        self._rig.link.write(mr.REG_ENABLE, [0], "write enable = 0")
+        self._rig.output_on = False
+
+
+class ModbusSensor:
+    def __init__(self, rig: "ModbusRig"):
+        self._rig = rig
+
+    def set_sample_rate(self, rate_hz: float) -> None:
+        rig = self._rig
+        rate = float(rate_hz)
+        if not (np.isfinite(rate) and rate > 0):
+            raise ValueError(f"rate_hz: expected a finite positive rate, found {rate_hz!r}")
+        with rig.guard.armed():
+            rig.link.write(mr.REG_SAMPLE_RATE, mr.float32_to_registers(rate), "write sample rate")
+            rig.refresh_metadata()
+
+    def wait(self, duration_s: float) -> None:
+        """Let ``duration_s`` pass on the device with the excitation on (settling), no samples."""
+        rig = self._rig
+        if duration_s == 0:
+            return
+        check_duration(rig.limits, duration_s, rig.link.where)
+        with rig.guard.armed():
+            rig.next_request_id()
+            counts = mr.scale_unsigned(duration_s, mr.WAIT_LSB_S, "duration_s")
+            rig.link.write(mr.REG_WAIT, mr.u32_to_registers(counts) + [rig.request_id], "write wait")
+
+    def acquire(self, duration_s: float) -> SampleBlock:
+        rig = self._rig
+        check_duration(rig.limits, duration_s, rig.link.where)
+        with rig.guard.armed():
+            n_total = max(1, int(round(duration_s * rig.metadata.sample_rate_hz)))
+            parts = []
+            done = 0
+            while done < n_total:
+                n = min(rig.max_block_samples, n_total - done)
+                parts.append(rig.acquire_block(n))
+                done += n
+            return SampleBlock(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("t_s", "force", "response")))
+
+
+class ModbusRig:
+    """A rig on a :class:`ModbusLink` (see the module docstring).
+
+    Parameters
+    ----------
+    link : ModbusLink
+    limits : SafetyLimits
+    on_close : callable, optional
+        Called last by :meth:`close` (stops an owned fake device).
+    max_block_samples : int
+        Samples per capture (longer acquisitions are split; the device clock runs on).
+    """
+
+    def __init__(self, link: ModbusLink, limits, on_close: Callable[[], None] | None = None, name: str = "modbus",
+                 max_block_samples: int = 4000):
+        self.link = link
+        self.limits = limits
+        self.output_on = False
+        self.max_block_samples = min(int(max_block_samples), mr.MAX_SAMPLES)
+        self.request_id = int(time.monotonic_ns() & 0x7FFF) or 1  # differs from the device's last id after a host restart
+        self._on_close = on_close
+        self._closed = False
+        self._name = name
+        self.guard = SafeShutdown(self._stop_output)
+        self.exciter = ModbusExciter(self)
+        self.sensor = ModbusSensor(self)
+        self.metadata = RigMetadata(sample_rate_hz=1.0, force_range_n=1.0, response_range=1.0, name=name)
+        with self.guard.armed():
+            self.refresh_metadata()
+        self.guard.register_exit(self.close)
+
+    def next_request_id(self) -> int:
+        self.request_id = self.request_id % 0xFFFF + 1
+        return self.request_id
+
+    def _stop_output(self) -> None:
+        if self.link._client is not None:
+            self.exciter.stop()
+
+    def read_info(self) -> mr.DeviceInfo:
+        return self.link.read(0, mr.N_CONTROL_REGISTERS, "read control registers", mr.decode_control_block)
+
+    def refresh_metadata(self) -> None:
+        info = self.read_info()
+        self.metadata = RigMetadata(
+            sample_rate_hz=info.sample_rate_hz, force_range_n=info.force_range_n, response_range=info.response_range,
+            name=self._name,
+        )
+
+    def acquire_block(self, n: int) -> SampleBlock:
+        """Capture ``n`` samples and read them page by page (every page CRC-checked)."""
+        if self.output_on:
+            info = self.read_info()
+            if not info.output_on:
+                raise DeviceError(f"{self.link.where}: exciter output dropped by the device (status 0x{info.status:04X}); dwell aborted")
+        acq_id = self.next_request_id()
+        self.link.write(mr.REG_ACQ_LENGTH, [n, acq_id], f"write capture of {n} samples")
+        info = self.read_info()
+        if info.acq_done_id != acq_id or info.acq_count != n:
+            raise DeviceError(
+                f"{self.link.where}: capture {acq_id} of {n} samples not done (device reports id {info.acq_done_id}, {info.acq_count} samples)"
+            )
+        dev, force, resp = [], [], []
+        for p in range(mr.n_pages(n)):
+            k = min(mr.PAGE_SAMPLES, n - p * mr.PAGE_SAMPLES)
+
+            def decode(regs, p=p, k=k):
+                page = mr.decode_page(regs, acq_id, p)
+                if page.dev_counts.size != k:
+                    raise FrameError(f"Modbus page {p}: {page.dev_counts.size} samples, {k} expected")
+                return page
+
+            page = self.link.read(mr.page_address(p), mr.PAGE_REGISTERS, f"read sample page {p}", decode)
+            dev.append(page.dev_counts)
+            force.append(page.force_counts)
+            resp.append(page.response_counts)
+        dev_c = np.concatenate(dev)
+        t = info.acq_t0_counts * mr.T0_LSB_S + np.arange(n) / info.acq_rate_hz + dev_c * mr.DEV_LSB_S
+        t[dev_c == mr.INVALID_SAMPLE] = np.nan
+        md = self.metadata
+        return SampleBlock(t, mr.counts_to_samples(np.concatenate(force), md.force_range_n),
+                           mr.counts_to_samples(np.concatenate(resp), md.response_range))
+
+    def begin_measurement(self, index: int, attempt: int = 0) -> None:
+        """Mark the start of measurement ``index`` (the fake device reseeds its noise; see docs)."""
+        with self.guard.armed():
+            self.link.write(mr.REG_MEASUREMENT, mr.u32_to_registers(int(index)) + [int(attempt) & 0xFFFF], "write measurement index")
+            self.output_on = False
+
+    def reconnect(self) -> None:
+        """Reopen the connection and command zero output (the dwell is then re-run)."""
+        self.link.reconnect()
+        self.exciter.stop()
+
+    def transport_statistics(self) -> dict[str, int]:
+        return self.link.stats.as_dict()
+
+    def close(self) -> None:
+        """Command zero, close the client, stop an owned fake device (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.guard.unregister_exit()
+        try:
+            self.guard.stop_quietly()
+        finally:
+            try:
+                self.link.close()
+            finally:
+                if self._on_close is not None:
+                    self._on_close()
+
+    def __enter__(self) -> "ModbusRig":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_modbus_loopback_rig(procedure, seed: int) -> ModbusRig:
+    """Start a fake Modbus device (pymodbus server on 127.0.0.1, free port) and return a rig owning it.
+
+    Parameters
+    ----------
+    procedure : setmem_hil.procedure.Procedure
+        ``backend.simulation`` configures the simulated beam, ``backend.faults`` the faults
+        (core kinds plus ``exception``), ``backend.transport`` may set ``framer``
+        (``"socket"`` default, or ``"rtu"``), ``unit``, ``reply_timeout_s``, ``max_attempts``,
+        ``backoff_s``, ``backoff_max_s``; ``safety`` limits every command.
+    seed : int
+        Seed of the sensor noise.
+
+    Returns
+    -------
+    ModbusRig
+        ``close()`` commands zero, closes the client and stops the server.
+    """
+    from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
+    from setmem_hil.sim_backends.fake_modbus_device import FakeModbusDevice
+    from setmem_hil.sim_backends.transport_faults import MODBUS_FAULT_KINDS, split_faults
+
+    opts = dict(procedure.backend.transport or {})
+    framer = str(opts.get("framer", "socket"))
+    core_procedure, transport_faults = split_faults(procedure, MODBUS_FAULT_KINDS)
+    core = FakeDeviceCore.from_procedure(core_procedure, seed)
+    device = FakeModbusDevice(core, framer, transport_faults).start()
+    retry = RetryPolicy(
+        reply_timeout_s=float(opts.get("reply_timeout_s", 0.1)),
+        max_attempts=int(opts.get("max_attempts", 7)),
+        backoff_s=float(opts.get("backoff_s", 0.01)),
+        backoff_max_s=float(opts.get("backoff_max_s", 0.32)),
+    )
+    link = None
+    try:
+        link = ModbusLink("127.0.0.1", device.port, framer, int(opts.get("unit", 1)), retry)
+        rig = ModbusRig(link, procedure.safety, on_close=device.stop, name=f"modbus-loopback:{framer}:{device.port}")
+    except BaseException:
+        if link is not None:
+            link.close()
+        device.stop()
+        raise
+    rig.fake_device = device
+    return rig
