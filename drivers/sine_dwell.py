@@ -130,8 +130,8 @@ class DwellSettings:
     min_window_s: float = 10.0
     separation_cycles: float = 2.0
     max_window_s: float = 120.0
-    skip_periods: float = 2.0
-    skip_s: float = 5.0
+    skip_periods: float = 0.5
+    skip_s: float = 2.0
     confidence: float = 0.9995
     settle_confidence: float = 0.999
     max_extensions: int = 2
@@ -364,7 +364,11 @@ class SineDwellExperiment:
     def _fit_response(self, t, y, w, t_ref, window_s) -> tuple[SineFit, float]:
         """Response fit with transients; returns the fit and the worst-case fixed-pole term."""
         bands = pole_bands(self.model)
-        generic = PoleSearchBand(DampedPole(0.01 * w, w), w / self.settings.unmodelled_band, w * self.settings.unmodelled_band)
+        # an unmodelled mode near the excitation rings too: search outside the modelled bands
+        # and outside +-pi/T of omega (a pole there cannot be told from the steady state)
+        resolve = math.pi / max(window_s, 1e-9)
+        exclude = tuple((b.omega_min_rad_s - resolve, b.omega_max_rad_s + resolve) for b in bands) + ((w - resolve, w + resolve),)
+        generic = PoleSearchBand(DampedPole(0.01 * w, w), w / self.settings.unmodelled_band, w * self.settings.unmodelled_band, exclude)
         fixed: list[tuple[DampedPole, float, float]] = []
         search: list[PoleSearchBand] = []
         for b in bands:
@@ -378,7 +382,7 @@ class SineDwellExperiment:
                 fixed.append((b.guess, half_w, half_s))
             else:
                 search.append(b)
-        search.append(generic)  # an unmodelled mode near the excitation rings too
+        search.append(generic)
         if not fixed:
             return fit_sine_with_transients(t, y, w, tuple(search), t_ref_s=t_ref), 0.0
         # fixed poles: fit with them, refine the rest; worst case of the fixed poles' error

@@ -68,6 +68,7 @@ class PoleSearchBand:
     guess: DampedPole
     omega_min_rad_s: float
     omega_max_rad_s: float
+    exclude: tuple[tuple[float, float], ...] = ()  # sub-intervals not to scan (other modes' bands)
 
 
 @dataclass(frozen=True)
@@ -339,6 +340,10 @@ def fit_sine_with_transients(t_s, y, omega_rad_s: float, bands: tuple[PoleSearch
         grid = np.arange(w_lo, w_hi + step, step) if w_hi > w_lo else np.array([w_lo])
         if grid.size > 400:
             grid = np.linspace(w_lo, w_hi, 400)
+        for a, b in band.exclude:
+            grid = grid[(grid < a) | (grid > b)]
+        if grid.size == 0:
+            continue
         sig0 = max(float(band.guess.sigma_per_s), 1e-4)
         sigmas = np.array(sorted({min(sig0, 4.0 / T), 0.2 / T, 1.0 / T}))
         best = _scan(t, v, omega_rad_s, t_ref, tuple(kept), t_start, grid, sigmas)
