@@ -139,11 +139,11 @@ class CampaignProgress:
                 desc = f"replaying stored measurement {index} ({omega_rad_s:.4g} rad/s)"
             else:
                 planned = self._planned(omega_rad_s)
-                desc = f"dwell {index} at {omega_rad_s:.4g} rad/s" + (f" (planned {planned:.3g} s)" if planned else "")
+                desc = f"dwell {index} at {omega_rad_s:.4g} rad/s" + (f" ({planned:.3g} s of excitation)" if planned else "")
             self._progress.update(self._task, total=total, completed=index - 1, description=desc, status=self._status())
         elif not replayed:
             planned = self._planned(omega_rad_s)
-            self._line(f"dwell {index}/{total} at {omega_rad_s:.6g} rad/s" + (f" (planned {planned:.3g} s)" if planned else ""))
+            self._line(f"dwell {index}/{total} at {omega_rad_s:.6g} rad/s" + (f" ({planned:.3g} s of excitation)" if planned else ""))
         elif index == 1:
             self._line("replaying the measurements stored in the journal")
 

@@ -57,7 +57,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "run",
         help="run a campaign from a procedure file (or resume one)",
-        description=__doc__.split("\n\n")[0],
+        description="Run a campaign (thesis Algorithm 5.1) from a procedure file with live progress, journaling every "
+        "measurement in DIR/journal.sqlite; or continue a stopped run with --resume DIR. Ctrl-C stops cleanly "
+        "(exciter to zero, journal closed, exit 130).",
+        epilog="examples: setmem-hil run procedures/serial_loopback.toml --out runs/serial;  "
+        "setmem-hil run --resume runs/serial;  setmem-hil run --check procedures/beam_6_3_2.toml",
     )
     p.add_argument("procedure", nargs="?", metavar="PROCEDURE.toml", help="procedure file (see docs/procedures.md)")
     p.add_argument("--out", metavar="DIR", help="run directory (default: runs/<name>-<UTC time>)")
