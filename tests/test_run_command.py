@@ -174,3 +174,53 @@ def test_no_stray_files_left(tmp_path, cheap):
     assert main(["run", str(cheap), "--out", str(tmp_path / "r"), "--quiet"]) == 0
     names = sorted(os.listdir(tmp_path / "r"))
     assert names == ["journal.sqlite", "procedure.toml", "summary.json"]
+
+
+def test_live_progress_on_a_terminal():
+    import io
+
+    from rich.console import Console
+
+    from setmem_hil.progress import CampaignProgress
+
+    buf = io.StringIO()
+    console = Console(file=buf, force_terminal=True, width=160)
+    seen = []
+    with CampaignProgress(console, planned_dwell_s=lambda w: 10.0 / w, on_event=lambda e, **i: seen.append(e)) as show:
+        assert show.live
+        show("measure", index=1, total=3, omega_rad_s=2.0, replayed=True)
+        show("measure", index=2, total=3, omega_rad_s=4.0, replayed=False)
+        show("iteration", k=1, n_points=2, mu_peak=float("inf"), mu_peak_omega=4.4, safeguard="expanded")
+        show("chosen", k=1, next_omega=6.48)
+        show("measure", index=3, total=3, omega_rad_s=6.48, replayed=False)
+        task = show._progress.tasks[0]
+        assert task.description == "dwell 3 at 6.48 rad/s (1.54 s of excitation)" and (task.completed, task.total) == (2, 3)
+        show("finished", summary=type("S", (), {"reached_goal": True, "final_mu_peak": 0.9, "experiments_added": 1})())
+    text = buf.getvalue()
+    assert "iteration 1: 2 points, mu-bar peak inf (nominal loop unstable) at 4.4 rad/s [expanded]" in text
+    assert "next frequency 6.48 rad/s" in text and "finished: goal reached; mu-bar 0.9000" in text
+    assert (show.replayed, show.measured) == (1, 2)
+    assert seen == ["measure", "measure", "iteration", "chosen", "measure", "finished"]
+
+
+def test_device_counters_are_journaled(tmp_path, cheap, monkeypatch):
+    import setmem_hil.commands.run as run_cmd
+
+    real_open = run_cmd.open_backend
+
+    class Counting(H.InterruptingExperiment):
+        def __init__(self, inner):
+            super().__init__(inner, None)
+            self.counters = {}
+
+        def measure(self, omega_rad_s):
+            if self.calls in (2, 5):  # pretend the dwell driver discarded a dwell and retried
+                self.counters["discarded_dwell"] = self.counters.get("discarded_dwell", 0) + 1
+            return super().measure(omega_rad_s)
+
+    monkeypatch.setattr(run_cmd, "open_backend", lambda p, s: Counting(real_open(p, s)))
+    assert main(["run", str(cheap), "--out", str(tmp_path / "r"), "--quiet"]) == 0
+    j = Journal.open(tmp_path / "r")
+    events = [e for e in j.events() if e["kind"] == "discarded_dwell"]
+    j.close()
+    assert len(events) == 2 and "(total 2)" in events[1]["message"]
