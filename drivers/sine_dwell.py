@@ -45,8 +45,10 @@ True
 
 from __future__ import annotations
 
+import atexit
 import logging
 import math
+import weakref
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -233,6 +235,10 @@ class SineDwellExperiment:
         self.rig = rig
         self.limits = limits
         self.settings = settings or DwellSettings()
+        if not 0 < self.settings.amplitude_n <= limits.max_amplitude_n:
+            raise SafetyLimitError(
+                f"dwell amplitude {self.settings.amplitude_n:g} N outside the safety limit (0, {limits.max_amplitude_n:g}] N"
+            )
         self.exciter = SafeExciter(rig.exciter, limits)
         self.extra_bound = extra_bound
         self.model: IntervalModel | ModalParameters | None = model
@@ -240,10 +246,10 @@ class SineDwellExperiment:
         self.last_result: DwellResult | None = None
         self.counters: dict[str, int] = {}
         self._closed = False
-        if not 0 < self.settings.amplitude_n <= limits.max_amplitude_n:
-            raise SafetyLimitError(
-                f"dwell amplitude {self.settings.amplitude_n:g} N outside the safety limit (0, {limits.max_amplitude_n:g}] N"
-            )
+        # interpreter exit without close(): still command zero output and release the rig
+        ref = weakref.ref(self)
+        self._atexit = lambda: (lambda e: e is not None and e.close())(ref())
+        atexit.register(self._atexit)
 
     # -- model -----------------------------------------------------------------------------
     def update_model(self, model: IntervalModel | ModalParameters | None) -> None:
@@ -437,6 +443,7 @@ class SineDwellExperiment:
         if self._closed:
             return
         self._closed = True
+        atexit.unregister(self._atexit)
         try:
             safe_stop(self.exciter)
         finally:

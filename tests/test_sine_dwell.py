@@ -159,3 +159,25 @@ def test_extra_bound_is_added():
     _, a = _experiment(seed=8)
     _, b = _experiment(seed=8, extra_bound=lambda w: 0.5)
     assert b.measure(3.0).bound == pytest.approx(a.measure(3.0).bound + 0.5)
+
+
+def test_interpreter_exit_without_close_zeroes_the_output():
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import atexit
+        from setmem_hil.drivers.sine_dwell import SineDwellExperiment
+        from setmem_hil.procedure import SafetyLimits
+        from setmem_hil.sim_backends.core_rig import CoreRig
+        from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
+        core = FakeDeviceCore(seed=1)
+        rig = CoreRig(core)
+        atexit.register(lambda: print("output_on", core.status().output_on, "closed", rig.closed))
+        exp = SineDwellExperiment(rig, SafetyLimits())
+        exp.exciter.set_sine(2.0, 1.0)  # left running, exp never closed
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "output_on False closed True" in out.stdout
