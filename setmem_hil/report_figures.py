@@ -95,10 +95,11 @@ def modal_poles_zeros(params: ModalParameters) -> tuple[np.ndarray, np.ndarray]:
     return poles.astype(complex), zeros.astype(complex)
 
 
-def _save(fig: Figure, path: Path) -> Path:
+def _save(fig: Figure, path: Path, **adjust: float) -> Path:
     # Fixed margins instead of tight_layout: its text-extent search dominates the run time.
-    if not fig.get_constrained_layout():
-        fig.subplots_adjust(left=0.1, right=0.97, bottom=0.09, top=0.91, hspace=0.35, wspace=0.3)
+    margins = dict(left=0.1, right=0.97, bottom=0.09, top=0.91, hspace=0.35, wspace=0.3)
+    margins.update(adjust)
+    fig.subplots_adjust(**margins)
     FigureCanvasAgg(fig)
     fig.savefig(path, dpi=100, format="png")
     return path
@@ -218,7 +219,7 @@ def improvement_figure(iterations: Sequence[IterationRecord], path: Path) -> Pat
     n = max(len(recs), 1)
     ncols = 1 if n == 1 else 2
     nrows = math.ceil(n / ncols)
-    fig = Figure(figsize=(8.0 if ncols == 2 else 7.0, 2.6 * nrows + 0.6))
+    fig = Figure(figsize=(8.0 if ncols == 2 else 7.0, 2.8 * nrows + 0.8))
     axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
     for ax, rec in zip(axes, recs):
         order = np.argsort(rec.candidate_omega)
@@ -235,4 +236,5 @@ def improvement_figure(iterations: Sequence[IterationRecord], path: Path) -> Pat
     for ax in axes[len(recs):] if recs else axes[1:]:
         ax.set_visible(False)
     fig.suptitle("estimated mu-bar improvement per candidate frequency (figure 6-14)", fontsize=10)
-    return _save(fig, path)
+    height = fig.get_figheight()
+    return _save(fig, path, hspace=0.75, top=1.0 - 0.75 / height, bottom=0.55 / height)
