@@ -62,7 +62,7 @@ from setmem_hil.drivers.protocols import (
     SampleBlock,
     WaitingSensor,
 )
-from setmem_hil.drivers.safety import SafeExciter, check_dwell, check_sine_command, safe_stop
+from setmem_hil.drivers.safety import SafeExciter, check_dwell, check_sine_command, output_guard, safe_stop
 from setmem_hil.errors import DataQualityError, DeviceError, SafetyLimitError
 from setmem_hil.experiment import Measurement
 from setmem_hil.modal_model import IntervalModel, ModalParameters
@@ -336,7 +336,9 @@ class SineDwellExperiment:
             sensor.set_sample_rate(plan.sample_rate_hz)
         elif abs(rig.metadata.sample_rate_hz - plan.sample_rate_hz) > 1e-9 * plan.sample_rate_hz:
             plan = self._replan_fixed_rate(plan, rig.metadata.sample_rate_hz)
-        try:
+        # output_guard: zero output however the block ends; a failing stop during an abort is
+        # logged and never replaces the original exception (so Ctrl-C stays Ctrl-C)
+        with output_guard(self.exciter):
             self.exciter.set_sine(plan.omega_rad_s, self.settings.amplitude_n)
             if isinstance(sensor, WaitingSensor):
                 sensor.wait(plan.skip_s)
@@ -360,8 +362,6 @@ class SineDwellExperiment:
                 check_block(block, rig.metadata.force_range_n, rig.metadata.response_range, plan.sample_rate_hz)
                 dwell_s += plan.window_s
                 extensions += 1
-        finally:
-            self.exciter.stop()
 
     def _replan_fixed_rate(self, plan: DwellPlan, rate_hz: float) -> DwellPlan:
         n = int(math.ceil(plan.window_s * rate_hz))

@@ -56,12 +56,13 @@ def test_short_dwell_near_first_mode_beats_five_time_constants():
 class RecordingRig:
     """A rig that records commands; the sensor can be told to fail."""
 
-    def __init__(self, fail=None):
+    def __init__(self, fail=None, stop_fail=None):
         from setmem_hil.drivers.protocols import RigMetadata
 
         self.metadata = RigMetadata(10.0, 10.0, 1000.0)
         self.sent = []
         self.fail = fail
+        self.stop_fail = stop_fail
         outer = self
 
         class Ex:
@@ -70,6 +71,8 @@ class RecordingRig:
 
             def stop(self):
                 outer.sent.append(("stop",))
+                if outer.stop_fail is not None:
+                    raise outer.stop_fail
 
         class Se:
             def acquire(self, duration_s):
@@ -109,6 +112,15 @@ def test_exciter_goes_to_zero_on_unexpected_errors(exc):
     assert rig.sent[-1] == ("stop",)
     exp.close()
     assert rig.closed and rig.sent[-1] == ("stop",)
+
+
+def test_ctrl_c_stays_ctrl_c_when_the_stop_also_fails():
+    rig = RecordingRig(fail=KeyboardInterrupt(), stop_fail=DeviceError("link down"))
+    exp = SineDwellExperiment(rig, SafetyLimits())
+    with pytest.raises(KeyboardInterrupt):
+        exp.measure(2.0)
+    assert sum(1 for s in rig.sent if s[0] == "sine") == 1  # not retried
+    assert ("stop",) in rig.sent
 
 
 def test_device_errors_are_retried_then_raised_with_every_attempt_listed():
