@@ -76,6 +76,7 @@ class FakeCanDevice:
         self.watchdog_s = watchdog_s
         self.disconnect_s = disconnect_s
         self.frames_rejected = 0  # malformed frames received from the host
+        self.internal_errors: list[str] = []
         self._omega_rad_s = 0.0
         self._amplitude_n = 0.0
         self._enabled = False
@@ -216,6 +217,9 @@ class FakeCanDevice:
             self._execute(c)
         except DeviceCommandError:
             self._reply(c, cp.ReplyStatus.OUT_OF_RANGE)
+        except (ValueError, ArithmeticError) as exc:  # never let the device thread die
+            self.internal_errors.append(repr(exc))
+            self._reply(c, cp.ReplyStatus.FAULT)
         self._flush_held()
 
     def _execute(self, c: cp.Command) -> None:

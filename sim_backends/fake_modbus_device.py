@@ -99,6 +99,7 @@ class FakeModbusDevice:
         self.watchdog_s = watchdog_s
         self.port = 0
         self.requests = 0  # requests that reached the register map (for tests and reports)
+        self.internal_errors: list[str] = []
         self._omega_rad_s = 0.0
         self._amplitude_n = 0.0
         self._enabled = False
@@ -167,6 +168,11 @@ class FakeModbusDevice:
         async def shutdown() -> None:
             self._watchdog_task.cancel()
             await self._server.shutdown()
+            # requests still in flight (a late reply sleeping): cancel them before the loop stops
+            pending = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+            for task in pending:
+                task.cancel()
+            await asyncio.gather(*pending, return_exceptions=True)
 
         try:
             if loop.is_running():
@@ -242,11 +248,13 @@ class FakeModbusDevice:
             return ExcCodes.DEVICE_BUSY
         if f.draw("timeout"):
             await asyncio.sleep(self.late_s)
-        if set_values is not None:
-            result = self._write(address, list(set_values), registers)
-        else:
-            result = self._read(address, count, registers)
-        return result
+        try:
+            if set_values is not None:
+                return self._write(address, list(set_values), registers)
+            return self._read(address, count, registers)
+        except (ValueError, ArithmeticError) as exc:  # answer, never drop the connection
+            self.internal_errors.append(repr(exc))
+            return ExcCodes.DEVICE_FAILURE
 
     def _write(self, address: int, values: list[int], registers: list[int]) -> ExcCodes | None:
         span = range(address, address + len(values))
