@@ -43,8 +43,8 @@ from setmem_hil.errors import DeviceError, DeviceTimeoutError, FrameError
 HOST_HEARTBEAT_PERIOD_S = 0.5
 
 
-class _BusDown(Exception):
-    """Internal: the host's bus went bus-off or raised CanOperationError."""
+class _BusDown(DeviceError):
+    """The host's bus went bus-off or raised CanOperationError (handled by reopening the bus)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,6 +144,7 @@ class CanLink:
         self._seq = 0
         self._acq_id = 0
         self._assembly: _Assembly | None = None
+        self._bus_downs_in_block = 0
         self.last_heartbeat: cp.Heartbeat | None = None
         self._last_host_heartbeat = time.monotonic()
         self._hb_counter = 0
@@ -166,6 +167,12 @@ class CanLink:
                 pass
             self._bus = None
         self._bus = self._bus_factory()
+
+    def _reconnect_bounded(self, what: str) -> None:
+        self._bus_downs_in_block += 1
+        if self._bus_downs_in_block > self.settings.max_reconnects:
+            raise DeviceError(f"{self.where}: bus down {self._bus_downs_in_block} times while {what}; giving up")
+        self._reconnect()
 
     def _send(self, arbitration_id: int, data: bytes) -> None:
         if self._bus is None:
@@ -299,7 +306,11 @@ class CanLink:
         last_progress = time.monotonic()
         while not asm.complete_seen:
             left = last_progress + gap - time.monotonic()
-            frame = self._recv(left) if left > 0 else None
+            try:
+                frame = self._recv(left) if left > 0 else None
+            except _BusDown:
+                self._reconnect_bounded("collecting samples")
+                return  # what is missing is requested again
             if frame is None:  # silence (heartbeats do not count as progress)
                 self.stats.add("gap_timeouts")
                 return
@@ -322,6 +333,7 @@ class CanLink:
         """
         self._acq_id = (self._acq_id + 1) & 0xFF
         self._assembly = asm = _Assembly(self._acq_id, n_samples)
+        self._bus_downs_in_block = 0
         try:
             reply = self._request_collect(
                 cp.Opcode.START_ACQUISITION, n_samples, asm.acq_id, what=f"START_ACQUISITION of {n_samples} samples"
