@@ -16,6 +16,7 @@ import time
 from collections import Counter
 from typing import Callable, Iterator
 
+from setmem_hil.drivers import safety
 from setmem_hil.errors import SafetyLimitError
 
 
@@ -61,20 +62,18 @@ class TransportStats:
 def check_sine_command(limits, omega_rad_s: float, amplitude_n: float, where: str) -> None:
     """Refuse a sine outside the procedure's :class:`~setmem_hil.procedure.SafetyLimits`.
 
+    The rule is :func:`setmem_hil.drivers.safety.check_sine_command` (one rule for every
+    transport); this wrapper names the transport in the message.
+
     Raises
     ------
     SafetyLimitError
-        Before anything is sent: names the quantity, the limit and the value.
+        Before anything is sent: names the transport, the quantity, the limit and the value.
     """
-    if not (math.isfinite(omega_rad_s) and limits.omega_min_rad_s <= omega_rad_s <= limits.omega_max_rad_s):
-        raise SafetyLimitError(
-            f"{where}: omega {omega_rad_s!r} rad/s outside the procedure's limits "
-            f"[{limits.omega_min_rad_s:g}, {limits.omega_max_rad_s:g}]; nothing sent"
-        )
-    if not (math.isfinite(amplitude_n) and 0.0 <= amplitude_n <= limits.max_amplitude_n):
-        raise SafetyLimitError(
-            f"{where}: amplitude {amplitude_n!r} N outside the procedure's limit [0, {limits.max_amplitude_n:g}]; nothing sent"
-        )
+    try:
+        safety.check_sine_command(limits, omega_rad_s, amplitude_n)
+    except SafetyLimitError as exc:
+        raise SafetyLimitError(f"{where}: {exc}") from None
 
 
 def check_duration(limits, duration_s: float, where: str) -> None:
