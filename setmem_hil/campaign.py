@@ -187,7 +187,7 @@ class _Replay:
         return m
 
 
-def _identify_settings(procedure: Procedure, exact_resolve: bool = False):
+def _identify_settings(exact_resolve: bool = False):
     from setmem_hil.identification import IdentifySettings
 
     if exact_resolve:
@@ -235,7 +235,7 @@ def next_frequency(
         weights,
         scoring=scoring,
         exact_resolve_top=settings.exact_resolve_top,
-        identify_settings=_identify_settings(procedure, exact_resolve=True),
+        identify_settings=_identify_settings(exact_resolve=True),
     )
 
 
@@ -317,7 +317,7 @@ def run_campaign(
         data = FrequencyData.from_measurements(measured)
         try:
             with blas_one_thread():
-                result = identify(data, procedure.prior, previous=previous_model, settings=_identify_settings(procedure))
+                result = identify(data, procedure.prior, previous=previous_model, settings=_identify_settings())
         except InconsistentDataError as exc:
             if journal is not None and k not in stored_iterations:
                 journal.add_event("inconsistent-data", f"iteration {k}: {exc}")

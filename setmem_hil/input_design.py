@@ -30,7 +30,9 @@ from typing import Mapping
 
 import numpy as np
 
+from setmem_hil.errors import InconsistentDataError, SolverError
 from setmem_hil.frequency_data import FrequencyData
+from setmem_hil.identification import IdentifySettings, identify
 from setmem_hil.input_effects import InputEffects, estimate_input_effects
 from setmem_hil.modal_model import PARAM_NAMES, IntervalModel
 from setmem_hil.procedure import InputDesignSettings
@@ -197,9 +199,6 @@ def choose_input(
     top = top_indices(score, exact_resolve_top)
     resolved = np.full(top.size, np.nan)
     if top.size:
-        from setmem_hil.errors import InconsistentDataError, SolverError
-        from setmem_hil.identification import IdentifySettings, identify
-
         settings = identify_settings if identify_settings is not None else IdentifySettings()
         g_nominal = model.midpoint.frequency_response(omega[top])  # certainty equivalence, eq. 4.53
         for n, idx in enumerate(top):
