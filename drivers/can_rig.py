@@ -22,15 +22,17 @@ import numpy as np
 
 from setmem_hil.drivers import can_protocol as cp
 from setmem_hil.drivers.can_link import CanLink, CanSettings
-from setmem_hil.drivers.fieldbus_common import RetryPolicy, SafeShutdown, check_duration, check_sine_command
+from setmem_hil.drivers.fieldbus_common import (
+    RetryPolicy,
+    SafeShutdown,
+    check_duration,
+    check_sine_command,
+    transport_option,
+)
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.errors import DeviceError
 
 __all__ = ["CanExciter", "CanLink", "CanRig", "CanSensor", "CanSettings", "open_can_virtual_rig"]
-
-
-def _options(procedure) -> dict:
-    return dict(procedure.backend.transport or {}) if procedure is not None else {}
 
 
 class CanExciter:
@@ -200,7 +202,8 @@ def open_can_virtual_rig(procedure, seed: int) -> CanRig:
     procedure : setmem_hil.procedure.Procedure
         ``backend.simulation`` configures the simulated beam, ``backend.faults`` the fault
         injection (core kinds plus ``error_frame``, ``bus_off``), ``backend.transport`` may set
-        ``node``, ``reply_timeout_s``, ``max_attempts``, ``gap_timeout_s``, ``channel``.
+        ``channel``, ``node``, ``reply_timeout_s``, ``max_attempts``, ``backoff_s``,
+        ``backoff_max_s``, ``gap_timeout_s`` (other keys are ignored).
         ``safety`` limits every command.
     seed : int
         Seed of the sensor noise.
@@ -209,24 +212,31 @@ def open_can_virtual_rig(procedure, seed: int) -> CanRig:
     -------
     CanRig
         ``close()`` commands zero, shuts the host bus down and stops the fake device.
+
+    Raises
+    ------
+    ProcedureError
+        A transport option or fault setting that does not validate (names the key).
     """
     from setmem_hil.sim_backends.fake_can_device import FakeCanDevice
     from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
     from setmem_hil.sim_backends.transport_faults import CAN_FAULT_KINDS, split_faults
 
-    opts = _options(procedure)
     core_procedure, transport_faults = split_faults(procedure, CAN_FAULT_KINDS)
-    core = FakeDeviceCore.from_procedure(core_procedure, seed)
-    channel = str(opts.get("channel", f"setmem-can-{uuid.uuid4().hex[:12]}"))
-    node = int(opts.get("node", 0x21))
-    device = FakeCanDevice(core, channel, node, transport_faults).start()
+    channel = transport_option(procedure, "channel", str, f"setmem-can-{uuid.uuid4().hex[:12]}")
+    node = transport_option(procedure, "node", int, 0x21, lo=1, hi=cp.MAX_NODE)
     settings = CanSettings(
         node=node,
         retry=RetryPolicy(
-            reply_timeout_s=float(opts.get("reply_timeout_s", 0.1)), max_attempts=int(opts.get("max_attempts", 7))
+            reply_timeout_s=transport_option(procedure, "reply_timeout_s", float, 0.1, lo=1e-3, hi=60.0),
+            max_attempts=transport_option(procedure, "max_attempts", int, 7, lo=1, hi=100),
+            backoff_s=transport_option(procedure, "backoff_s", float, 0.01, lo=0.0, hi=10.0),
+            backoff_max_s=transport_option(procedure, "backoff_max_s", float, 0.32, lo=0.0, hi=60.0),
         ),
-        gap_timeout_s=float(opts.get("gap_timeout_s", 0.2)),
+        gap_timeout_s=transport_option(procedure, "gap_timeout_s", float, 0.2, lo=1e-3, hi=60.0),
     )
+    core = FakeDeviceCore.from_procedure(core_procedure, seed)
+    device = FakeCanDevice(core, channel, node, transport_faults).start()
 
     def factory() -> can.BusABC:
         return can.Bus(interface="virtual", channel=channel, receive_own_messages=False)

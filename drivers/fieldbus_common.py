@@ -17,7 +17,7 @@ from collections import Counter
 from typing import Callable, Iterator
 
 from setmem_hil.drivers import safety
-from setmem_hil.errors import SafetyLimitError
+from setmem_hil.errors import ProcedureError, SafetyLimitError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,3 +125,30 @@ class SafeShutdown:
 def sleep_s(seconds: float) -> None:
     if seconds > 0:
         time.sleep(seconds)
+
+
+def transport_option(procedure, key: str, kind: type, default, *, choices=None, lo=None, hi=None):
+    """``procedure.backend.transport[key]`` checked; ProcedureError naming the key otherwise.
+
+    Keys this transport does not know are left alone (they belong to other transports).
+    """
+    opts = procedure.backend.transport or {}
+    if key not in opts:
+        return default
+    value = opts[key]
+    source = procedure.source_path or procedure.name
+    where = f"[backend.transport] key '{key}'"
+    if kind is str:
+        if not isinstance(value, str) or (choices is not None and value not in choices):
+            expected = f"one of {list(choices)}" if choices is not None else "a string"
+            raise ProcedureError(source, where, f"expected {expected}, found {value!r}")
+        return value
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and kind is int:
+        ok = value == int(value)
+    if ok and ((lo is not None and value < lo) or (hi is not None and value > hi)):
+        ok = False
+    if not ok:
+        bounds = f" in [{lo}, {hi}]" if lo is not None or hi is not None else ""
+        raise ProcedureError(source, where, f"expected {'an integer' if kind is int else 'a number'}{bounds}, found {value!r}")
+    return kind(value)

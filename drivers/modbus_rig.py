@@ -37,6 +37,7 @@ from setmem_hil.drivers.fieldbus_common import (
     check_duration,
     check_sine_command,
     sleep_s,
+    transport_option,
 )
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.errors import DeviceError, DeviceTimeoutError, FrameError
@@ -350,25 +351,30 @@ def open_modbus_loopback_rig(procedure, seed: int) -> ModbusRig:
     -------
     ModbusRig
         ``close()`` commands zero, closes the client and stops the server.
+
+    Raises
+    ------
+    ProcedureError
+        A transport option or fault setting that does not validate (names the key).
     """
     from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
     from setmem_hil.sim_backends.fake_modbus_device import FakeModbusDevice
     from setmem_hil.sim_backends.transport_faults import MODBUS_FAULT_KINDS, split_faults
 
-    opts = dict(procedure.backend.transport or {})
-    framer = str(opts.get("framer", "socket"))
+    framer = transport_option(procedure, "framer", str, "socket", choices=("socket", "rtu"))
+    unit = transport_option(procedure, "unit", int, 1, lo=1, hi=247)
+    retry = RetryPolicy(
+        reply_timeout_s=transport_option(procedure, "reply_timeout_s", float, 0.1, lo=1e-3, hi=60.0),
+        max_attempts=transport_option(procedure, "max_attempts", int, 7, lo=1, hi=100),
+        backoff_s=transport_option(procedure, "backoff_s", float, 0.01, lo=0.0, hi=10.0),
+        backoff_max_s=transport_option(procedure, "backoff_max_s", float, 0.32, lo=0.0, hi=60.0),
+    )
     core_procedure, transport_faults = split_faults(procedure, MODBUS_FAULT_KINDS)
     core = FakeDeviceCore.from_procedure(core_procedure, seed)
     device = FakeModbusDevice(core, framer, transport_faults).start()
-    retry = RetryPolicy(
-        reply_timeout_s=float(opts.get("reply_timeout_s", 0.1)),
-        max_attempts=int(opts.get("max_attempts", 7)),
-        backoff_s=float(opts.get("backoff_s", 0.01)),
-        backoff_max_s=float(opts.get("backoff_max_s", 0.32)),
-    )
     link = None
     try:
-        link = ModbusLink("127.0.0.1", device.port, framer, int(opts.get("unit", 1)), retry)
+        link = ModbusLink("127.0.0.1", device.port, framer, unit, retry)
         rig = ModbusRig(link, procedure.safety, on_close=device.stop, name=f"modbus-loopback:{framer}:{device.port}")
     except BaseException:
         if link is not None:

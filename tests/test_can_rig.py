@@ -260,3 +260,39 @@ def test_disconnect_and_bus_off_every_time_are_recovered_then_reported():
     assert injected.get("disconnect", 0) > 0 and injected.get("bus_off", 0) > 0
     assert stats["reconnects"] == injected["bus_off"]
     assert stats["error_frames"] == injected.get("error_frame", 0)
+
+
+@pytest.mark.parametrize(
+    "transport, faults, message",
+    [
+        ({"node": 200}, {}, "key 'node': expected an integer in \\[1, 127\\], found 200"),
+        ({"reply_timeout_s": "fast"}, {}, "key 'reply_timeout_s': expected a number"),
+        ({}, {"rate": 0.1, "kinds": ["bus_of"]}, "unknown kinds \\['bus_of'\\]"),
+    ],
+)
+def test_bad_transport_options_and_fault_kinds_are_procedure_errors(transport, faults, message):
+    from setmem_hil.errors import ProcedureError
+
+    proc = _procedure(faults)
+    proc = dataclasses.replace(proc, backend=dataclasses.replace(proc.backend, transport=transport))
+    with pytest.raises(ProcedureError, match=message):
+        open_can_virtual_rig(proc, seed=1)
+
+
+def test_device_watchdog_zeroes_the_output_and_the_host_aborts_the_dwell():
+    import time
+
+    core = FakeDeviceCore(seed=2)
+    channel = "setmem-test-watchdog"
+    device = FakeCanDevice(core, channel, watchdog_s=0.15).start()
+    try:
+        rig = CanRig(CanLink(lambda: can.Bus(interface="virtual", channel=channel, receive_own_messages=False)), SafetyLimits())
+        rig.sensor.set_sample_rate(50.0)
+        rig.exciter.set_sine(5.0, 0.2)
+        time.sleep(0.6)  # the host falls silent (e.g. hung): the device drops the output
+        assert core.status().output_on is False
+        with pytest.raises(DeviceError, match="exciter output dropped by the device"):
+            rig.sensor.acquire(1.0)
+        rig.close()
+    finally:
+        device.stop()

@@ -149,3 +149,30 @@ def test_injected_faults_are_survived_and_corrupted_data_never_used(framer, kind
     assert stats["retries"] >= sum(injected.get(k, 0) for k in ("exception", "timeout")), (stats, injected)
     if framer == "socket" and injected.get("corrupt"):
         assert stats["crc_errors"] == injected["corrupt"]  # every corrupted page was caught by its CRC
+
+
+@pytest.mark.parametrize(
+    "transport, message",
+    [({"framer": "ascii"}, "key 'framer': expected one of \\['socket', 'rtu'\\], found 'ascii'"),
+     ({"unit": 0}, "key 'unit': expected an integer in \\[1, 247\\]")],
+)
+def test_bad_transport_options_are_procedure_errors(transport, message):
+    from setmem_hil.errors import ProcedureError
+
+    proc = _procedure()
+    proc = dataclasses.replace(proc, backend=dataclasses.replace(proc.backend, transport=transport))
+    with pytest.raises(ProcedureError, match=message):
+        open_modbus_loopback_rig(proc, seed=1)
+
+
+def test_device_watchdog_zeroes_the_output_and_the_host_aborts_the_dwell():
+    import time
+
+    with open_modbus_loopback_rig(_procedure(), seed=1) as rig:
+        rig.fake_device.watchdog_s = 0.15
+        rig.sensor.set_sample_rate(50.0)
+        rig.exciter.set_sine(5.0, 0.2)
+        time.sleep(0.6)
+        assert rig.fake_device.core.status().output_on is False
+        with pytest.raises(DeviceError, match="exciter output dropped by the device"):
+            rig.sensor.acquire(1.0)
