@@ -201,3 +201,30 @@ def test_campaign_killed_repeatedly_then_resumed_equals_uninterrupted(tmp_path, 
     j.close()
     print(f"campaign killed {KILL_ROUNDS} times ({mid_campaign} mid-campaign), resumed to the uninterrupted result")
     assert mid_campaign >= max(1, KILL_ROUNDS // 4)
+
+
+def test_sigterm_stops_like_ctrl_c(tmp_path):
+    """``kill PID`` (SIGTERM) zeroes the exciter, journals the interruption and exits 130."""
+    proc_path = tmp_path / "cheap.toml"
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_campaign_helpers", HELPERS)
+    h = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(h)
+    proc_path.write_text(h.cheap_procedure_text(3))
+    run_dir = tmp_path / "run"
+    child = subprocess.Popen([sys.executable, "-c", CAMPAIGN_CHILD, str(HELPERS), "run", str(proc_path), "--out", str(run_dir), "--quiet"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert child.stdout.readline().startswith("ready")
+    deadline = time.monotonic() + 60
+    while not (run_dir / "journal.sqlite").exists() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.3)
+    child.send_signal(signal.SIGTERM)
+    _, err = child.communicate(timeout=60)
+    assert child.returncode == 130, err
+    assert f"setmem-hil run --resume {run_dir}" in err
+    j = Journal.open(run_dir)
+    assert j.events()[-1]["kind"] == "interrupted" and "SIGTERM" in j.events()[-1]["message"]
+    assert j.integrity_problems() == [] and not j.run_info()["finished"]
+    j.close()

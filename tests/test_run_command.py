@@ -111,8 +111,9 @@ def test_device_fault_zeroes_the_exciter_and_can_be_resumed(tmp_path, cheap, mon
     j = Journal.open(out)
     assert len(j.measurements()) == 3 and j.events()[-1]["kind"] == "device-fault"
     j.close()
-    assert main(["run", "--resume", str(out), "--quiet"]) == 0
+    assert main(["run", "--resume", str(out), "--quiet", "--report"]) == 0
     assert made[1].closed
+    assert (out / "report.html").stat().st_size > 0 and (out / "fig_mu_peak.png").exists()
 
 
 def test_default_run_directory(tmp_path, cheap, monkeypatch, capsys):

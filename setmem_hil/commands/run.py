@@ -2,8 +2,9 @@
 
 Runs a campaign (thesis Algorithm 5.1) from a procedure file with live progress, journaling
 every measurement before the next dwell starts (``DIR/journal.sqlite``), and writes
-``DIR/summary.json`` at the end. Ctrl-C stops cleanly: the exciter is commanded to zero, the
-journal is closed, the command prints how to resume and exits with 130.
+``DIR/summary.json`` at the end. Ctrl-C (or SIGTERM) stops cleanly: the exciter is commanded
+to zero, the journal is closed, the command prints how to resume and exits with 130. SIGKILL
+or a power cut cannot be caught; the journal still holds every completed measurement.
 
 ``--resume DIR`` continues a stopped run exactly where it stopped: the procedure text, seed,
 backend and strategy are read from the journal (never from the possibly edited file), and the
@@ -239,18 +240,47 @@ class _CounterLogger:
 
 @contextmanager
 def _sigint_deferred() -> Iterator[None]:
-    """Ignore Ctrl-C while shutting down, so a second press cannot skip the exciter stop."""
+    """Ignore Ctrl-C and SIGTERM while shutting down, so a second one cannot skip the exciter stop."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    previous_term = signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGTERM, previous_term)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill PID``, a service manager stopping us): handled exactly like Ctrl-C."""
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Turn SIGTERM into an interrupt for the duration of the campaign, so the exciter is
+    zeroed and the journal closed (the default action would end the process on the spot)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise _Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console) -> RunOutcome:
+    with _sigterm_as_interrupt():
+        return _run_campaign_in(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console)
+
+
+def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console) -> RunOutcome:
     from setmem_hil.campaign import run_campaign
 
     experiment = None
@@ -265,9 +295,10 @@ def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, 
         with CampaignProgress(console, planned_dwell_s=planned, on_event=logger) as progress:
             summary = run_campaign(procedure, experiment, journal, seed=seed, strategy=strategy, progress=progress)
         doc = summary.to_document()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        why = "SIGTERM: stopped by a signal" if isinstance(exc, _Terminated) else "Ctrl-C: stopped by the operator"
         with _sigint_deferred():
-            _shutdown(experiment, journal, "interrupted", "Ctrl-C: stopped by the operator")
+            _shutdown(experiment, journal, "interrupted", why)
         print(f"setmem-hil: stopped; {_stored(journal)} measurements are in the journal. Continue with:\n"
               f"    setmem-hil run --resume {run_dir}", file=sys.stderr)
         raise
