@@ -58,7 +58,7 @@ def _basis(M: np.ndarray, p: int):
     return A_d, B_d, A_g
 
 
-def _min_margin(M: np.ndarray, p: int, beta: float, settings) -> tuple[float, np.ndarray, np.ndarray]:
+def _min_margin(M: np.ndarray, p: int, beta: float, settings) -> tuple[float, np.ndarray, np.ndarray] | None:
     """``min t`` s.t. ``M^* D M + j (G M - M^* G) - beta^2 D <= t I``, ``trace(D) = n``, ``D >= 0``.
 
     ``t < 0`` iff ``beta`` is above the bound; always feasible, so no infeasibility detection.
@@ -93,7 +93,9 @@ def _min_margin(M: np.ndarray, p: int, beta: float, settings) -> tuple[float, np
     sol = clarabel.DefaultSolver(P, q, A, b, cones, settings).solve()
     status = str(sol.status)
     if status not in ("Solved", "AlmostSolved"):
-        raise SolverError(f"mixed-mu LMI (Clarabel): status {status} at beta = {beta:.6g}")
+        if "Infeasible" in status:  # cannot happen for this always-feasible problem
+            raise SolverError(f"mixed-mu LMI (Clarabel): status {status} at beta = {beta:.6g}")
+        return None  # numerical trouble near the optimum: the caller keeps its best certificate
     x = np.array(sol.x)
     return float(x[-1]), x[:n], x[n : n + p]
 
@@ -153,7 +155,10 @@ def mixed_mu_upper_lmi(M: np.ndarray, structure: MuStructure, rtol: float = 1e-7
     # Dinkelbach-style iteration: solve the margin LMI at the current value, move to the exact
     # generalised eigenvalue of the new certificate, stop when it no longer improves
     for _ in range(max_bisections):
-        t, d, g = _min_margin(M, p, best * (1.0 - 0.5 * rtol), settings)
+        sol = _min_margin(M, p, best * (1.0 - 0.5 * rtol), settings)
+        if sol is None:
+            break
+        t, d, g = sol
         if t >= 0.0:
             break
         d = np.maximum(d, 1e-12)
