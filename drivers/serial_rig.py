@@ -173,6 +173,9 @@ class SerialLink:
 
         try:
             return call_with_retries(attempt, self.policy, (FrameError, DeviceTimeoutError), on_retry)
+        except DeviceDisconnectedError:
+            self.close()  # the link is dead: later requests fail at once until open()
+            raise
         except DeviceTimeoutError as exc:
             self.stats["timeouts"] += 1
             raise DeviceTimeoutError(f"{exc} (request {command}, {self.policy.max_attempts} attempts)") from exc

@@ -9,8 +9,9 @@ each decoded request to a :class:`~setmem_hil.sim_backends.fake_device_core.Fake
 Duplicate requests (same ``seq`` and bytes as the previous one) are answered from a one-entry
 cache without executing them again, so every request is safe to retry.
 
-Frame-level faults (``core.faults``, one draw per kind per response): ``timeout`` (no answer),
-``truncate`` (the answer cut short), ``corrupt`` (one character changed, so the CRC fails),
+Frame-level faults (``core.faults``, one draw per kind per frame): ``timeout`` (no answer),
+``truncate`` (the answer cut short), ``corrupt`` (one character of the request or of the answer
+changed, so the CRC fails; a garbled request is answered ``ERR frame`` and not executed),
 ``duplicate`` (the answer sent twice), ``reorder`` (a stale copy of the previous answer sent
 first), ``disconnect`` (the device drops the connection instead of answering and its watchdog
 sets the output to zero; the host may reconnect).
@@ -110,6 +111,19 @@ class FakeSerialDevice:
 
     def _answer(self, conn: socket.socket, line: bytes) -> bool:
         """Handle one request line; False when the connection is to be dropped."""
+        if self.core.faults.draw("corrupt"):
+            # the request was garbled on its way in: the device cannot parse it and says so;
+            # nothing is executed or cached, so the host's retry (same bytes) goes through
+            k = int(self.core.faults.rng.integers(1, max(2, len(line) - 1)))
+            garbled = line[:k] + (b"0" if line[k : k + 1] != b"0" else b"1") + line[k + 1 :]
+            try:
+                sp.decode_request(garbled)
+                response = self._execute(line)  # the change happened to be harmless
+            except FrameError as exc:
+                self.malformed_requests += 1
+                response = sp.encode_error(_guess_seq(line), "frame", str(exc))
+            self.requests_served += 1
+            return self._send_with_faults(conn, response)
         if self._last is not None and self._last[0] == line:
             response = self._last[1]  # a retry: answer from the cache, do not execute again
         else:
