@@ -227,8 +227,8 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     parts.append("<h2 id='discrepancy'>Discrepancy checks</h2>")
     if run.discrepancies:
         for n, (k, report) in enumerate(run.discrepancies, start=1):
-            rows = [[key, value if isinstance(value, str) else json.dumps(value, default=str)] for key, value in report.items()]
-            parts.append(_table(["item", "value"], rows, f"table-discrepancy-{n}", f"Discrepancy check at iteration {k}."))
+            parts.append(_table(["item", "value"], _discrepancy_rows(report), f"table-discrepancy-{n}",
+                                f"Discrepancy check at iteration {k} ({_after(its, k)})."))
     else:
         parts.append("<p>No discrepancy check was run.</p>")
     parts.append("<h2 id='events'>Events</h2>")
@@ -262,6 +262,36 @@ pre {{ background: #f6f6f6; padding: 1em; overflow-x: auto; }}
     tmp.write_text(doc, encoding="utf-8")
     os.replace(tmp, path)
     return path
+
+
+def _discrepancy_rows(report: dict) -> list[list[str]]:
+    """Key facts of a discrepancy report first (decision, effects, worst normalised residual
+    before and after, disagreement bands), then any other item, shortened."""
+    rows: list[list[str]] = []
+    shown = set()
+    if "decision" in report:
+        rows.append(["decision", str(report["decision"])])
+        shown.add("decision")
+    if isinstance(report.get("effects"), list):
+        names = [str(e.get("name", e)) if isinstance(e, dict) else str(e) for e in report["effects"]]
+        rows.append(["effects found", ", ".join(names) or "none"])
+        shown.add("effects")
+    for key in ("before", "after"):
+        part = report.get(key)
+        if isinstance(part, dict) and "max_normalized_residual" in part:
+            rows.append([f"worst normalised residual {key}", _num(part["max_normalized_residual"], 4)])
+            shown.add(key)
+    if "disagreement_bands" in report:
+        bands = report["disagreement_bands"] or []
+        text = ", ".join(f"{_num(b[0], 4)}-{_num(b[1], 4)} rad/s" if isinstance(b, (list, tuple)) and len(b) >= 2 else str(b) for b in bands)
+        rows.append(["disagreement bands", text or "none"])
+        shown.add("disagreement_bands")
+    for key, value in report.items():
+        if key in shown:
+            continue
+        text = value if isinstance(value, str) else json.dumps(value, default=str)
+        rows.append([key, text if len(text) <= 300 else text[:297] + "..."])
+    return rows
 
 
 def _description(procedure_text: str) -> str:

@@ -55,7 +55,8 @@ def _journal(tmp_path, n_iterations=5, discrepancy=True):
             ms.append(m)
             j.add_measurement(m, iteration=k, role="added")
     if discrepancy:
-        j.add_discrepancy(2, {"consistent": True, "max_ratio": 0.7, "omegas_rad_s": [1.0, 6.2]})
+        j.add_discrepancy(2, {"disagreement_bands": [[20.5, 31.0]], "effects": [{"name": "time-delay"}], "decision": "time-delay",
+                              "before": {"max_normalized_residual": 3.2}, "after": {"max_normalized_residual": 0.8}, "rule": "x" * 400})
     j.add_event("interrupted", "Ctrl-C <script>alert(1)</script>")
     j.finish({"reached_goal": True, "final_mu_peak": 0.5, "experiments_added": n_iterations - 1, "stop_reason": "goal"})
     j.close()
@@ -77,6 +78,9 @@ def test_report_holds_every_figure_and_table(tmp_path):
     ids = set(re.findall(r'<table id="([^"]+)"', text))
     assert {"table-run", "table-iterations", "table-events", "table-measurements", "table-discrepancy-1"} <= ids
     assert {f"table-intervals-k{k}" for k in range(1, 6)} <= ids
+    disc = text[text.index('id="table-discrepancy-1"'):].split("</table>")[0]
+    for cell in ("time-delay", "20.5-31 rad/s", "<td>3.2</td>", "<td>0.8</td>", "x" * 297 + "..."):
+        assert cell in disc, cell
     # appendix B wording and content: the bounds of iteration 2 appear with their sensitivities
     assert "after applying a sinusoid at 6.48 rad/s" in text
     assert "after the initial data points" in text

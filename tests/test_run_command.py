@@ -225,3 +225,23 @@ def test_device_counters_are_journaled(tmp_path, cheap, monkeypatch):
     events = [e for e in j.events() if e["kind"] == "discarded_dwell"]
     j.close()
     assert len(events) == 2 and "(total 2)" in events[1]["message"]
+
+
+def test_discrepancy_check_each_iteration_is_journaled_once_per_iteration(tmp_path, cheap, monkeypatch):
+    import setmem_hil.commands.run as run_cmd
+
+    cheap.write_text(cheap.read_text() + "\n[discrepancy]\ncheck_each_iteration = true\n")
+    real_open = run_cmd.open_backend
+    made = []
+    monkeypatch.setattr(run_cmd, "open_backend", lambda p, s: made.append(H.InterruptingExperiment(real_open(p, s), 17 if not made else None)) or made[-1])
+    out = tmp_path / "run"
+    assert main(["run", str(cheap), "--out", str(out), "--quiet"]) == 130
+    j = Journal.open(out)
+    assert [k for k, _ in j.discrepancies()] == [1, 2]
+    j.close()
+    assert main(["run", "--resume", str(out), "--quiet"]) == 0
+    j = Journal.open(out)
+    found = j.discrepancies()
+    assert [k for k, _ in found] == [1, 2, 3] == [r.k for r in j.iterations()]
+    assert all("decision" in report and "before" in report for _, report in found)
+    j.close()

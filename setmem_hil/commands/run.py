@@ -238,6 +238,46 @@ class _CounterLogger:
         self.seen = dict(counters)
 
 
+class _DiscrepancyChecker:
+    """``[discrepancy] check_each_iteration``: after each stored iteration, run the discrepancy
+    workflow (:func:`setmem_hil.discrepancy.check_discrepancy`) on the data used and the bounds
+    identified, and journal the result. It only observes: the campaign's choices do not depend
+    on it, so a replayed run is unchanged; iterations already checked are not checked again."""
+
+    def __init__(self, procedure: Procedure, journal: Journal):
+        self.procedure, self.journal = procedure, journal
+        self.done = {k for k, _ in journal.discrepancies()}
+
+    def __call__(self, event: str, **info: Any) -> None:
+        if event not in ("chosen", "finished"):  # the iteration record is stored by then
+            return
+        from setmem_hil.discrepancy import check_discrepancy
+        from setmem_hil.frequency_data import FrequencyData
+        from setmem_hil.modal_model import IntervalModel
+
+        measurements = None
+        for rec in self.journal.iterations():
+            if rec.k in self.done:
+                continue
+            measurements = measurements or self.journal.measurements()
+            data = FrequencyData.from_measurements(measurements[: rec.n_points])
+            try:
+                report = check_discrepancy(data, IntervalModel(rec.lower, rec.upper), self.procedure.prior).to_document()
+            except (SetmemError, ValueError, ArithmeticError) as exc:  # a failed check must not stop the campaign
+                self.journal.add_event("discrepancy-error", f"iteration {rec.k}: {type(exc).__name__}: {exc}")
+            else:
+                self.journal.add_discrepancy(rec.k, report)
+            self.done.add(rec.k)
+
+
+def _observers(*fns):
+    def call(event: str, **info: Any) -> None:
+        for fn in fns:
+            fn(event, **info)
+
+    return call
+
+
 @contextmanager
 def _sigint_deferred() -> Iterator[None]:
     """Ignore Ctrl-C and SIGTERM while shutting down, so a second one cannot skip the exciter stop."""
@@ -291,8 +331,10 @@ def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, s
             def planned(w: float, _e=experiment) -> float:
                 plan = _e.plan(w)
                 return float(plan.skip_s + plan.window_s)
-        logger = _CounterLogger(experiment, journal)
-        with CampaignProgress(console, planned_dwell_s=planned, on_event=logger) as progress:
+        observers = [_CounterLogger(experiment, journal)]
+        if procedure.discrepancy_check:
+            observers.append(_DiscrepancyChecker(procedure, journal))
+        with CampaignProgress(console, planned_dwell_s=planned, on_event=_observers(*observers)) as progress:
             summary = run_campaign(procedure, experiment, journal, seed=seed, strategy=strategy, progress=progress)
         doc = summary.to_document()
     except KeyboardInterrupt as exc:
