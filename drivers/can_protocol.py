@@ -25,8 +25,12 @@ samples as i32 with least significant bit ``range / (2**31 - 1)`` (ranges read o
 (IEEE-754 binary32 bits in the u32 argument): sample instants are ``t0 + k / rate`` exactly, and
 a scaled integer would shift them by more than a dwell's timestamp check tolerates (1e-6 of a
 sample period). Sample instants: block start ``t0`` (header frame, ns) plus ``k / rate`` plus
-the per-sample deviation from that grid (time-stamp frame, ns; 0 for a healthy clock). The thesis's frequency-response points (eq. 3.1: one complex response per
-frequency) are estimated from these samples by the sine-dwell measurement, not here.
+the per-sample deviation from that grid (time-stamp frame, ns; 0 for a healthy clock).
+
+The thesis's measurements ``g(j omega) = g_0(j omega) + n(j omega)``, ``|n| <= R`` (eq. 3.7)
+are estimated from these samples by the sine-dwell measurement, not here; the transport's job
+is that no corrupted sample ever reaches that estimate (a corrupted sample would be an error
+outside any bound ``R``).
 """
 
 from __future__ import annotations
@@ -199,6 +203,7 @@ def float_to_u32(value: float) -> int:
 
 
 def u32_to_float(bits: int) -> float:
+    """The binary32 value of ``bits`` (inverse of :func:`float_to_u32`)."""
     return struct.unpack("<f", struct.pack("<I", _u32("float bits", bits)))[0]
 
 
@@ -306,6 +311,7 @@ def encode_command(node: int, command: Command) -> tuple[int, bytes]:
 
 
 def encode_reply(node: int, reply: Reply) -> tuple[int, bytes]:
+    """``(arbitration_id, data)`` of a reply frame (device side); ValueError if a field does not fit."""
     _check_node(node)
     body = struct.pack(
         "<BBBI", _u8("opcode", int(reply.opcode)), _u8("seq", reply.seq), _u8("status", int(reply.status)), _u32("value", reply.value)
@@ -314,6 +320,7 @@ def encode_reply(node: int, reply: Reply) -> tuple[int, bytes]:
 
 
 def encode_sample(node: int, sample: SampleFrame) -> tuple[int, bytes]:
+    """``(arbitration_id, data)`` of a force, response or time-stamp frame (device side)."""
     _check_node(node)
     base = {"force": FORCE_DATA_BASE, "response": RESPONSE_DATA_BASE, "time": TIME_DATA_BASE}.get(sample.channel)
     if base is None:
@@ -327,6 +334,7 @@ def encode_sample(node: int, sample: SampleFrame) -> tuple[int, bytes]:
 
 
 def encode_header(node: int, header: BlockHeader) -> tuple[int, bytes]:
+    """``(arbitration_id, data)`` of a block header frame (device side)."""
     _check_node(node)
     if not 0 <= header.start_counts <= 0xFFFFFFFFFFFF:
         raise ValueError(f"block start: expected a u48, found {header.start_counts}")
@@ -335,6 +343,7 @@ def encode_header(node: int, header: BlockHeader) -> tuple[int, bytes]:
 
 
 def encode_heartbeat(node: int, heartbeat: Heartbeat) -> tuple[int, bytes]:
+    """``(arbitration_id, data)`` of a device heartbeat frame."""
     _check_node(node)
     body = struct.pack(
         "<BBBI", _u8("state", heartbeat.state), _u8("flags", heartbeat.flags), _u8("counter", heartbeat.counter), _u32("tick", heartbeat.tick)
@@ -343,6 +352,7 @@ def encode_heartbeat(node: int, heartbeat: Heartbeat) -> tuple[int, bytes]:
 
 
 def encode_host_heartbeat(counter: int) -> tuple[int, bytes]:
+    """``(0x77F, data)`` of the host heartbeat (the device's watchdog input)."""
     body = bytes([_u8("counter", counter)]) + bytes(6)
     return HOST_HEARTBEAT_ID, _seal(HOST_HEARTBEAT_ID, body)
 

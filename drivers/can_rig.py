@@ -9,7 +9,18 @@ reconnect). :func:`open_can_virtual_rig` starts the fake device on a uniquely na
 python-can ``virtual`` channel and returns a rig that owns it.
 
 The measured samples feed the sine-dwell estimate of one frequency-response point (thesis
-eq. 3.1); nothing here depends on the thesis' identification.
+eq. 3.7: ``g = g_0 + n``, ``|n| <= R``); nothing here depends on the identification.
+
+Example
+-------
+>>> from setmem_hil.procedure import default_procedure
+>>> with open_can_virtual_rig(default_procedure(), seed=1) as rig:
+...     rig.sensor.set_sample_rate(20.0)
+...     rig.exciter.set_sine(5.0, 0.5)
+...     block = rig.sensor.acquire(2.0)
+...     rig.exciter.stop()
+>>> block.force.shape
+(40,)
 """
 
 from __future__ import annotations

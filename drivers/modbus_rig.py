@@ -15,7 +15,17 @@ abort path and at exit, and implements the optional rig capabilities of
 :mod:`setmem_hil.drivers.protocols` (sample rate, wait, measurement index, reconnect).
 :func:`open_modbus_loopback_rig` starts the fake device (a pymodbus server on 127.0.0.1 at a
 free port) and returns a rig that owns it. The samples feed the sine-dwell estimate of one
-frequency-response point (thesis eq. 3.1).
+frequency-response point (thesis eq. 3.7: ``g = g_0 + n``, ``|n| <= R``).
+
+Example
+-------
+>>> from setmem_hil.procedure import default_procedure
+>>> with open_modbus_loopback_rig(default_procedure(), seed=1) as rig:
+...     rig.sensor.set_sample_rate(20.0)
+...     rig.exciter.set_sine(5.0, 0.5)
+...     block = rig.sensor.acquire(2.0)
+>>> block.response.shape
+(40,)
 """
 
 from __future__ import annotations
