@@ -174,7 +174,27 @@ def test_loopback_procedures_run(tmp_path, monkeypatch, name):
 def test_no_stray_files_left(tmp_path, cheap):
     assert main(["run", str(cheap), "--out", str(tmp_path / "r"), "--quiet"]) == 0
     names = sorted(os.listdir(tmp_path / "r"))
-    assert names == ["journal.sqlite", "procedure.toml", "summary.json"]
+    assert names == [".run.lock", "journal.sqlite", "procedure.toml", "summary.json"]
+
+
+def test_a_second_process_cannot_run_the_same_campaign(tmp_path, cheap, monkeypatch, capsys):
+    import fcntl
+
+    import setmem_hil.commands.run as run_cmd
+
+    real_open = run_cmd.open_backend
+    made = []
+    monkeypatch.setattr(run_cmd, "open_backend", lambda p, s: made.append(H.InterruptingExperiment(real_open(p, s), 3 if not made else None)) or made[-1])
+    out = tmp_path / "run"
+    assert main(["run", str(cheap), "--out", str(out), "--quiet"]) == 130
+    with open(out / ".run.lock", "a+") as other:  # another process holding the run
+        fcntl.flock(other.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert main(["run", "--resume", str(out), "--quiet"]) == 2
+        assert "another setmem-hil process is running this campaign" in capsys.readouterr().err
+    j = Journal.open(out)
+    assert len(j.measurements()) == 2 and j.events()[-1]["kind"] == "interrupted"  # untouched
+    j.close()
+    assert main(["run", "--resume", str(out), "--quiet"]) == 0
 
 
 def test_live_progress_on_a_terminal():

@@ -158,10 +158,11 @@ def start_run(
         backend=procedure.backend.kind,
         strategy=strategy,
     )
-    _write_text_atomically(run_dir / PROCEDURE_COPY, text)
-    console.print(f"run directory: {run_dir}", highlight=False)
-    _describe(procedure, console)
-    return _run_with_journal(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console)
+    with _run_lock(run_dir, journal):
+        _write_text_atomically(run_dir / PROCEDURE_COPY, text)
+        console.print(f"run directory: {run_dir}", highlight=False)
+        _describe(procedure, console)
+        return _run_with_journal(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console)
 
 
 def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None) -> RunOutcome:
@@ -193,10 +194,11 @@ def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None) ->
             "the replay stops with an error if the loop now makes different choices",
             highlight=False,
         )
-    stored = journal.n_measurements()
-    journal.add_event("resumed", f"resumed with {stored} stored measurements and {len(journal.iterations())} iterations (setmem-hil {__version__})")
-    console.print(f"resuming {run_dir}: {stored} measurements stored, seed {info['seed']}, strategy {info['strategy']}", highlight=False)
-    return _run_with_journal(procedure, journal, run_dir, seed=int(info["seed"]), strategy=str(info["strategy"]), console=console)
+    with _run_lock(run_dir, journal):
+        stored = journal.n_measurements()
+        journal.add_event("resumed", f"resumed with {stored} stored measurements and {len(journal.iterations())} iterations (setmem-hil {__version__})")
+        console.print(f"resuming {run_dir}: {stored} measurements stored, seed {info['seed']}, strategy {info['strategy']}", highlight=False)
+        return _run_with_journal(procedure, journal, run_dir, seed=int(info["seed"]), strategy=str(info["strategy"]), console=console)
 
 
 def open_backend(procedure: Procedure, seed: int) -> Any:
@@ -313,6 +315,31 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+LOCK_FILENAME = ".run.lock"
+
+
+@contextmanager
+def _run_lock(run_dir: Path, journal: Journal) -> Iterator[None]:
+    """One process at a time per run directory: two resumes of the same run would both append
+    the measurements after the stored ones. POSIX advisory lock, released when the process ends
+    (also on SIGKILL); where ``fcntl`` is missing there is no lock."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover (not POSIX)
+        yield
+        return
+    fh = open(run_dir / LOCK_FILENAME, "a+")
+    try:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            journal.close()
+            raise InputFormatError(str(run_dir), "", "another setmem-hil process is running this campaign; wait for it or stop it first") from None
+        yield
+    finally:
+        fh.close()
 
 
 def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console) -> RunOutcome:
