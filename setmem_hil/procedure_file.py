@@ -154,7 +154,7 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("weights", "w2_den", "numbers", "", "thesis eq. 6.13", "W2 denominator coefficients (stable, degree >= numerator's)."),
     KeySpec("weights", "w2_extra_pole_rad_s", "number", "rad/s", _W.w2_extra_pole_rad_s, "Extra W2 pole for the H2 design (section 6.3.1); 0 for none.", ge=0.0),
     # [discrepancy]
-    KeySpec("discrepancy", "check_each_iteration", "bool", "", False, "Run the model-discrepancy check after every identification."),
+    KeySpec("discrepancy", "check_each_iteration", "bool", "", False, "After every iteration, check where model and data disagree and name the missing effect (setmem_hil.discrepancy); results go to the journal and the report, the campaign's choices are unchanged."),
 )
 
 _BY_TABLE: dict[str, dict[str, KeySpec]] = {}
