@@ -211,18 +211,20 @@ def mixed_mu_upper(
     nv = prob.ny + prob.p
     x = np.concatenate([_perron_start(Mn)[:, 1:], np.zeros((K, prob.p))], axis=1)
     if nv > 0:
-        solve = _newton if method == "newton" else _bfgs
-        x = solve(prob, x, tol, max_iter)
-        if variables == "both" and prob.p:
-            # second run in (y, h = d^2 g): it reaches the boundary optima D_L,k -> 0 with G_L
-            # finite (eq. 2.16) that the (y, g) run approaches only along a ray; keep the better
+        if method == "newton":
+            x = _newton(prob, x, tol, max_iter if variables != "both" else max(max_iter // 3, 1))
+        else:
+            x = _bfgs(prob, x, tol, max_iter)
+        if variables == "both" and prob.p and method == "newton":
+            # continue in (y, h = d^2 g) from where the (y, g) run stopped: it reaches the
+            # boundary optima D_L,k -> 0 with G_L finite (eq. 2.16) that the (y, g) run only
+            # creeps towards along a ray. Never worse than its start (best value is kept).
             prob_h = _Problem(Mn, structure, param_h=True)
-            xh0 = np.concatenate([_perron_start(Mn)[:, 1:], np.zeros((K, prob.p))], axis=1)
-            xh = solve(prob_h, xh0, tol, max_iter)
             dg, gg = prob.unpack(x)
+            xh0 = np.concatenate([np.log(dg[:, 1:]), (gg * dg**2)[:, : prob.p]], axis=1)
+            xh = _newton(prob_h, xh0, tol, max_iter, tau0_rel=1e-3)
             dh, gh = prob_h.unpack(xh)
-            better = bound_at_scalings(Mn, dh, gh) < bound_at_scalings(Mn, dg, gg)
-            x[better] = np.concatenate([np.log(dh[better, 1:]), gh[better, : prob.p]], axis=1)
+            x = np.concatenate([np.log(dh[:, 1:]), gh[:, : prob.p]], axis=1)
     d, g = prob.unpack(x)
     lam, U, _, _ = prob.eig(x, np.arange(K))
     lam = lam[:, ::-1] * (scale**2)[:, None]
@@ -423,12 +425,12 @@ def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: n
     return f, top, grad, 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
 
 
-def _newton(prob: _Problem, x: np.ndarray, tol: float, max_iter: int) -> np.ndarray:
+def _newton(prob: _Problem, x: np.ndarray, tol: float, max_iter: int, tau0_rel: float = 0.05) -> np.ndarray:
     """Damped Newton on the smoothed ``lambda_max`` while ``tau`` follows a path down to ``tol``."""
     K, nv = x.shape
     allidx = np.arange(K)
     _, top0, _, _ = _smoothed_derivatives(prob, x, allidx, np.ones(K), hessian=False)
-    tau = 0.05 * np.maximum(top0, 1e-12)
+    tau = np.maximum(tau0_rel, tol) * np.maximum(top0, 1e-12)
     best_x, best_top = x.copy(), top0.copy()
     active = np.ones(K, dtype=bool)
     for _ in range(max_iter):

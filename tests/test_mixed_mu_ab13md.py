@@ -43,7 +43,7 @@ def test_beam_closed_loop_grid_never_above_ab13md(beam_closed_loop):
     _, cl = beam_closed_loop
     w = default_omega_grid()
     M = cl.frequency_response(w)
-    ours = mixed_mu_upper(M, MuStructure(9, 2), tol=1e-7, max_iter=300).beta
+    ours = mixed_mu_upper(M, MuStructure(9, 2), tol=1e-6, max_iter=60).beta
     ref = np.array([ab13md(Mk, 9) for Mk in M])
     rel = ours / ref - 1
     print(f"\nbeam grid: largest (ours / ab13md - 1) = {rel.max():.2e}, smallest = {rel.min():.2e}")
@@ -55,7 +55,7 @@ def test_analysis_peak_never_above_ab13md(beam_closed_loop):
     r = analyze_robust_performance(model)
     ref = ab13md(cl.frequency_response([r.mu_peak_omega])[0], 9)
     assert r.mu_peak <= ref * (1 + 1e-4)
-    # every reported value is a valid bound; away from the peak the fast pass may be a bit loose
+    # every reported value, grid and refinement points alike
     M = cl.frequency_response(r.omega)
-    ab = np.array([ab13md(Mk, 9) for Mk in M[::10]])
-    assert np.all(r.mu[::10] <= ab * 1.05)
+    ab = np.array([ab13md(Mk, 9) for Mk in M])
+    assert np.all(r.mu <= ab * (1 + 1e-4)), np.max(r.mu / ab - 1)
