@@ -158,7 +158,9 @@ class FakeCanDevice:
         state = cp.DeviceState.EXCITING if self._enabled else cp.DeviceState.IDLE
         tick = int(self.core.status().time_s * 1e3) & cp.U32_MAX
         self._hb_counter = (self._hb_counter + 1) & 0xFF
-        self._send(*cp.encode_heartbeat(self.node, cp.Heartbeat(int(state), self._flags, self._hb_counter, tick)))
+        # no fault draws for heartbeats: they follow the wall clock, and drawing for them would
+        # make the seeded fault pattern depend on timing
+        self._send(*cp.encode_heartbeat(self.node, cp.Heartbeat(int(state), self._flags, self._hb_counter, tick)), faults=False)
 
     # -- sending with frame faults ----------------------------------------------------------------
     def _send(self, arbitration_id: int, data: bytes, *, faults: bool = True) -> None:
@@ -176,7 +178,7 @@ class FakeCanDevice:
                 if raw:
                     raw[int(f.rng.integers(0, len(raw)))] ^= 1 << int(f.rng.integers(0, 8))
                 msg = can.Message(arbitration_id=arbitration_id, data=bytes(raw), is_extended_id=False)
-            if f.draw("reorder") and self._held is None:
+            if self._held is None and f.draw("reorder"):
                 self._held = msg
                 return
         self._bus.send(msg)
