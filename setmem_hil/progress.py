@@ -6,15 +6,18 @@ replayed) just before a dwell starts (or a stored measurement is replayed), ``"i
 (Algorithm 5.1 steps 2-3), ``"chosen"`` (k, next_omega) after the input design (steps 5-7),
 ``"finished"`` (summary).
 
-On a terminal a progress bar shows the measurements done, the dwell under way (frequency,
-planned duration when the experiment can tell, elapsed time), the iteration, the current peak of
-mu-bar and the next frequency; iteration results are printed as lines above it. Elsewhere (a
+On a terminal two bars show the measurements done (with the iteration, the current peak of
+mu-bar and the next frequency) and the dwell under way (frequency; elapsed against the dwell's
+length when the experiment can tell it, else a pulsing bar); iteration results are printed as
+lines above them. Elsewhere (a
 pipe, a log file, CI) the same information is printed as plain lines, one per event.
 """
 
 from __future__ import annotations
 
 import math
+import threading
+import time
 from typing import Any, Callable
 
 from rich.console import Console
@@ -65,6 +68,11 @@ class CampaignProgress:
         self.last_index = 0
         self._progress: Progress | None = None
         self._task = None
+        self._dwell_task = None
+        self._dwell_started: float | None = None
+        self._dwell_total: float | None = None
+        self._stop = threading.Event()
+        self._ticker: threading.Thread | None = None
 
     # -- context -------------------------------------------------------------------------
     def __enter__(self) -> "CampaignProgress":
@@ -81,12 +89,31 @@ class CampaignProgress:
             )
             self._progress.start()
             self._task = self._progress.add_task("measurements", total=None, status="starting")
+            self._dwell_task = self._progress.add_task("waiting", total=None, status="")
+            self._stop.clear()
+            self._ticker = threading.Thread(target=self._tick, name="dwell-progress", daemon=True)
+            self._ticker.start()
         return self
 
     def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._ticker is not None:
+            self._ticker.join(timeout=2.0)
+            self._ticker = None
         if self._progress is not None:
             self._progress.stop()
             self._progress = None
+
+    def _tick(self) -> None:
+        """Advance the dwell bar with the wall clock (the dwell itself reports nothing until done)."""
+        while not self._stop.wait(0.2):
+            started, total, progress = self._dwell_started, self._dwell_total, self._progress
+            if started is None or progress is None or self._dwell_task is None:
+                continue
+            elapsed = time.monotonic() - started
+            if total:
+                progress.update(self._dwell_task, completed=min(elapsed, 0.99 * total))
+            progress.update(self._dwell_task, status=f"{elapsed:.0f} s")
 
     # -- events --------------------------------------------------------------------------
     def _status(self) -> str:
@@ -104,6 +131,7 @@ class CampaignProgress:
         if event == "measure":
             self._measure(**info)
         elif event == "iteration":
+            self._set_dwell(f"iteration {info.get('k')}: choosing the next frequency", None, running=False)
             self.k = int(info.get("k", self.k))
             self.mu_peak = float(info.get("mu_peak", math.nan))
             safeguard = info.get("safeguard")
@@ -119,6 +147,8 @@ class CampaignProgress:
             summary = info.get("summary")
             if self._progress is not None and self._task is not None:
                 self._progress.update(self._task, total=self.last_index, completed=self.last_index, description="done", status=self._status())
+                self._set_dwell("finished", None, running=False)
+                self._progress.update(self._dwell_task, visible=False)
             if summary is not None:
                 reached = "goal reached" if getattr(summary, "reached_goal", False) else f"stopped ({getattr(summary, 'stop_reason', '?')})"
                 self._line(
@@ -140,12 +170,23 @@ class CampaignProgress:
             else:
                 planned = self._planned(omega_rad_s)
                 desc = f"dwell {index} at {omega_rad_s:.4g} rad/s" + (f" ({planned:.3g} s of excitation)" if planned else "")
-            self._progress.update(self._task, total=total, completed=index - 1, description=desc, status=self._status())
+            self._progress.update(self._task, total=total, completed=index - 1, description="measurements", status=self._status())
+            if replayed:
+                self._set_dwell(desc, None, running=False)
+            else:
+                self._set_dwell(desc, planned, running=True)
         elif not replayed:
             planned = self._planned(omega_rad_s)
             self._line(f"dwell {index}/{total} at {omega_rad_s:.6g} rad/s" + (f" ({planned:.3g} s of excitation)" if planned else ""))
         elif index == 1:
             self._line("replaying the measurements stored in the journal")
+
+    def _set_dwell(self, description: str, total_s: float | None, running: bool) -> None:
+        if self._progress is None or self._dwell_task is None:
+            return
+        self._dwell_started = time.monotonic() if running else None
+        self._dwell_total = total_s if running else None
+        self._progress.reset(self._dwell_task, total=total_s if running else None, description=description, status="")
 
     def _planned(self, omega_rad_s: float) -> float | None:
         if self.planned_dwell_s is None:

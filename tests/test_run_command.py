@@ -214,8 +214,13 @@ def test_live_progress_on_a_terminal():
         show("iteration", k=1, n_points=2, mu_peak=float("inf"), mu_peak_omega=4.4, safeguard="expanded")
         show("chosen", k=1, next_omega=6.48)
         show("measure", index=3, total=3, omega_rad_s=6.48, replayed=False)
-        task = show._progress.tasks[0]
-        assert task.description == "dwell 3 at 6.48 rad/s (1.54 s of excitation)" and (task.completed, task.total) == (2, 3)
+        task, dwell = show._progress.tasks
+        assert task.description == "measurements" and (task.completed, task.total) == (2, 3)
+        assert dwell.description == "dwell 3 at 6.48 rad/s (1.54 s of excitation)" and dwell.total == pytest.approx(10.0 / 6.48)
+        import time
+
+        time.sleep(0.6)  # the dwell bar follows the wall clock while the dwell runs
+        assert 0.3 < dwell.completed < dwell.total
         show("finished", summary=type("S", (), {"reached_goal": True, "final_mu_peak": 0.9, "experiments_added": 1})())
     text = buf.getvalue()
     assert "iteration 1: 2 points, mu-bar peak inf (nominal loop unstable) at 4.4 rad/s [expanded]" in text
