@@ -17,7 +17,8 @@ register map of ``setmem_hil.drivers.modbus_registers`` onto a
 Fault injection (seeded; ``procedure.backend.faults``), per request:
 
 * ``exception``: answered with exception 6 (SERVER DEVICE BUSY), nothing executed;
-* ``timeout``: the answer is delayed by ``late_s`` (beyond the client's timeout);
+* ``timeout``: the request is executed at once but answered ``late_s`` later (beyond the
+  client's timeout);
 * ``disconnect``: every connection is closed and requests are ignored for ``disconnect_s``;
 * ``corrupt``: socket framing: one register of a sample page is flipped (the page CRC
   catches it; TCP's own checksum makes corruption of other replies unrealistic); RTU framing:
@@ -246,15 +247,20 @@ class FakeModbusDevice:
             return ExcCodes.DEVICE_FAILURE
         if self.transport_faults.draw("exception"):
             return ExcCodes.DEVICE_BUSY
-        if f.draw("timeout"):
-            await asyncio.sleep(self.late_s)
+        late = f.draw("timeout")
         try:
             if set_values is not None:
-                return self._write(address, list(set_values), registers)
-            return self._read(address, count, registers)
+                result = self._write(address, list(set_values), registers)
+            else:
+                result = self._read(address, count, registers)
         except (ValueError, ArithmeticError) as exc:  # answer, never drop the connection
             self.internal_errors.append(repr(exc))
-            return ExcCodes.DEVICE_FAILURE
+            result = ExcCodes.DEVICE_FAILURE
+        if late:
+            # executed now, answered late: a late *execution* could apply a stale command after
+            # a newer one (e.g. ENABLE = 1 after the host's ENABLE = 0)
+            await asyncio.sleep(self.late_s)
+        return result
 
     def _write(self, address: int, values: list[int], registers: list[int]) -> ExcCodes | None:
         span = range(address, address + len(values))
