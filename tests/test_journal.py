@@ -161,3 +161,33 @@ def test_wal_mode_and_reader_during_writes(tmp_path):
     assert reader.measurements() == [Measurement(2.0, 1j, 0.1)]  # committed, visible to another connection
     reader.close()
     j.close()
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from hypothesis.extra.numpy import arrays  # noqa: E402
+
+_FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n_modes=st.integers(1, 4),
+    data=st.data(),
+)
+def test_iteration_records_round_trip_any_floats(tmp_path_factory, n_modes, data):
+    lo = data.draw(arrays(float, (n_modes, 4), elements=_FLOATS))
+    grid = data.draw(arrays(float, data.draw(st.integers(0, 30)), elements=_FLOATS))
+    sens = data.draw(st.dictionaries(st.text(min_size=1, max_size=6), st.floats(allow_nan=False), max_size=5))
+    nxt = data.draw(st.one_of(st.none(), st.floats(allow_nan=False, allow_infinity=False)))
+    rec = IterationRecord(1, 3, lo, lo, data.draw(_FLOATS), 1.0, 0.5, grid, grid, sens, nxt, grid, grid, 4, "expanded", 0.1,
+                          np.ones(n_modes), np.zeros(n_modes))
+    d = tmp_path_factory.mktemp("j")
+    j = Journal.create(d / "journal.sqlite", procedure_text="", procedure_name="h", seed=0, software_version="t", backend="sim", strategy="mu")
+    j.add_iteration(rec)
+    got = j.iterations()[0]
+    j.close()
+    for name in ("lower", "omega", "mu", "candidate_omega"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(rec, name))  # NaN == NaN here
+    assert got.sensitivities == sens and got.next_omega == nxt
+    assert (got.mu_peak == rec.mu_peak) or (math.isnan(got.mu_peak) and math.isnan(rec.mu_peak))
