@@ -33,21 +33,28 @@ class TransportFaults:
         Enabled transport kinds.
     seed : int
         Seed; the generator is ``default_rng((seed, 0x7A05))``.
+    rates : tuple of (kind, rate)
+        Per-kind overrides of ``rate`` (``[backend.faults.rates]``).
     """
 
     rate: float = 0.0
     kinds: tuple[str, ...] = ()
     seed: int = 0
+    rates: tuple[tuple[str, float], ...] = ()
     injected: dict[str, int] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         self._rng = np.random.default_rng((self.seed, 0x7A05))
         self.injected = {k: 0 for k in self.kinds}
 
+    def rate_of(self, kind: str) -> float:
+        return dict(self.rates).get(kind, self.rate)
+
     def draw(self, kind: str) -> bool:
-        if self.rate <= 0 or kind not in self.kinds:
+        rate = self.rate_of(kind)
+        if rate <= 0 or kind not in self.kinds:
             return False
-        hit = bool(self._rng.random() < self.rate)
+        hit = bool(self._rng.random() < rate)
         if hit:
             self.injected[kind] += 1
         return hit
@@ -57,8 +64,9 @@ def split_faults(procedure, transport_kinds: tuple[str, ...]) -> tuple[Any, Tran
     """Return ``(procedure_for_core, transport_faults)``.
 
     ``procedure_for_core`` is a copy of ``procedure`` whose ``backend.faults`` lists only the
-    core's kinds (so ``FakeDeviceCore.from_procedure`` accepts it); without a ``kinds`` key every
-    core kind and every transport kind is enabled.
+    core's kinds, in ``kinds`` and in the per-kind ``rates`` table (so
+    ``FakeDeviceCore.from_procedure`` accepts it); without a ``kinds`` key every core kind and
+    every transport kind is enabled.
 
     Raises
     ------
@@ -83,10 +91,23 @@ def split_faults(procedure, transport_kinds: tuple[str, ...]) -> tuple[Any, Tran
     else:
         mine = tuple(transport_kinds)
         core_faults = dict(faults)
+    rates = faults.get("rates", {})
+    my_rates: list[tuple[str, float]] = []
+    if isinstance(rates, Mapping):
+        for kind, r in rates.items():
+            if kind in transport_kinds:
+                if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 <= float(r) <= 1.0:
+                    raise ProcedureError(source, f"[backend.faults.rates] key '{kind}'", f"expected a number in [0, 1], found {r!r}")
+                my_rates.append((kind, float(r)))
+        core_faults["rates"] = {k: r for k, r in rates.items() if k not in transport_kinds}
+        if not core_faults["rates"]:
+            del core_faults["rates"]
     rate = faults.get("rate", 0.0)
     seed = faults.get("seed", 0)
     backend = dataclasses.replace(procedure.backend, faults=core_faults)
     core_procedure = dataclasses.replace(procedure, backend=backend)
     rate_ok = isinstance(rate, (int, float)) and not isinstance(rate, bool)
-    transport = TransportFaults(float(rate) if rate_ok else 0.0, mine, int(seed) if isinstance(seed, int) else 0)
+    transport = TransportFaults(
+        float(rate) if rate_ok else 0.0, mine, int(seed) if isinstance(seed, int) else 0, tuple(my_rates)
+    )
     return core_procedure, transport
