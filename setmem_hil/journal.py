@@ -246,6 +246,7 @@ class Journal:
         self._conn: sqlite3.Connection | None = conn
         self.path = path
         self._lock = threading.Lock()
+        self._wrote = False
 
     # ------------------------------------------------------------------ opening
     @staticmethod
@@ -352,10 +353,12 @@ class Journal:
         """Close the journal (idempotent). All records are already committed."""
         with self._lock:
             if self._conn is not None:
-                try:
-                    self._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-                except sqlite3.DatabaseError:
-                    pass  # another reader holds the WAL; the data is safe in it regardless
+                if self._wrote:  # fold the WAL into the main file; readers (report, export) never wait for this
+                    try:
+                        self._conn.execute("PRAGMA busy_timeout = 200")
+                        self._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+                    except sqlite3.DatabaseError:
+                        pass  # another connection is busy; the data is safe in the WAL regardless
                 self._conn.close()
                 self._conn = None
 
@@ -389,6 +392,7 @@ class Journal:
                 db.execute("ROLLBACK")
                 raise
             db.execute("COMMIT")
+            self._wrote = True
             return cur
 
     def _query(self, sql: str, params: tuple = ()) -> list[sqlite3.Row]:
@@ -450,6 +454,7 @@ class Journal:
                 db.execute("ROLLBACK")
                 raise
             db.execute("COMMIT")
+            self._wrote = True
         return int(seq)
 
     def measurement_rows(self) -> list[dict]:
