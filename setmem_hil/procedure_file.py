@@ -57,9 +57,12 @@ from setmem_hil.weights import THESIS_WEIGHTS, Weights
 
 __all__ = ["load_procedure", "parse_procedure_text", "format_procedure", "parse_procedure_mapping", "KeySpec", "SCHEMA", "FAULT_KINDS"]
 
-# Fault kinds of the fake devices (setmem_hil.sim_backends.fake_device_core.FAULT_KINDS); kept
-# here as a literal so that loading a procedure does not import the device simulation.
-FAULT_KINDS = ("timeout", "truncate", "corrupt", "duplicate", "reorder", "disconnect", "saturation", "nan", "inf", "timestamp_jump")
+# Fault kinds of the fake devices: the device core's (frame and data faults) plus each
+# transport's own; one source of truth in the device simulation modules.
+from setmem_hil.sim_backends.fake_device_core import FAULT_KINDS  # noqa: E402
+from setmem_hil.sim_backends.transport_faults import CAN_FAULT_KINDS, MODBUS_FAULT_KINDS  # noqa: E402
+
+TRANSPORT_FAULT_KINDS = {"serial-loopback": (), "can-virtual": tuple(CAN_FAULT_KINDS), "modbus-loopback": tuple(MODBUS_FAULT_KINDS)}
 SEED_MAX = 2**63 - 1
 
 
@@ -112,8 +115,9 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("backend.simulation", "noise_scale", "number", "", _SIM.noise_scale, "Multiplies the noise bound.", ge=0.0),
     KeySpec("backend.simulation", "unmodelled_dynamics", "bool", "", _SIM.unmodelled_dynamics, "Keep modes 4-8 in the simulated truth and add |W1| to each point's bound."),
     KeySpec("backend.faults", "rate", "number", "", 0.0, "Probability of each enabled fault per opportunity (per frame or per capture).", ge=0.0, le=1.0),
-    KeySpec("backend.faults", "kinds", "strings", "", "all", "Enabled fault kinds: " + ", ".join(FAULT_KINDS) + "."),
+    KeySpec("backend.faults", "kinds", "strings", "", "all", "Enabled fault kinds: " + ", ".join(FAULT_KINDS) + "; with can-virtual also " + ", ".join(CAN_FAULT_KINDS) + "; with modbus-loopback also " + ", ".join(MODBUS_FAULT_KINDS) + "."),
     KeySpec("backend.faults", "seed", "integer", "", 0, "Seed of the fault draws.", ge=0, le=SEED_MAX),
+    KeySpec("backend.faults", "rates", "kind-rates", "", "{}", "Per-kind probabilities overriding rate, e.g. rates = { timeout = 0.1, corrupt = 0.02 }."),
     # [safety]
     KeySpec("safety", "max_amplitude_n", "number", "N", _S.max_amplitude_n, "Largest exciter amplitude ever commanded.", gt=0.0),
     KeySpec("safety", "omega_min_rad_s", "number", "rad/s", _S.omega_min_rad_s, "Lowest excitation frequency allowed.", gt=0.0),
@@ -266,11 +270,27 @@ def _backend(top: _Table) -> BackendSettings:
     faults: dict[str, Any] = {}
     if t.has("faults"):
         f = t.sub("faults")
-        faults = {"rate": f.get("rate", 0.0), "kinds": f.get("kinds", FAULT_KINDS), "seed": f.get("seed", 0)}
-        bad = [k for k in faults["kinds"] if k not in FAULT_KINDS]
-        if bad:
-            raise f.error(f"kinds: unknown fault kind {bad[0]!r} (known: {', '.join(FAULT_KINDS)})")
-        faults["kinds"] = list(faults["kinds"])
+        known = tuple(FAULT_KINDS) + TRANSPORT_FAULT_KINDS.get(kind, ())
+        faults = {"rate": f.get("rate", 0.0), "seed": f.get("seed", 0)}
+        if f.has("kinds"):  # absent: every kind the backend knows (the drivers' default)
+            kinds = f.get("kinds")
+            bad = [k for k in kinds if k not in known]
+            if bad:
+                raise f.error(f"kinds: unknown fault kind {bad[0]!r} for backend {kind!r} (known: {', '.join(known)})")
+            faults["kinds"] = list(kinds)
+        if f.has("rates"):
+            rates = f.mapping["rates"]
+            where = "[backend.faults.rates]"
+            if not isinstance(rates, Mapping):
+                raise ProcedureError(top.source, where, f"expected a table of kind = probability, found {_type_name(rates)} {_fmt(rates)}")
+            for k, r in rates.items():
+                if k not in known:
+                    close = difflib.get_close_matches(str(k), list(known), n=1)
+                    hint = f"; did you mean {close[0]!r}?" if close else ""
+                    raise ProcedureError(top.source, where, f"unknown fault kind {k!r}{hint} (known: {', '.join(known)})")
+                if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 <= float(r) <= 1.0:
+                    raise ProcedureError(top.source, where, f"{k}: expected a probability in [0, 1], found {_fmt(r)}")
+            faults["rates"] = {str(k): float(r) for k, r in rates.items()}
     if kind == "sim":
         for key in ("transport", "faults"):
             if t.has(key):

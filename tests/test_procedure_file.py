@@ -126,6 +126,9 @@ FAULTY_LOOPBACK = (PROCEDURES / "serial_loopback.toml").read_text()
     ("[backend.faults]\nrate = 1.5\n", "procedures/x.toml: [backend.faults]: rate 1.5 must be <= 1"),
     ("[backend.faults]\nkinds = ['timeout', 'gremlins']\n", "procedures/x.toml: [backend.faults]: kinds: unknown fault kind 'gremlins'"),
     ("[backend.faults]\nrate = 0.1\nsed = 3\n", "procedures/x.toml: [backend.faults]: unknown key 'sed'; did you mean 'seed'?"),
+    ("[backend.faults]\nkinds = ['bus_off']\n", "procedures/x.toml: [backend.faults]: kinds: unknown fault kind 'bus_off' for backend 'serial-loopback'"),
+    ("[backend.faults]\nrates = { timout = 0.1 }\n", "procedures/x.toml: [backend.faults.rates]: unknown fault kind 'timout'; did you mean 'timeout'?"),
+    ("[backend.faults]\nrates = { timeout = 2 }\n", "procedures/x.toml: [backend.faults.rates]: timeout: expected a probability in [0, 1], found 2"),
 ])
 def test_broken_fault_settings(insert, message):
     text = FAULTY_LOOPBACK.replace("[safety]", insert + "\n[safety]", 1)
@@ -141,6 +144,27 @@ def test_fault_settings_and_transport_options_pass_through():
     p = parse_procedure_text(text, SRC)
     assert dict(p.backend.transport) == {"baudrate": 115200}
     assert dict(p.backend.faults) == {"rate": 0.05, "kinds": ["timeout", "corrupt"], "seed": 9}
+    can = (PROCEDURES / "can_virtual.toml").read_text().replace(
+        "[safety]", "[backend.faults]\nkinds = ['bus_off', 'timeout']\nrates = { bus_off = 0.01 }\n\n[safety]", 1)
+    assert dict(parse_procedure_text(can, SRC).backend.faults) == {"rate": 0.0, "seed": 0, "kinds": ["bus_off", "timeout"], "rates": {"bus_off": 0.01}}
+
+
+def test_fault_kinds_are_the_device_simulations():
+    """The validator accepts exactly the kinds the fake devices and transports know."""
+    from setmem_hil.procedure_file import TRANSPORT_FAULT_KINDS
+    from setmem_hil.sim_backends import fake_device_core, transport_faults
+
+    for kind, extra in TRANSPORT_FAULT_KINDS.items():
+        text = (PROCEDURES / f"{kind.replace('-', '_')}.toml").read_text()
+        every = list(fake_device_core.FAULT_KINDS) + list(extra)
+        rates = ", ".join(f"{k} = 0.01" for k in every)
+        p = parse_procedure_text(text.replace("[safety]", f"[backend.faults]\nkinds = {every!r}\nrates = {{ {rates} }}\n\n[safety]", 1), SRC)
+        assert p.backend.faults["kinds"] == every
+        # the consumers accept what the validator let through
+        core_procedure, _ = transport_faults.split_faults(p, extra)
+        fake_device_core.FaultSettings.from_mapping(core_procedure.backend.faults, SRC)
+    assert TRANSPORT_FAULT_KINDS["can-virtual"] == tuple(transport_faults.CAN_FAULT_KINDS)
+    assert TRANSPORT_FAULT_KINDS["modbus-loopback"] == tuple(transport_faults.MODBUS_FAULT_KINDS)
 
 
 def test_minimal_procedure_takes_documented_defaults():
