@@ -35,7 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 
-Y_LIMIT = 12.0  # |log d_k| bound for the extrapolated steps (keeps H well scaled)
+Y_LIMIT = 12.0
+_TRIAL_STEPS = np.array([1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 0.5, 0.25, 0.1, 0.03])  # |log d_k| bound for the extrapolated steps (keeps H well scaled)
 
 
 @dataclass(frozen=True)
@@ -442,24 +443,39 @@ def _newton(prob: _Problem, x: np.ndarray, tol: float, max_iter: int, tau0_rel: 
         ev, evec = np.linalg.eigh(Hs)
         scale = np.maximum(np.abs(ev).max(axis=1), 1e-300)
         ev = np.maximum(ev, 1e-10 * scale[:, None]) + 1e-12 * scale[:, None]  # make positive definite
-        dirn = -np.einsum("kij,kj,klj,kl->ki", evec, 1.0 / ev, evec, gr)
-        dec = -np.einsum("ki,ki->k", dirn, gr)  # Newton decrement squared
+        dirn = -(evec @ ((np.swapaxes(evec, 1, 2) @ gr[:, :, None])[:, :, 0] / ev)[:, :, None])[:, :, 0]
+        dec = -(dirn * gr).sum(axis=1)  # Newton decrement squared
         ymax = np.abs(dirn[:, : prob.ny]).max(axis=1) if prob.ny else np.zeros(idx.size)
         dirn *= np.minimum(1.0, 4.0 / np.maximum(ymax, 1e-300))[:, None]  # keep exp(y) finite
-        slope = np.einsum("ki,ki->k", dirn, gr)
-        step = np.ones(idx.size)
-        xn = xa + dirn
-        fn, topn = prob.value(xn, idx, ta)
-        todo = ~(fn <= f + 1e-4 * slope)
-        for _ls in range(40):
+        slope = (dirn * gr).sum(axis=1)
+        # one batched evaluation of several step lengths: the Newton step, its extrapolations
+        # (rays, see _expand_steps) and two backtracks; Armijo decides
+        steps = _TRIAL_STEPS
+        S = steps.size
+        xt = xa[:, None, :] + steps[None, :, None] * dirn[:, None, :]
+        with np.errstate(all="ignore"):
+            ft, tt = prob.value(xt.reshape(-1, nv), np.repeat(idx, S), np.repeat(ta, S))
+        ft, tt = ft.reshape(-1, S), tt.reshape(-1, S)
+        ok = np.isfinite(ft) & (ft <= f[:, None] + 1e-4 * steps[None, :] * slope[:, None])
+        if prob.ny:
+            ok &= (np.abs(xt[:, :, : prob.ny]).max(axis=2) < Y_LIMIT) | (steps[None, :] <= 1.0)
+        score = np.where(ok, ft, np.inf)
+        pick = np.argmin(score, axis=1)
+        rows = np.arange(idx.size)
+        todo = ~ok[rows, pick]
+        step = np.where(todo, steps.min(), steps[pick])
+        xn = xt[rows, pick].copy()
+        fn, topn = ft[rows, pick].copy(), tt[rows, pick].copy()
+        for _ls in range(6):  # then give up: at a (numerically) converged point
             if not np.any(todo):
                 break
-            step[todo] *= 0.5
-            tt = np.flatnonzero(todo)
-            xn[tt] = xa[tt] + step[tt, None] * dirn[tt]
-            fn[tt], topn[tt] = prob.value(xn[tt], idx[tt], ta[tt])
-            todo[tt] = ~(fn[tt] <= f[tt] + 1e-4 * step[tt] * slope[tt])
-        _expand_steps(prob, xa, dirn, idx, ta, xn, fn, topn, step == 1.0)
+            step[todo] *= 0.25
+            tq = np.flatnonzero(todo)
+            xn[tq] = xa[tq] + step[tq, None] * dirn[tq]
+            fn[tq], topn[tq] = prob.value(xn[tq], idx[tq], ta[tq])
+            todo[tq] = ~(fn[tq] <= f[tq] + 1e-4 * step[tq] * slope[tq])
+        if np.any(step >= 32.0):
+            _expand_steps(prob, xa, dirn, idx, ta, xn, fn, topn, step >= 32.0, factors=(64.0, 128.0, 256.0))
         failed = todo  # no decrease found: treat the stage as converged
         xn[failed] = xa[failed]
         topn[failed] = top[failed]
