@@ -31,6 +31,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dwells", type=int, default=150)
     ap.add_argument("--rate", type=float, default=0.03)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--message-chars", type=int, default=300)
     args = ap.parse_args(argv)
     truth = beam_parameters()
     faults = FaultSettings(args.rate, FAULT_KINDS, args.seed, (("disconnect", args.rate / 6),))
@@ -51,7 +52,7 @@ def main(argv=None) -> int:
                 failed += 1
                 delta = {k: core.faults.injected[k] - before[k] for k in FAULT_KINDS}
                 fatal.update({k: v for k, v in delta.items() if v})
-                print(f"measurement at {w:.3f} rad/s failed: {exc}"[:300])
+                print(f"measurement at {w:.3f} rad/s failed: {exc}"[: args.message_chars])
                 continue
             ok += 1
             good = abs(m.response - truth.frequency_response(w)[0]) <= m.bound

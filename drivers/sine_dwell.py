@@ -246,6 +246,7 @@ class SineDwellExperiment:
         self.last_result: DwellResult | None = None
         self.counters: dict[str, int] = {}
         self._closed = False
+        self._failed_attempts = 0  # attempts spent on measurements that raised (since start)
         # interpreter exit without close(): still command zero output and release the rig
         ref = weakref.ref(self)
         self._atexit = lambda: (lambda e: e is not None and e.close())(ref())
@@ -311,6 +312,7 @@ class SineDwellExperiment:
             self.n_measured += 1
             self.last_result = result
             return result.measurement
+        self._failed_attempts += self.settings.max_attempts
         summary = "; ".join(errors)
         msg = f"sine dwell at {w:g} rad/s failed after {self.settings.max_attempts} attempts ({summary})"
         if isinstance(last_exc, DeviceError):
@@ -320,18 +322,23 @@ class SineDwellExperiment:
     def _count(self, key: str) -> None:
         self.counters[key] = self.counters.get(key, 0) + 1
 
-    def _try_reconnect(self, errors: list[str]) -> None:
-        if isinstance(self.rig, ReconnectableRig):
+    def _try_reconnect(self, errors: list[str], tries: int = 3) -> None:
+        if not isinstance(self.rig, ReconnectableRig):
+            return
+        for k in range(tries):
             try:
                 self.rig.reconnect()
                 self._count("reconnect")
+                return
             except DeviceError as exc:
-                errors.append(f"reconnect failed: {exc}")
+                errors.append(f"reconnect {k + 1} failed: {exc}")
+                self._count("reconnect_failed")
 
     def _dwell(self, plan: DwellPlan, attempt: int) -> DwellResult:
         rig, sensor = self.rig, self.rig.sensor
         if isinstance(rig, MeasurementIndexedRig):
-            rig.begin_measurement(self.n_measured, attempt)
+            # attempts of earlier measurements that failed for good get their own streams
+            rig.begin_measurement(self.n_measured, self._failed_attempts + attempt)
         if isinstance(sensor, RateConfigurableSensor):
             sensor.set_sample_rate(plan.sample_rate_hz)
         elif abs(rig.metadata.sample_rate_hz - plan.sample_rate_hz) > 1e-9 * plan.sample_rate_hz:
