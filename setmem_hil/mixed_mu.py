@@ -21,8 +21,7 @@ decomposition per frequency; damped Newton steps follow ``tau`` down to ``tol`` 
 approached along a ray (``d_k -> 0``, ``|g_k| -> inf`` for a real block, where Assumption 4.1
 fails); accepted steps are therefore extrapolated (x2, x4, ...) while the value keeps falling.
 The start is the Perron-Frobenius ``D`` of ``|M|`` with ``G = 0``. Each matrix is first normalised
-by its largest singular value so one set of tolerances fits every frequency. A BFGS variant
-(``method="bfgs"``) is kept for comparison.
+by its largest singular value so one set of tolerances fits every frequency.
 
 The certificate in the form of Lemma 2.1 (eq. 2.16, and of SLICOT AB13MD) is
 ``M^* D_L M + j (G_L M - M^* G_L) <= beta^2 D_L`` with ``D_L = D^2`` and ``G_L = D^2 G``.
@@ -157,17 +156,12 @@ class _Problem:
         top = lam[:, -1]
         return top + tau * np.log(np.exp((lam - top[:, None]) / tau[:, None]).sum(axis=1)), top
 
-    def value_grad(self, x, idx, tau):
-        f, top, grad, _ = _smoothed_derivatives(self, x, idx, tau, hessian=False)
-        return f, top, grad
-
 
 def mixed_mu_upper(
     M: np.ndarray,
     structure: MuStructure,
     tol: float = 1e-7,
     max_iter: int = 400,
-    method: str = "newton",
     variables: str = "both",
 ) -> MixedMuBound:
     """Mixed-mu upper bound (Definition 2.2) for a stack of matrices, all solved at once.
@@ -182,7 +176,11 @@ def mixed_mu_upper(
         Final smoothing ``tau`` relative to the (normalised) value; the bound is within about
         ``tol log n`` of the smoothed optimum reached.
     max_iter : int
-        Cap on BFGS iterations.
+        Cap on Newton iterations (per run).
+    variables : {"both", "g", "h"}
+        ``"g"``: optimise over ``(log d, g)`` of eq. (2.15); ``"h"``: over ``(log d, d^2 g)``, the
+        ``G`` of eq. (2.16); ``"both"`` (default): a ``"g"`` run with a third of the iterations,
+        continued in ``"h"`` variables, which reaches optima on the boundary ``D_L,k -> 0``.
 
     Returns
     -------
@@ -212,11 +210,8 @@ def mixed_mu_upper(
     nv = prob.ny + prob.p
     x = np.concatenate([_perron_start(Mn)[:, 1:], np.zeros((K, prob.p))], axis=1)
     if nv > 0:
-        if method == "newton":
-            x = _newton(prob, x, tol, max_iter if variables != "both" else max(max_iter // 3, 1))
-        else:
-            x = _bfgs(prob, x, tol, max_iter)
-        if variables == "both" and prob.p and method == "newton":
+        x = _newton(prob, x, tol, max_iter if variables != "both" else max(max_iter // 3, 1))
+        if variables == "both" and prob.p:
             # continue in (y, h = d^2 g) from where the (y, g) run stopped: it reaches the
             # boundary optima D_L,k -> 0 with G_L finite (eq. 2.16) that the (y, g) run only
             # creeps towards along a ray. Never worse than its start (best value is kept).
@@ -235,81 +230,10 @@ def mixed_mu_upper(
     return MixedMuBound(beta=beta, d=d, g=g, eigenvalues=lam, eigenvectors=U)
 
 
-def _bfgs(prob: _Problem, x: np.ndarray, tol: float, max_iter: int) -> np.ndarray:
-    """Batched BFGS on the smoothed ``lambda_max`` with a decreasing smoothing ``tau``."""
-    K, nv = x.shape
-    allidx = np.arange(K)
-    tau = np.full(K, 1e-2)
-    f, top, gr = prob.value_grad(x, allidx, tau)
-    best_x, best_top = x.copy(), top.copy()
-    Hinv = np.broadcast_to(np.eye(nv), (K, nv, nv)).copy() * 0.1
-    active = np.ones(K, dtype=bool)
-    tau_final = tol
-    stall = np.zeros(K, dtype=int)
-    for _ in range(max_iter):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
-            break
-        xa, fa, ga, Ha, ta = x[idx], f[idx], gr[idx], Hinv[idx], tau[idx]
-        dirn = -np.einsum("kij,kj->ki", Ha, ga)
-        slope = np.einsum("ki,ki->k", dirn, ga)
-        bad = slope >= 0
-        if np.any(bad):  # reset to steepest descent
-            Ha[bad] = np.eye(nv) * 0.1
-            dirn[bad] = -0.1 * ga[bad]
-            slope[bad] = np.einsum("ki,ki->k", dirn[bad], ga[bad])
-        # cap the step in the log-d / g space
-        nrm = np.linalg.norm(dirn, axis=1)
-        dirn *= np.minimum(1.0, 2.0 / np.maximum(nrm, 1e-300))[:, None]
-        slope = np.einsum("ki,ki->k", dirn, ga)
-        step = np.ones(idx.size)
-        xn = xa + dirn
-        fn, topn = prob.value(xn, idx, ta)
-        todo = fn > fa + 1e-4 * step * slope
-        for _ls in range(30):
-            if not np.any(todo):
-                break
-            step[todo] *= 0.3
-            t = np.flatnonzero(todo)
-            xn[t] = xa[t] + step[t, None] * dirn[t]
-            fn_t, top_t = prob.value(xn[t], idx[t], ta[t])
-            fn[t], topn[t] = fn_t, top_t
-            todo[t] = fn_t > fa[t] + 1e-4 * step[t] * slope[t]
-        _expand_steps(prob, xa, dirn, idx, ta, xn, fn, topn, (step == 1.0) & ~todo)
-        fn, topn, gn = prob.value_grad(xn, idx, ta)
-        s = xn - xa
-        yv = gn - ga
-        sy = np.einsum("ki,ki->k", s, yv)
-        ok = sy > 1e-14 * np.linalg.norm(s, axis=1) * np.linalg.norm(yv, axis=1) + 1e-300
-        if np.any(ok):
-            o = np.flatnonzero(ok)
-            rho = 1.0 / sy[o]
-            I = np.eye(nv)[None]
-            V = I - rho[:, None, None] * np.einsum("ki,kj->kij", s[o], yv[o])
-            Ha[o] = V @ Ha[o] @ np.swapaxes(V, 1, 2) + rho[:, None, None] * np.einsum("ki,kj->kij", s[o], s[o])
-        x[idx], f[idx], gr[idx], Hinv[idx] = xn, fn, gn, Ha
-        improved = topn < best_top[idx]
-        bi = idx[improved]
-        best_top[bi], best_x[bi] = topn[improved], xn[improved]
-        # progress test on the smoothed value; then shrink tau
-        small = (fa - fn) <= 1e-3 * ta
-        stall[idx] = np.where(small, stall[idx] + 1, 0)
-        shrink = idx[(stall[idx] >= 2) | (np.linalg.norm(gn, axis=1) < 10 * ta)]
-        if shrink.size:
-            done = shrink[tau[shrink] <= tau_final * 1.0001]
-            active[done] = False
-            more = shrink[tau[shrink] > tau_final * 1.0001]
-            if more.size:
-                tau[more] = np.maximum(tau[more] * 0.1, tau_final)
-                stall[more] = 0
-                f[more], _, gr[more] = prob.value_grad(x[more], more, tau[more])
-    return best_x
-
-
 def _expand_steps(prob, xa, dirn, idx, ta, xn, fn, topn, accepted, factors=(2.0, 4.0, 8.0, 16.0, 32.0)):
     """Try longer steps where the full step was accepted: the infimum of eq. (2.15) is often
-    approached along a ray (``d_k -> 0``, ``|g_k| -> inf`` for a real block), where Newton and
-    BFGS otherwise creep. Keeps the best value found (in place)."""
+    approached along a ray (``d_k -> 0``, ``|g_k| -> inf`` for a real block), where plain Newton
+    steps creep. Keeps the best value found (in place)."""
     a = np.flatnonzero(accepted)
     if a.size == 0:
         return

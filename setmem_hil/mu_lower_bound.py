@@ -97,7 +97,7 @@ def mixed_mu_lower(M: np.ndarray, structure: MuStructure, n_iter: int = 20, sear
     --------
     >>> import numpy as np
     >>> M = np.array([[0.0, 2.0], [0.5, 0.0]])
-    >>> float(mixed_mu_lower(M, MuStructure(0, 2)).beta[0])
+    >>> round(float(mixed_mu_lower(M, MuStructure(0, 2)).beta[0]), 9)
     1.0
     """
     M = np.asarray(M, dtype=complex)
