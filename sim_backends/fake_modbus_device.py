@@ -235,7 +235,11 @@ class FakeModbusDevice:
     # -- the register map -----------------------------------------------------------------------------
     async def _action(self, function_code, start_address, address, count, registers, set_values):
         self.requests += 1
-        self._last_request = time.monotonic()
+        now = time.monotonic()
+        if self._enabled and now - self._last_request > self.watchdog_s:  # even if the loop was starved
+            self.core.host_lost()
+            self._enabled, self._watchdog = False, True
+        self._last_request = now
         if time.monotonic() < self._offline_until:
             return ExcCodes.DEVICE_FAILURE  # the reply is dropped while offline
         f = self.core.faults
