@@ -270,3 +270,17 @@ def test_discrepancy_check_each_iteration_is_journaled_once_per_iteration(tmp_pa
     assert [k for k, _ in found] == [1, 2, 3] == [r.k for r in j.iterations()]
     assert all("decision" in report and "before" in report for _, report in found)
     j.close()
+
+
+def test_a_rig_that_does_not_open_leaves_no_run_behind(tmp_path, cheap, monkeypatch, capsys):
+    import setmem_hil.commands.run as run_cmd
+    from setmem_hil.errors import ProcedureError
+
+    def refuse(p, s):
+        raise ProcedureError(str(cheap), "[backend.transport] key 'reply_timeout_s'", "expected a positive float, found -1")
+
+    monkeypatch.setattr(run_cmd, "open_backend", refuse)
+    out = tmp_path / "run"
+    assert main(["run", str(cheap), "--out", str(out)]) == 2
+    assert "reply_timeout_s" in capsys.readouterr().err
+    assert not (out / "journal.sqlite").exists()  # fix the file and run again into the same --out

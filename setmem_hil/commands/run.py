@@ -149,20 +149,27 @@ def start_run(
         raise InputFormatError(str(run_dir), "", "exists and is not a directory")
     if (run_dir / JOURNAL_FILENAME).exists():
         raise InputFormatError(str(run_dir), "", f"already holds a run; continue it with `setmem-hil run --resume {run_dir}` or choose another --out")
-    journal = Journal.create(
-        run_dir / JOURNAL_FILENAME,
-        procedure_text=text,
-        procedure_name=procedure.name,
-        seed=seed,
-        software_version=__version__,
-        backend=procedure.backend.kind,
-        strategy=strategy,
-    )
+    # Open the rig first: a transport option the driver rejects, or a device that does not
+    # start, must not leave behind a journal whose stored procedure can never run.
+    experiment = open_backend(procedure, seed)
+    try:
+        journal = Journal.create(
+            run_dir / JOURNAL_FILENAME,
+            procedure_text=text,
+            procedure_name=procedure.name,
+            seed=seed,
+            software_version=__version__,
+            backend=procedure.backend.kind,
+            strategy=strategy,
+        )
+    except BaseException:
+        experiment.close()
+        raise
     with _run_lock(run_dir, journal):
         _write_text_atomically(run_dir / PROCEDURE_COPY, text)
         console.print(f"run directory: {run_dir}", highlight=False)
         _describe(procedure, console)
-        return _run_with_journal(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console)
+        return _run_with_journal(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console, experiment=experiment)
 
 
 def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None) -> RunOutcome:
@@ -342,17 +349,19 @@ def _run_lock(run_dir: Path, journal: Journal) -> Iterator[None]:
         fh.close()
 
 
-def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console) -> RunOutcome:
+def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
+                      experiment: Any = None) -> RunOutcome:
     with _sigterm_as_interrupt():
-        return _run_campaign_in(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console)
+        return _run_campaign_in(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console, experiment=experiment)
 
 
-def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console) -> RunOutcome:
+def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
+                     experiment: Any = None) -> RunOutcome:
     from setmem_hil.campaign import run_campaign
 
-    experiment = None
     try:
-        experiment = open_backend(procedure, seed)
+        if experiment is None:
+            experiment = open_backend(procedure, seed)
         planned = None
         if callable(getattr(experiment, "plan", None)):
             def planned(w: float, _e=experiment) -> float:
