@@ -26,12 +26,12 @@ NAMES = ("none", "time_delay", "first_order_lag", "feedthrough", "extra_mode", "
 
 
 def run_case(args):
-    effect, seed, lean = args
+    effect, seed, lean, margin = args
     from setmem_hil.discrepancy import DiscrepancySettings, discrepancy_from_prior
     from setmem_hil.procedure import thesis_beam_prior
     from setmem_hil.sim_backends.hidden_effects import draw_hidden_effect_case
 
-    case = draw_hidden_effect_case(effect, seed)
+    case = draw_hidden_effect_case(effect, seed, detectable_margin=margin)
     settings = DiscrepancySettings(inflation_steps=0, interval_steps=0) if lean else DiscrepancySettings()
     t0 = time.perf_counter()
     report = discrepancy_from_prior(case.data, thesis_beam_prior(), settings)
@@ -53,13 +53,17 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--lean", action="store_true", help="skip the inflation factor and effect intervals")
     ap.add_argument("--json", help="write every case's outcome here")
+    ap.add_argument("--margin", type=float, default=None,
+                    help="detectability margin of the generator (default: its DETECTABLE_MARGIN, 2)")
     a = ap.parse_args(argv)
-    from setmem_hil.sim_backends.hidden_effects import HIDDEN_EFFECTS
+    from setmem_hil.sim_backends.hidden_effects import DETECTABLE_MARGIN, HIDDEN_EFFECTS
+
+    margin = DETECTABLE_MARGIN if a.margin is None else a.margin
 
     jobs = []
     for k, effect in enumerate(HIDDEN_EFFECTS):
         n = a.clean if effect == "none" else a.per_effect
-        jobs += [(effect, a.seed0 + 10000 * k + i, a.lean) for i in range(n)]
+        jobs += [(effect, a.seed0 + 10000 * k + i, a.lean, margin) for i in range(n)]
     t0 = time.perf_counter()
     if a.jobs > 1:
         with ProcessPoolExecutor(a.jobs) as pool:
@@ -72,7 +76,7 @@ def main(argv=None) -> int:
     for r in results:
         table[r["effect"]][r["named"]] += 1
     width = max(len(n) for n in NAMES) + 2
-    print(f"confusion table ({len(results)} cases; rows: true effect, columns: named effect)")
+    print(f"confusion table ({len(results)} cases, detectability margin {margin:g}; rows: true effect, columns: named effect)")
     print("true \\ named".ljust(18) + "".join(n.rjust(width) for n in NAMES))
     for t in HIDDEN_EFFECTS:
         print(t.ljust(18) + "".join(str(table[t][n]).rjust(width) for n in NAMES))
@@ -87,11 +91,24 @@ def main(argv=None) -> int:
     print(f"named right: worst after-residual {after_max:.3f} (contract <= 1.05), after feasible {feasible}/{len(right)}")
     secs = sorted(r["seconds"] for r in results)
     print(f"workflow time per case: median {secs[len(secs) // 2]:.2f} s, max {secs[-1]:.2f} s; wall {wall:.0f} s")
+    covered = total = 0
+    for r in right:
+        params = r["effects"][0]["params"]
+        for key, value in r["true_params"].items():
+            if f"{key}_interval" in params:
+                lo, hi = params[f"{key}_interval"]
+                total += 1
+                covered += lo <= value <= hi
+    if total:
+        print(f"effect-parameter intervals containing the true value: {covered}/{total}")
     redraws = sum(r["redraws"] for r in hidden)
     print(f"strength draws rejected by the detectability rule: {redraws} (over {len(hidden)} hidden cases)")
     print("\nbefore/after, one case of each kind:")
     for t in HIDDEN_EFFECTS:
-        r = next((r for r in results if r["effect"] == t and r["named"] == t), None) or next(r for r in results if r["effect"] == t)
+        r = next((r for r in results if r["effect"] == t and r["named"] == t), None) or next(
+            (r for r in results if r["effect"] == t), None)
+        if r is None:
+            continue
         b, f = r["before"], r["after"]
         eff = r["effects"][0] if r["effects"] else {"name": "none", "params": {}}
         params = {k: (round(v, 5) if isinstance(v, float) else [round(x, 5) for x in v]) for k, v in eff["params"].items()}

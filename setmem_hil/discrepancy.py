@@ -391,6 +391,11 @@ def check_discrepancy(
         + (f" (bounds must be inflated x{before['bound_inflation_factor']:.3g})" if not identification_feasible and 'bound_inflation_factor' in before else "")
         + (f", {'feasible' if after['feasible'] else 'infeasible'} after" if after["feasible"] is not None else "")
     )
+    lag = fits.get("first_order_lag")
+    if decision == "time_delay" and lag is not None and lag.max_normalized_residual <= settings.threshold:
+        corner = 1.0 / lag.params["tau"] if lag.params.get("tau", 0.0) > 0 else float("inf")
+        evidence += (f"; a first-order lag also fits, but its corner ({corner:.3g} rad/s) lies above the band, "
+                     "where a lag acts as a delay")
     effect = {"name": decision, "params": params, "evidence": evidence}
     return replace(report, effects=(effect,), after=after, new_fit=chosen, new_model=new_model)
 

@@ -217,17 +217,20 @@ def reidentify_with_effect(data: FrequencyData, prior: Prior, fit: CandidateFit,
     pname = "tau" if name != "feedthrough" else "d"
     value = float(fit.params[pname])
     limit = 0.0 if name != "feedthrough" else -np.inf
+    intervals = {}
     if settings.interval_steps > 0:
         p_lo, p_hi = effect_interval(name, value, data, prior, settings.interval_steps, limit)
-    else:
+        intervals = {pname: (p_lo, p_hi)}
+    else:  # no interval computed: the effect is removed at its fitted value, bound not inflated
         p_lo = p_hi = value
     delta = max(value - p_lo, p_hi - value)
     transformed = transform_data(name, value, data, delta)
     inflation = float(np.max(transformed.bound / np.maximum(data.bound, 1e-300)))
     ok, result, msg = _feasible(transformed, prior, cheap=False)
-    intervals = {pname: (p_lo, p_hi)}
     if not ok:
         return Reidentification(False, msg, None, intervals, inflation)
     doc = _result_document(result)
-    doc["effect"] = {"name": name, pname: value, f"{pname}_interval": [p_lo, p_hi]}
+    doc["effect"] = {"name": name, pname: value}
+    if intervals:
+        doc["effect"][f"{pname}_interval"] = [p_lo, p_hi]
     return Reidentification(True, "", doc, intervals, inflation)

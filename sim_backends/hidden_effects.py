@@ -180,7 +180,8 @@ def _competitors(effect: str) -> tuple[str, ...]:
     return ("none",) + tuple(e for e in one if e != effect)
 
 
-def draw_hidden_effect_case(effect: str, seed: int, noise_scale: float | None = None) -> HiddenEffectCase:
+def draw_hidden_effect_case(effect: str, seed: int, noise_scale: float | None = None,
+                            detectable_margin: float = DETECTABLE_MARGIN) -> HiddenEffectCase:
     """Generate one case with ``effect`` hidden (random strength and noise from ``seed``).
 
     Parameters
@@ -191,6 +192,9 @@ def draw_hidden_effect_case(effect: str, seed: int, noise_scale: float | None = 
         Seeds ``numpy.random.default_rng``; the same seed gives the same case.
     noise_scale : float, optional
         Fix ``c``; default drawn log-uniform in :data:`NOISE_SCALE_RANGE`.
+    detectable_margin : float
+        Redraw strengths whose competitor margin is below this (default
+        :data:`DETECTABLE_MARGIN`; lower values admit harder, possibly ambiguous cases).
 
     Returns
     -------
@@ -215,7 +219,7 @@ def draw_hidden_effect_case(effect: str, seed: int, noise_scale: float | None = 
         for redraws in range(MAX_REDRAWS):
             params = _draw_params(effect, rng, omega, bound_fn)
             margin = competitor_margin(effect, truth, apply_effect(effect, params, g_modal, omega), omega, bound)
-            if margin >= DETECTABLE_MARGIN:
+            if margin >= detectable_margin:
                 break
         else:  # pragma: no cover - the ranges above make this practically impossible
             raise RuntimeError(f"{effect}: no detectable strength in {MAX_REDRAWS} draws (seed {seed})")
