@@ -53,15 +53,15 @@ from setmem_hil.procedure import (
     SafetyLimits,
     SimulationSettings,
 )
+from setmem_hil.procedure_writer import format_procedure  # noqa: F401  (re-exported: load and write side by side)
+from setmem_hil.sim_backends.fake_device_core import FAULT_KINDS
+from setmem_hil.sim_backends.transport_faults import CAN_FAULT_KINDS, MODBUS_FAULT_KINDS
 from setmem_hil.weights import THESIS_WEIGHTS, Weights
 
 __all__ = ["load_procedure", "parse_procedure_text", "format_procedure", "parse_procedure_mapping", "KeySpec", "SCHEMA", "FAULT_KINDS"]
 
-# Fault kinds of the fake devices: the device core's (frame and data faults) plus each
-# transport's own; one source of truth in the device simulation modules.
-from setmem_hil.sim_backends.fake_device_core import FAULT_KINDS  # noqa: E402
-from setmem_hil.sim_backends.transport_faults import CAN_FAULT_KINDS, MODBUS_FAULT_KINDS  # noqa: E402
-
+# Fault kinds of the fake devices: the device core's (frame and data faults, FAULT_KINDS) plus
+# each transport's own; one source of truth in the device simulation modules.
 TRANSPORT_FAULT_KINDS = {"serial-loopback": (), "can-virtual": tuple(CAN_FAULT_KINDS), "modbus-loopback": tuple(MODBUS_FAULT_KINDS)}
 SEED_MAX = 2**63 - 1
 
@@ -512,78 +512,3 @@ def load_procedure(path: str | os.PathLike) -> Procedure:
         raise ProcedureError(str(path), "", f"cannot read: {exc}") from None
     proc = parse_procedure_text(text, str(path))
     return replace(proc, source_path=str(p))
-
-
-# ---------------------------------------------------------------------------------- writing
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "nan"
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t") + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, Mapping):
-        return "{ " + ", ".join(f"{_toml_key(k)} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    raise ProcedureError("<procedure>", "", f"cannot write a {type(v).__name__} as TOML")
-
-
-def _toml_key(k: str) -> str:
-    return k if k and all(c.isalnum() or c in "_-" for c in k) else _toml_value(str(k))
-
-
-def format_procedure(procedure: Procedure) -> str:
-    """TOML text of a procedure, every key explicit; :func:`parse_procedure_text` reads it back equal.
-
-    Used to store a programmatic procedure (``default_procedure()``, the demo) in a journal so
-    that ``run --resume`` can rebuild it.
-
-    Example
-    -------
-    >>> from setmem_hil.procedure import default_procedure
-    >>> p = default_procedure()
-    >>> replace(parse_procedure_text(format_procedure(p)), source_text="") == p
-    True
-    """
-    p = procedure
-    out = [f"name = {_toml_value(p.name)}", f"description = {_toml_value(p.description)}", f"seed = {int(p.seed)}", ""]
-    b, s = p.backend, p.backend.simulation
-    out += ["[backend]", f"kind = {_toml_value(b.kind)}", "", "[backend.simulation]",
-            f"noise_profile = {_toml_value(s.noise_profile)}", f"noise_scale = {_toml_value(float(s.noise_scale))}",
-            f"unmodelled_dynamics = {_toml_value(bool(s.unmodelled_dynamics))}", ""]
-    if b.transport:
-        out += ["[backend.transport]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in b.transport.items()] + [""]
-    if b.faults:
-        out += ["[backend.faults]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in b.faults.items()] + [""]
-    sf = p.safety
-    out += ["[safety]"] + [f"{k} = {_toml_value(float(getattr(sf, k)))}" for k in ("max_amplitude_n", "omega_min_rad_s", "omega_max_rad_s", "max_dwell_s")] + [""]
-    for m in p.prior.modes:
-        out += ["[[mode]]", f"omega_min = {_toml_value(float(m.omega_min))}", f"omega_max = {_toml_value(float(m.omega_max))}",
-                f"zeta_max = {_toml_value(float(m.zeta_max))}"]
-        if m.b1_fixed:
-            out.append(f"b1 = {_toml_value(float(m.b1_min))}")
-        else:
-            out += [f"{k} = {_toml_value(float(getattr(m, k)))}" for k in ("b1_min", "b1_max") if math.isfinite(getattr(m, k))]
-        out += [f"{k} = {_toml_value(float(getattr(m, k)))}" for k in ("b0_min", "b0_max") if math.isfinite(getattr(m, k))]
-        out.append("")
-    out += ["[identification]", f"gamma = {_toml_value(float(p.prior.gamma))}", f"max_partitions = {int(p.prior.max_partitions)}", ""]
-    out += ["[initial]", f"omega_rad_s = {_toml_value([float(w) for w in p.initial_omegas_rad_s])}", ""]
-    out += ["[goal]", f"mu_target = {_toml_value(float(p.goal.mu_target))}", f"max_experiments = {int(p.goal.max_experiments)}", ""]
-    d = p.input_design
-    out += ["[input_design]", f"strategy = {_toml_value(d.strategy)}", f"candidates_base = {int(d.candidates_base)}",
-            f"candidates_per_iteration = {int(d.candidates_per_iteration)}",
-            f"candidate_omega_min_rad_s = {_toml_value(float(d.candidate_omega_min_rad_s))}",
-            f"candidate_omega_max_rad_s = {_toml_value(float(d.candidate_omega_max_rad_s))}",
-            f"exact_resolve_top = {int(d.exact_resolve_top)}", ""]
-    w = p.weights
-    out += ["[weights]"] + [f"{k} = {_toml_value([float(c) for c in getattr(w, k)])}" for k in ("w1_num", "w1_den", "w2_num", "w2_den")]
-    out += [f"w2_extra_pole_rad_s = {_toml_value(float(w.w2_extra_pole_rad_s or 0.0))}", ""]
-    out += ["[discrepancy]", f"check_each_iteration = {_toml_value(bool(p.discrepancy_check))}", ""]
-    return "\n".join(out)
