@@ -52,8 +52,11 @@ def plot_discrepancy(report: DiscrepancyReport, path: str | os.PathLike, title: 
     ax_mag.loglog(w, np.abs(g), "k.", ms=4, label="data")
     old = report.old_fit.response(dense)
     ax_mag.loglog(dense, np.abs(old), "tab:blue", lw=1.2, label="old model")
-    ax_ph.semilogx(w, np.degrees(np.unwrap(np.angle(g))), "k.", ms=4)
-    ax_ph.semilogx(dense, np.degrees(np.unwrap(np.angle(old))), "tab:blue", lw=1.2)
+    old_phase = np.unwrap(np.angle(old))
+    # data phase placed on the old model's branch (unwrapping sparse, noisy points is unreliable)
+    data_phase = np.interp(w, dense, old_phase) + np.angle(g / report.old_fit.response(w))
+    ax_ph.semilogx(w, np.degrees(data_phase), "k.", ms=4)
+    ax_ph.semilogx(dense, np.degrees(old_phase), "tab:blue", lw=1.2)
     if report.new_fit is not None:
         new = report.new_fit.response(dense)
         ax_mag.loglog(dense, np.abs(new), "tab:green", lw=1.2, ls="--", label=f"new model ({report.decision})")
