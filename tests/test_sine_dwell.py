@@ -193,3 +193,24 @@ def test_interpreter_exit_without_close_zeroes_the_output():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "output_on False closed True" in out.stdout
+
+
+def test_safety_checks_are_inclusive_at_the_limits_and_reject_non_finite():
+    from setmem_hil.drivers.safety import SafeExciter, check_dwell, check_sine_command
+
+    lim = SafetyLimits(max_amplitude_n=0.5, omega_min_rad_s=1.0, omega_max_rad_s=10.0, max_dwell_s=60.0)
+    check_sine_command(lim, 1.0, 0.5)
+    check_sine_command(lim, 10.0, 0.0)
+    for w, a, what in ((0.999, 0.1, "omega"), (10.001, 0.1, "omega"), (5.0, 0.5001, "amplitude"),
+                       (5.0, -0.1, "amplitude"), (float("inf"), 0.1, "omega"), (5.0, float("nan"), "amplitude")):
+        with pytest.raises(SafetyLimitError, match=f"{what}.*nothing was sent"):
+            check_sine_command(lim, w, a)
+    check_dwell(lim, 60.0)
+    with pytest.raises(SafetyLimitError, match="max_dwell_s"):
+        check_dwell(lim, 60.5)
+    rig = RecordingRig()
+    safe = SafeExciter(rig.exciter, lim)
+    with pytest.raises(SafetyLimitError):
+        safe.set_sine(20.0, 0.1)
+    safe.set_sine(2.0, 0.1)
+    assert rig.sent == [("sine", 2.0, 0.1)]
