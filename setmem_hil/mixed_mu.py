@@ -35,7 +35,7 @@ import numpy as np
 
 
 Y_LIMIT = 12.0
-_TRIAL_STEPS = np.array([1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 0.5, 0.25, 0.1, 0.03])  # |log d_k| bound for the extrapolated steps (keeps H well scaled)
+_TRIAL_STEPS = np.array([1.0, 3.0, 10.0, 30.0, 0.4, 0.1])  # |log d_k| bound for the extrapolated steps (keeps H well scaled)
 
 
 @dataclass(frozen=True)
