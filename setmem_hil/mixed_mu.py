@@ -279,17 +279,28 @@ def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: n
     Z = MDh @ (g[:, :, None] * U)
     Uc, Vc = np.conj(U), np.conj(V)
     # E_a = U^* (dH / dx_a) U = X_a + X_a^* for every variable a, with rank-one-sum X_a built
-    # from rows k of U, V = M_D U, W = M_D^* V, Z = M_D^* G U (y_k) and of U, V (g_k)
+    # from rows k of U, V = M_D U, W = M_D^* V, Z = M_D^* G U (y_k) and of U, V (g_k). Only the
+    # rows i of the r eigenvalues with non-negligible softmax weight are needed: the gradient
+    # weights E_a[i, i] by w_i, and the divided differences vanish when both w_i, w_j do.
+    r = int(max(1, (w > 1e-15).sum(axis=1).max()))
+    A = slice(n - r, n)
     a = Vc + 1j * g[:, :, None] * Uc
     b = np.conj(W) + 1j * np.conj(Z)
-    X = np.empty((K, n - 1 + p, n, n), dtype=complex)
-    X[:, : n - 1] = a[:, 1:, :, None] * V[:, 1:, None, :] - b[:, 1:, :, None] * U[:, 1:, None, :]
-    X[:, n - 1 :] = 1j * Uc[:, :p, :, None] * V[:, :p, None, :]
-    E = X + np.conj(np.swapaxes(X, -1, -2))  # (K, nv, n, n)
-    grad_yg = (np.diagonal(E, axis1=2, axis2=3).real * w[:, None, :]).sum(axis=2)
+    nv = n - 1 + p
+    E = np.empty((K, nv, r, n), dtype=complex)  # E[:, a, i, j] for i in the top r, all j
+    aA, bA, UA, VA = a[:, 1:, A], b[:, 1:, A], U[:, 1:, A], V[:, 1:, A]
+    E[:, : n - 1] = (
+        aA[:, :, :, None] * V[:, 1:, None, :]
+        - bA[:, :, :, None] * U[:, 1:, None, :]
+        + np.conj(a[:, 1:, None, :] * VA[:, :, :, None] - b[:, 1:, None, :] * UA[:, :, :, None])
+    )
+    E[:, n - 1 :] = 1j * (Uc[:, :p, A][:, :, :, None] * V[:, :p, None, :]) + np.conj(
+        1j * Uc[:, :p, None, :] * V[:, :p, A][:, :, :, None]
+    )
+    diagE = E[:, :, np.arange(r), np.arange(n - r, n)].real  # E_a[i, i], i in the top r
+    grad_yg = (diagE * w[:, None, A]).sum(axis=2)
     # chain rule to x = (y, h), g_k = h_k exp(-2 y_k)
     ny = n - 1
-    nv = ny + p
     e2 = np.exp(-2.0 * np.log(prob.unpack(x)[0][:, :p]))  # exp(-2 y_k), k < p
     J = np.broadcast_to(np.eye(nv), (K, nv, nv)).copy()
     kk = np.arange(1, p)
@@ -308,8 +319,11 @@ def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: n
     t = tau[:, None, None]
     with np.errstate(invalid="ignore", divide="ignore"):
         Gam = np.where(adl > 1e-12 * t, whi * (-np.expm1(-adl / t)) / np.where(adl > 0, adl, 1.0), whi / t)
-    Er = np.concatenate([E.real.reshape(K, nv, n * n), E.imag.reshape(K, nv, n * n)], axis=2)
-    G2 = np.concatenate([Gam.reshape(K, 1, n * n)] * 2, axis=2)
+    # sum over pairs (i, j) with i in the top r: (i, j) and (j, i) both counted when j is not
+    GamA = Gam[:, A, :].copy()
+    GamA[:, :, : n - r] *= 2.0
+    Er = np.concatenate([E.real.reshape(K, nv, r * n), E.imag.reshape(K, nv, r * n)], axis=2)
+    G2 = np.concatenate([GamA.reshape(K, 1, r * n)] * 2, axis=2)
     H1 = Er @ np.swapaxes(Er * G2, 1, 2)
     H1 -= grad_yg[:, :, None] * grad_yg[:, None, :] / tau[:, None, None]
     # trace(Ws d^2 H)
