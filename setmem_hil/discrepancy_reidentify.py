@@ -4,7 +4,10 @@
     The prior gains a mode: natural frequency within ``+-margin`` of the fitted one (clipped to
     the gaps between the neighbours' bands), the prior's largest ``zeta_max``, the same ``b1``
     rule; :func:`setmem_hil.identification.identify` then bounds all modes, the added one
-    included (Algorithm 3.1).
+    included (Algorithm 3.1). If the guaranteed residue bootstrap cannot start (an added mode
+    strongly coupled to a neighbour), the *modelled* modes' residues are bounded to their fitted
+    values +-100% and the identification is repeated (flagged in the document); the added
+    mode's residue stays unbounded a priori.
 ``time_delay``, ``first_order_lag``, ``feedthrough``
     The effect is removed from the data at the fitted value ``p`` and the bound grows to cover
     the effect parameter's interval ``|p' - p| <= delta`` (so the bound of eq. 3.7 still holds
@@ -173,11 +176,21 @@ def _result_document(result) -> dict:
 
 
 def _with_fitted_residues(prior: Prior, fit: CandidateFit, k: int) -> Prior:
-    """``prior`` with ``b0`` of every mode bounded to the fitted value +-100% (mode ``k`` is the added one)."""
+    """``prior`` with ``b0`` of every *modelled* mode bounded to its fitted value +-100%.
+
+    The added mode ``k`` keeps an unbounded residue, so its interval comes from the data alone
+    (the modelled modes are the strong, well-determined ones; bounding them is what lets the
+    residue bootstrap through when the added mode couples strongly to a neighbour).
+    """
     base = fit.modal.values[:, 3].tolist()
-    b0 = base[:k] + [fit.params["b0"]] + base[k:]
     modes = []
-    for m, b in zip(prior.modes, b0):
+    j = 0
+    for i, m in enumerate(prior.modes):
+        if i == k:
+            modes.append(m)
+            continue
+        b = base[j]
+        j += 1
         span = max(abs(b), 1e-12)
         modes.append(ModePrior(m.omega_min, m.omega_max, m.zeta_max, m.b1_min, m.b1_max, b - span, b + span))
     return Prior(tuple(modes), prior.gamma, prior.max_partitions)
@@ -191,8 +204,8 @@ def reidentify_with_effect(data: FrequencyData, prior: Prior, fit: CandidateFit,
         residues_from_fit = False
         if not ok and "residue" in msg:
             # the guaranteed residue bootstrap needs weakly coupled modes; with a mode added
-            # between close neighbours it may not apply. Then residue bounds come from the fit:
-            # b0 within +-100% of the fitted value (stated in the document).
+            # between close neighbours it may not apply. Then the modelled modes' residues are
+            # bounded from the fit: b0 within +-100% of the fitted value (stated in the document).
             prior4 = _with_fitted_residues(prior4, fit, k)
             residues_from_fit = True
             ok, result, msg = _feasible(data, prior4, cheap=False)
@@ -207,7 +220,7 @@ def reidentify_with_effect(data: FrequencyData, prior: Prior, fit: CandidateFit,
         }
         doc = _result_document(result)
         doc["effect"] = {"name": "extra_mode", "mode_index": k, "intervals": {n: list(v) for n, v in intervals.items()},
-                         "residue_bounds_from_fit": residues_from_fit}
+                         "modelled_residues_bounded_from_fit": residues_from_fit}
         doc["prior_modes"] = [
             {"omega_min": m.omega_min, "omega_max": m.omega_max, "zeta_max": m.zeta_max} for m in prior4.modes
         ]
