@@ -364,6 +364,23 @@ def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: n
     return f, top, grad, 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
 
 
+def _newton_direction(Hs: np.ndarray, gr: np.ndarray) -> np.ndarray:
+    """``-H^{-1} g`` with ``H`` made positive definite (Cholesky when it already is, else
+    eigenvalues floored at 1e-10 of the largest)."""
+    scale = np.maximum(np.abs(Hs).max(axis=(1, 2)), 1e-300)
+    try:
+        L = np.linalg.cholesky(Hs + 1e-12 * scale[:, None, None] * np.eye(Hs.shape[1]))
+        if np.all(np.isfinite(L)) and np.all(np.diagonal(L, axis1=1, axis2=2) > 1e-7 * np.sqrt(scale)[:, None]):
+            z = np.linalg.solve(L, gr[:, :, None])
+            return -np.linalg.solve(np.swapaxes(L, 1, 2), z)[:, :, 0]
+    except np.linalg.LinAlgError:
+        pass
+    ev, evec = np.linalg.eigh(Hs)
+    sc = np.maximum(np.abs(ev).max(axis=1), 1e-300)
+    ev = np.maximum(ev, 1e-10 * sc[:, None]) + 1e-12 * sc[:, None]
+    return -(evec @ ((np.swapaxes(evec, 1, 2) @ gr[:, :, None])[:, :, 0] / ev)[:, :, None])[:, :, 0]
+
+
 def _newton(prob: _Problem, x: np.ndarray, tol: float, max_iter: int, tau0_rel: float = 0.05) -> np.ndarray:
     """Damped Newton on the smoothed ``lambda_max`` while ``tau`` follows a path down to ``tol``."""
     K, nv = x.shape
@@ -378,10 +395,7 @@ def _newton(prob: _Problem, x: np.ndarray, tol: float, max_iter: int, tau0_rel: 
             break
         xa, ta = x[idx], tau[idx]
         f, top, gr, Hs = _smoothed_derivatives(prob, xa, idx, ta)
-        ev, evec = np.linalg.eigh(Hs)
-        scale = np.maximum(np.abs(ev).max(axis=1), 1e-300)
-        ev = np.maximum(ev, 1e-10 * scale[:, None]) + 1e-12 * scale[:, None]  # make positive definite
-        dirn = -(evec @ ((np.swapaxes(evec, 1, 2) @ gr[:, :, None])[:, :, 0] / ev)[:, :, None])[:, :, 0]
+        dirn = _newton_direction(Hs, gr)
         dec = -(dirn * gr).sum(axis=1)  # Newton decrement squared
         ymax = np.abs(dirn[:, : prob.ny]).max(axis=1) if prob.ny else np.zeros(idx.size)
         dirn *= np.minimum(1.0, 4.0 / np.maximum(ymax, 1e-300))[:, None]  # keep exp(y) finite
