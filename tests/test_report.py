@@ -166,3 +166,20 @@ def test_table_6_6_matches_the_thesis_text():
                 row.append(v / 10 if abs(v) == 5 else v)  # "- 5" in TF 7 is the OCR of "-.5"
         rows.append(row)
     np.testing.assert_array_equal(np.array(rows), TABLE_6_6)
+
+
+def test_report_needs_no_display(tmp_path):
+    """In a process whose matplotlib backend would need a display, the report still renders."""
+    import os
+    import subprocess
+    import sys
+
+    run = _journal(tmp_path, n_iterations=1, discrepancy=False)
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    env["MPLBACKEND"] = "TkAgg"
+    code = "import sys; from setmem_hil.report import write_report; write_report(sys.argv[1]); print('matplotlib.pyplot' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", code, str(run)],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "False"
+    assert (run / "fig_tf_k1.png").stat().st_size > 5000
