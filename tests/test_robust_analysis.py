@@ -73,8 +73,7 @@ def test_given_controller_reproduces_design(table_b1):
 
 def test_document_contract(table_b1):
     doc = table_b1.to_document()
-    for key in ("mu_peak", "mu_peak_omega", "mu_lower_peak", "omega", "mu", "sensitivities", "controller_order"):
-        assert key in doc
+    assert set(doc) == {"mu_peak", "mu_peak_omega", "mu_lower_peak", "omega", "mu", "sensitivities", "controller_order"}
     json.dumps(doc, allow_nan=False)
     assert doc["controller_order"] == 15
     assert set(doc["sensitivities"]) == set(THESIS_B1_SENSITIVITIES)

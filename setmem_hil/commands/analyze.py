@@ -4,8 +4,7 @@ Designs the H2 compensator for the model's midpoint (thesis section 6.3.1), comp
 mixed-mu upper bound on the default grid (refined around the peak), its lower bound and the
 mu-sensitivities (section 4.2.2), and writes
 
-``{"mu_peak", "mu_peak_omega", "mu_lower_peak", "omega", "mu", "mu_lower", "sensitivities",
-"controller_order"}``; sensitivities are keyed ``<param>_<mode>`` (modes from 1), fixed parameters
+``{"mu_peak", "mu_peak_omega", "mu_lower_peak", "omega", "mu", "sensitivities", "controller_order"}``; sensitivities are keyed ``<param>_<mode>`` (modes from 1), fixed parameters
 absent. Weights come from the procedure file's ``[weights]`` table, else the thesis's.
 Exit 0 on success, 2 on malformed input.
 """
