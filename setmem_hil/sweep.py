@@ -517,7 +517,7 @@ def _start_local_cluster(workers: int | None):
     with dask.config.set(config):
         return LocalCluster(
             n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
-            silence_logs=logging.ERROR, env=worker_environment(),
+            silence_logs=logging.CRITICAL, env=worker_environment(),
         )
 
 
