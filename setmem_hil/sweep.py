@@ -68,6 +68,8 @@ JOURNAL_NAME = "journal.sqlite"
 THREAD_ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 WORKER_WAIT_S = 60.0
 """How long to wait for workers to connect to a remote scheduler."""
+CONNECT_TIMEOUT_S = 30.0
+"""How long to try to reach a remote scheduler."""
 
 TaskFn = Callable[[Procedure, int, str, str], dict]
 ProgressFn = Callable[[int, int, int, dict], None]
@@ -573,7 +575,8 @@ def run_sweep(
     ProcedureError
         The procedure's backend is not ``"sim"``.
     TimeoutError
-        No (or too few) workers connected to the remote scheduler within ``WORKER_WAIT_S``.
+        The remote scheduler cannot be reached within ``CONNECT_TIMEOUT_S``, or fewer than
+        ``workers`` workers connected to it within ``WORKER_WAIT_S``.
     KeyboardInterrupt
         Propagates after cancelling the tasks and closing the cluster; finished campaigns stay.
     """
@@ -664,7 +667,11 @@ def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str]], out: Path
     futures: dict = {}
     try:
         if scheduler:
-            client = Client(scheduler, timeout="30s")
+            try:
+                client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+            except (OSError, TimeoutError) as exc:
+                raise TimeoutError(f"--scheduler {scheduler}: cannot reach the scheduler within "
+                                   f"{CONNECT_TIMEOUT_S:g} s ({exc})") from None
             want = int(workers) if workers else 1
             try:
                 client.wait_for_workers(n_workers=want, timeout=WORKER_WAIT_S)
@@ -703,7 +710,10 @@ def format_summary_table(document: dict) -> str:
     lines.append("-" * len(lines[0]))
     for s, row in document["summary"].items():
         med = row["median_experiments"]
-        med_s = f"{med:g}" if med is not None else (f">{cap}" if cap is not None else "-")
+        if row["runs"] == row["failed"]:
+            med_s = "-"  # no finished campaign
+        else:
+            med_s = f"{med:g}" if med is not None else (f">{cap}" if cap is not None else "-")
         lines.append(f"{s:>13s} | {row['runs']:>4d} | {row['reached']:>7d} | {row['failed']:>6d} | {med_s:>18s}")
     return "\n".join(lines)
 

@@ -285,3 +285,32 @@ def test_killed_serial_sweep_leaves_no_half_run_and_resumes(tmp_path, capsys):
             info = j.run_info()
             assert info["finished"] and info["summary"]["final_mu_peak"] == r["final_mu_peak"]
             assert len(j.measurements()) == 15  # no duplicates from the interrupted attempt
+
+
+def test_unreachable_scheduler_exit_1_and_nothing_run(tmp_path, capsys, monkeypatch):
+    import socket
+
+    import setmem_hil.sweep as sweep_module
+
+    monkeypatch.setattr(sweep_module, "CONNECT_TIMEOUT_S", 1.0)
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    code = cli_main(["sweep", "--procedure", str(PROCEDURE_FILE), "--seeds", "1", "--strategies", "mu",
+                     "--out", str(tmp_path), "--scheduler", f"tcp://127.0.0.1:{port}", "--quiet"])
+    assert code == 1
+    assert f"--scheduler tcp://127.0.0.1:{port}: cannot reach the scheduler" in capsys.readouterr().err
+    assert not any((tmp_path / "runs").glob("mu-*"))
+
+
+def test_summary_table_text():
+    from setmem_hil.sweep import format_summary_table
+
+    doc = {"goal": {"max_experiments": 30}, "summary": {
+        "mu": {"median_experiments": 7.0, "reached": 10, "runs": 10, "failed": 0},
+        "random": {"median_experiments": None, "reached": 2, "runs": 10, "failed": 1},
+        "log-sweep": {"median_experiments": None, "reached": 0, "runs": 2, "failed": 2}}}
+    lines = format_summary_table(doc).splitlines()
+    assert lines[2].split() == ["mu", "|", "10", "|", "10", "|", "0", "|", "7"]
+    assert lines[3].split() == ["random", "|", "10", "|", "2", "|", "1", "|", ">30"]
+    assert lines[4].split() == ["log-sweep", "|", "2", "|", "0", "|", "2", "|", "-"]
