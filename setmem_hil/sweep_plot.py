@@ -30,6 +30,7 @@ def plot_experiments_to_goal(document: dict, path: str | os.PathLike) -> Path:
 
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     runs = document["runs"]
     strategies = list(document.get("strategies") or dict.fromkeys(r["strategy"] for r in runs))
@@ -61,13 +62,15 @@ def plot_experiments_to_goal(document: dict, path: str | os.PathLike) -> Path:
         labels.append(label)
     if cap is not None:
         ax.axhline(cap + 0.5 * (above - cap), color="C3", linestyle="--", linewidth=0.8)
-        ax.text(len(strategies) - 0.5, above, f"> {cap} (not reached)", color="C3", ha="right", va="bottom", fontsize=8)
+        ax.text(-0.55, above + 0.35 * max(1.0, 0.08 * top), f"not reached within {cap}", color="C3", ha="left",
+                va="bottom", fontsize=8)
     ax.set_xticks(range(len(strategies)), labels, fontsize=8)
     ax.set_xlim(-0.6, len(strategies) - 0.4)
-    ax.set_ylim(bottom=-0.5, top=above + max(1.0, 0.1 * top))
+    ax.set_ylim(bottom=-0.5, top=above + max(2.0, 0.2 * top))
     ax.set_ylabel("added experiments to reach mu-bar < %g" % goal.get("mu_target", 1.0))
     seeds = document.get("seeds") or sorted({r["seed"] for r in runs})
     ax.set_title(f"{document.get('procedure', 'sweep')}: {len(seeds)} seeds per strategy", fontsize=10)
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     out = Path(path)
