@@ -22,7 +22,7 @@ One :meth:`SineDwellExperiment.measure` call (a *dwell*):
    (up to ``safety.max_dwell_s``);
 6. returns ``g(j omega) = Y_response / Y_force`` with the absolute bound
    ``R = radius(confidence) + transient terms + extra_bound(omega)`` (transient terms: the
-   fixed poles' worst case and ``mismatch_factor`` times the halves' difference) (eq. 3.7: the identification
+   fixed poles' worst case and the halves' difference beyond its noise RMS) (eq. 3.7: the identification
    needs ``|g - g_0| <= R``), and stops the exciter, also on every abort path.
 
 Faults: a :class:`setmem_hil.errors.DataQualityError` discards the dwell and re-measures; a
@@ -46,6 +46,7 @@ True
 from __future__ import annotations
 
 import atexit
+import dataclasses
 import logging
 import math
 import weakref
@@ -114,9 +115,16 @@ class DwellSettings:
         Times the window may be extended when the halves disagree.
     max_attempts : int
         Dwells tried per measurement (discarded data, device faults) before giving up.
+    learn_poles : bool
+        Carry the modelled modes' pole estimates from dwell to dwell (:class:`PoleTracker`,
+        each dwell's posterior is the next one's prior): near a mode this brings the variance
+        close to the Cramer-Rao bound at short dwells. Off by default because a
+        measurement then depends on the earlier dwells' raw data, so a campaign resumed from
+        its journal would no longer repeat an uninterrupted run bit for bit.
     mismatch_factor : float
-        The bound includes ``mismatch_factor * |g_first_half - g_second_half|`` (transient
-        mismatch: unmodelled modes and pole errors that the fitted covariance misses).
+        The bound includes ``mismatch_factor`` times the excess of ``|g_first_half -
+        g_second_half|`` over its noise RMS (transient mismatch: unmodelled modes and pole
+        errors that the fitted covariance misses).
     unmodelled_band : float
         A further transient pole (an unmodelled mode) is searched in ``omega / b .. omega b``.
     fixed_pole_phase_limit : float
@@ -140,7 +148,8 @@ class DwellSettings:
     max_attempts: int = 5
     fixed_pole_phase_limit: float = 0.05
     unmodelled_band: float = 1.5
-    mismatch_factor: float = 0.5
+    mismatch_factor: float = 1.0
+    learn_poles: bool = False
 
 
 @dataclass(frozen=True)
@@ -169,6 +178,41 @@ class DwellResult:
     dwell_s: float
     attempts: int
     extensions: int
+
+
+def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+    n = 2 * len(blocks)
+    out = np.zeros((n, n))
+    for k, b in enumerate(blocks):
+        out[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = b
+    return out
+
+
+class PoleTracker:
+    """Sequential Bayesian estimate of the modelled modes' poles over dwells.
+
+    Each dwell refines a mode's pole ``(sigma, omega_d)`` with the tracker's current estimate
+    as a Gaussian prior (:func:`setmem_hil.sine_fit.fit_sine_with_transients`, ``pole_priors``);
+    the posterior (mean and covariance: data and prior information combined) replaces the
+    tracker's estimate. The pole uncertainty, which dominates the variance of a short dwell near
+    a mode, thus shrinks with every dwell and stays in each dwell's covariance.
+    """
+
+    def __init__(self):
+        self._est: dict[int, tuple[DampedPole, np.ndarray]] = {}
+        self.updates = 0
+
+    def estimate(self, index: int) -> tuple[DampedPole, np.ndarray] | None:
+        return self._est.get(index)
+
+    def update(self, index: int, pole: DampedPole, cov: np.ndarray) -> bool:
+        cov = np.asarray(cov, dtype=float)
+        cov = 0.5 * (cov + cov.T)
+        if cov.shape != (2, 2) or not np.all(np.isfinite(cov)) or np.linalg.det(cov) <= 0 or cov[0, 0] <= 0:
+            return False
+        self._est[index] = (pole, cov)
+        self.updates += 1
+        return True
 
 
 def pole_bands(model: IntervalModel | ModalParameters | None, relative_band: float = 0.15) -> tuple[PoleSearchBand, ...]:
@@ -245,6 +289,7 @@ class SineDwellExperiment:
         self.n_measured = 0
         self.last_result: DwellResult | None = None
         self.counters: dict[str, int] = {}
+        self.pole_tracker = PoleTracker()
         self._closed = False
         self._failed_attempts = 0  # attempts spent on measurements that raised (since start)
         # interpreter exit without close(): still command zero output and release the rig
@@ -311,6 +356,8 @@ class SineDwellExperiment:
                 raise
             self.n_measured += 1
             self.last_result = result
+            if self.settings.learn_poles:
+                self._learn(result.response_fit)
             return result.measurement
         self._failed_attempts += self.settings.max_attempts
         summary = "; ".join(errors)
@@ -318,6 +365,15 @@ class SineDwellExperiment:
         if isinstance(last_exc, DeviceError):
             raise DeviceError(msg) from last_exc
         raise DataQualityError(msg) from last_exc
+
+    def _learn(self, fit: SineFit) -> None:
+        """Store this dwell's posterior poles of modelled modes in the tracker."""
+        if fit.pole_covariance is None:
+            return
+        refined = fit.poles[len(fit.poles) - len(fit.pole_sources) :]
+        for k, (index, pole) in enumerate(zip(fit.pole_sources, refined)):
+            if index >= 0:
+                self.pole_tracker.update(index, pole, fit.pole_covariance[2 * k : 2 * k + 2, 2 * k : 2 * k + 2])
 
     def _count(self, key: str) -> None:
         self.counters[key] = self.counters.get(key, 0) + 1
@@ -375,34 +431,54 @@ class SineDwellExperiment:
         return DwellPlan(plan.omega_rad_s, rate_hz, plan.skip_s, n / rate_hz, n)
 
     def _fit_response(self, t, y, w, t_ref, window_s) -> tuple[SineFit, float]:
-        """Response fit with transients; returns the fit and the worst-case fixed-pole term."""
+        """Response fit with transients; returns the fit and the worst-case fixed-pole term.
+
+        Per modelled mode: with ``learn_poles`` and an estimate from earlier dwells, the pole is
+        refined with that estimate as a Gaussian prior; else a pole whose model interval is
+        narrow enough is fixed with a worst-case term; else it is searched in its band and
+        refined on the data. An unmodelled mode near the excitation is searched too.
+        """
         bands = pole_bands(self.model)
         # an unmodelled mode near the excitation rings too: search outside the modelled bands
         # and outside +-pi/T of omega (a pole there cannot be told from the steady state)
         resolve = math.pi / max(window_s, 1e-9)
         exclude = tuple((b.omega_min_rad_s - resolve, b.omega_max_rad_s + resolve) for b in bands) + ((w - resolve, w + resolve),)
         generic = PoleSearchBand(DampedPole(0.01 * w, w), w / self.settings.unmodelled_band, w * self.settings.unmodelled_band, exclude)
-        fixed: list[tuple[DampedPole, float, float]] = []
+        limit = self.settings.fixed_pole_phase_limit
+        fixed: list[DampedPole] = []
+        fixed_cov: list[np.ndarray] = []
+        halfwidths: list[tuple[float, float]] = []
         search: list[PoleSearchBand] = []
-        for b in bands:
+        search_index: list[int] = []
+        priors: dict[int, tuple[DampedPole, np.ndarray]] = {}
+        for i, b in enumerate(bands):
+            learned = self.pole_tracker.estimate(i) if self.settings.learn_poles else None
+            if learned is not None:
+                priors[len(search)] = learned  # refine with the earlier dwells as a prior
+                search.append(b)
+                search_index.append(i)
+                continue
             half_w = 0.5 * (b.omega_max_rad_s - b.omega_min_rad_s)
             if isinstance(self.model, IntervalModel):
-                i = bands.index(b)
                 half_s = 0.25 * (self.model.upper[i, 0] - self.model.lower[i, 0])
             else:
                 half_s = math.inf
-            if max(half_w, half_s) * window_s < self.settings.fixed_pole_phase_limit:
-                fixed.append((b.guess, half_w, half_s))
+            if max(half_w, half_s) * window_s < limit:
+                fixed.append(b.guess)
+                fixed_cov.append(np.zeros((2, 2)))
+                halfwidths.append((half_w, half_s))
             else:
                 search.append(b)
+                search_index.append(i)
         search.append(generic)
-        if not fixed:
-            return fit_sine_with_transients(t, y, w, tuple(search), t_ref_s=t_ref), 0.0
-        # fixed poles: fit with them, refine the rest; worst case of the fixed poles' error
-        fit = fit_sine_with_transients(t, y, w, tuple(search), t_ref_s=t_ref)
-        poles = tuple(p for p, _, _ in fixed) + fit.poles
-        fit = fit_sine(t, y, w, poles, t_ref_s=t_ref, refined_poles=False)
-        term = _fixed_pole_term(t, y, w, t_ref, poles, [(hw, hs) for _, hw, hs in fixed])
+        search_index.append(-1)
+        cov = _block_diag(fixed_cov) if fixed else None
+        fit = fit_sine_with_transients(t, y, w, tuple(search), t_ref_s=t_ref, fixed_poles=tuple(fixed),
+                                       fixed_covariance=cov, pole_priors=priors)
+        fit = dataclasses.replace(fit, pole_sources=tuple(search_index[k] for k in fit.pole_sources))
+        term = 0.0
+        if any(h != (0.0, 0.0) for h in halfwidths):
+            term = _fixed_pole_term(t, y, w, t_ref, fit.poles, halfwidths)
         return fit, term
 
     def _estimate(self, plan, block, attempt, dwell_s, extensions) -> DwellResult | None:
@@ -432,8 +508,10 @@ class SineDwellExperiment:
             if stat > -2.0 * math.log1p(-self.settings.settle_confidence):
                 return None
             # transient-mismatch term: what remains of an unmodelled or mis-modelled transient
-            # shows as a difference between the halves (the later half has less of it)
-            mismatch = self.settings.mismatch_factor * abs(ha - hb)
+            # shows as a difference between the halves (the later half has less of it) beyond
+            # the difference their noise explains (its RMS, sqrt(trace(cov_a + cov_b)))
+            excess = max(0.0, abs(ha - hb) - math.sqrt(float(np.trace(cd))))
+            mismatch = self.settings.mismatch_factor * excess
         radius = confidence_radius(cov, self.settings.confidence)
         t_term = transient_term / abs(ffit.phasor)
         extra = float(self.extra_bound(w)) if self.extra_bound is not None else 0.0

@@ -38,6 +38,8 @@ True
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,6 +94,11 @@ class SineFit:
     transient_amplitudes : tuple of float
         Amplitude of each transient at the window start.
     omega_rad_s, t_ref_s : float
+    pole_covariance : ndarray (2K, 2K) or None
+        Covariance of ``(sigma_1, omega_d1, sigma_2, ...)`` of the refined poles (``None`` when
+        no pole was refined); order of ``poles`` restricted to the refined ones.
+    pole_sources : tuple of int
+        For :func:`fit_sine_with_transients`: index of the search band each pole came from.
     """
 
     phasor: complex
@@ -104,6 +111,8 @@ class SineFit:
     transient_amplitudes: tuple[float, ...]
     omega_rad_s: float
     t_ref_s: float
+    pole_covariance: np.ndarray | None = None
+    pole_sources: tuple[int, ...] = ()
 
     @property
     def phasor_std(self) -> float:
@@ -161,7 +170,9 @@ def _solve(X: np.ndarray, v: np.ndarray):
 
 @_blas1
 def fit_sine(t_s, y, omega_rad_s: float, poles: tuple[DampedPole, ...] = (), *, t_ref_s: float | None = None,
-             refined_poles: bool = False) -> SineFit:
+             refined_poles: bool | tuple[bool, ...] = False,
+             pole_prior_covariance: np.ndarray | None = None,
+             refined_prior_information: np.ndarray | None = None) -> SineFit:
     """IEEE-1057 three-parameter sine fit plus decaying regressors for known transient poles.
 
     Parameters
@@ -174,9 +185,17 @@ def fit_sine(t_s, y, omega_rad_s: float, poles: tuple[DampedPole, ...] = (), *, 
         Transient poles to model (their free responses are fitted with free amplitude/phase).
     t_ref_s : float, optional
         Phase reference time (default ``t_s[0]``).
-    refined_poles : bool
-        If the poles were estimated from these data, include their two parameters each in the
-        covariance (full Jacobian) and in the degrees of freedom.
+    refined_poles : bool or tuple of bool
+        If the poles (all, or those marked) were estimated from these data, include their two
+        parameters each in the covariance (full Jacobian) and in the degrees of freedom.
+    pole_prior_covariance : ndarray (2M, 2M), optional
+        Covariance of ``(sigma, omega_d)`` of the poles *not* refined (in order), estimated
+        independently of these data (e.g. pooled from earlier dwells): their error is
+        propagated to the phasor, ``Cov += G P G^T`` with ``G = -X^+ dX/dtheta c`` (the change
+        of the linear coefficients when the fixed poles move).
+    refined_prior_information : ndarray (2R, 2R), optional
+        Prior information (inverse covariance) on the *refined* poles' parameters, added to the
+        data's Fisher information ``J^T J / s^2`` (Bayesian combination with earlier dwells).
 
     Returns
     -------
@@ -188,27 +207,43 @@ def fit_sine(t_s, y, omega_rad_s: float, poles: tuple[DampedPole, ...] = (), *, 
     X = _design(t, omega_rad_s, t_ref, poles, t_start)
     coef, r = _solve(X, v)
     n_lin = X.shape[1]
-    J = X
-    if refined_poles and poles:
-        J = np.column_stack([X] + _pole_jacobian_columns(t, poles, coef, t_start))
+    mask = tuple(bool(refined_poles) for _ in poles) if isinstance(refined_poles, bool) else tuple(refined_poles)
+    if len(mask) != len(poles):
+        raise ValueError(f"refined_poles: expected {len(poles)} flags, found {len(mask)}")
+    cols = _pole_jacobian_columns(t, poles, coef, t_start)
+    ref_cols = [c for k, m in enumerate(mask) if m for c in cols[2 * k : 2 * k + 2]]
+    fix_cols = [c for k, m in enumerate(mask) if not m for c in cols[2 * k : 2 * k + 2]]
+    J = np.column_stack([X] + ref_cols) if ref_cols else X
     p = J.shape[1]
     dof = t.size - p
     if dof < 1:
         raise DataQualityError(f"sine fit: {t.size} samples cannot determine {p} parameters")
-    s2 = float(r @ r) / dof
-    scale = np.sqrt(np.sum(J * J, axis=0))
+    s2 = max(float(r @ r) / dof, 1e-300)
+    M = (J.T @ J) / s2  # Fisher information of all estimated parameters
+    if refined_prior_information is not None and ref_cols:
+        Ip = np.asarray(refined_prior_information, dtype=float)
+        if Ip.shape != (len(ref_cols), len(ref_cols)):
+            raise ValueError(f"refined_prior_information: expected shape {(len(ref_cols),) * 2}, found {Ip.shape}")
+        M[n_lin:, n_lin:] += Ip
+    scale = np.sqrt(np.abs(np.diag(M)))
     scale[scale == 0] = 1.0
-    Js = J / scale
     try:
-        cov_s = np.linalg.pinv(Js.T @ Js, rcond=1e-13)
+        cov = np.linalg.pinv(M / np.outer(scale, scale), rcond=1e-13) / np.outer(scale, scale)
     except np.linalg.LinAlgError as exc:  # pragma: no cover - pinv of a symmetric matrix
         raise DataQualityError(f"sine fit: singular normal matrix at omega {omega_rad_s:g} rad/s") from exc
-    cov = s2 * cov_s / np.outer(scale, scale)
+    phasor_cov = cov[:2, :2].copy()
+    if pole_prior_covariance is not None and fix_cols:
+        P = np.asarray(pole_prior_covariance, dtype=float)
+        if P.shape != (len(fix_cols), len(fix_cols)):
+            raise ValueError(f"pole_prior_covariance: expected shape {(len(fix_cols),) * 2}, found {P.shape}")
+        # sensitivity of all estimated parameters to the fixed poles, first two rows
+        G = -(cov @ (J.T @ np.column_stack(fix_cols)) / s2)[:2]
+        phasor_cov = phasor_cov + G @ P @ G.T
+    pole_cov = cov[n_lin:, n_lin:].copy() if ref_cols else None
     amps = tuple(float(np.hypot(coef[3 + 2 * k], coef[4 + 2 * k])) for k in range(len(poles)))
-    del n_lin
     return SineFit(
         phasor=complex(coef[0], coef[1]),
-        covariance=cov[:2, :2].copy(),
+        covariance=phasor_cov,
         offset=float(coef[2]),
         noise_rms=float(np.sqrt(s2)),
         n_samples=int(t.size),
@@ -217,6 +252,7 @@ def fit_sine(t_s, y, omega_rad_s: float, poles: tuple[DampedPole, ...] = (), *, 
         transient_amplitudes=amps,
         omega_rad_s=float(omega_rad_s),
         t_ref_s=t_ref,
+        pole_covariance=pole_cov,
     )
 
 
@@ -258,8 +294,22 @@ def _scan(t, v, omega, t_ref, poles, t_start, grid, sigmas):
     return best
 
 
-def _refine(t, v, omega, t_ref, poles, t_start, bands) -> tuple[DampedPole, ...]:
-    """Variable projection: minimise the projected residual over all pole parameters."""
+def _refine(t, v, omega, t_ref, poles, t_start, bands, fixed=(), priors=None, noise_scale=1.0) -> tuple[DampedPole, ...]:
+    """Variable projection: minimise the projected residual over the pole parameters of
+    ``poles`` (the ``fixed`` poles stay in the model unchanged).
+
+    ``priors[k]`` = ``(mean (2,), information (2, 2))`` adds the Gaussian prior term
+    ``s^2 (x_k - mean)^T I (x_k - mean)`` (``s`` = ``noise_scale``), i.e. the negative log
+    posterior up to a constant.
+    """
+    fixed = tuple(fixed)
+    priors = list(priors) if priors is not None else [None] * len(poles)
+    prior_rows = []
+    for k, pr in enumerate(priors):
+        if pr is not None:
+            mean, info = pr
+            R = np.linalg.cholesky(np.asarray(info, dtype=float) + 1e-300 * np.eye(2)).T  # info = R^T R
+            prior_rows.append((k, np.asarray(mean, dtype=float), noise_scale * R))
     x0 = np.array([q for p in poles for q in (p.sigma_per_s, p.omega_d_rad_s)])
     lo = np.array([q for b in bands for q in (1e-6, b[0])])
     hi = np.array([q for b in bands for q in (max(b[1], 1e-3), b[1])])
@@ -270,12 +320,15 @@ def _refine(t, v, omega, t_ref, poles, t_start, bands) -> tuple[DampedPole, ...]
 
     cache: dict = {}
 
+    def prior_resid(x):
+        return [R @ (x[2 * k : 2 * k + 2] - m) for k, m, R in prior_rows]
+
     def resid(x):
-        ps = unpack(x)
+        ps = fixed + unpack(x)
         X = _design(t, omega, t_ref, ps, t_start)
         coef, r = _solve(X, v)
         cache["last"] = (x.copy(), X, coef)
-        return r
+        return np.concatenate([r] + prior_resid(x)) if prior_rows else r
 
     def jac(x):
         # Kaufman's variable-projection Jacobian: -(I - P_X) dX/dtheta c
@@ -284,9 +337,17 @@ def _refine(t, v, omega, t_ref, poles, t_start, bands) -> tuple[DampedPole, ...]
             resid(x)
             last = cache["last"]
         _, X, coef = last
-        Jp = np.column_stack(_pole_jacobian_columns(t, unpack(x), coef, t_start))
+        Jp = np.column_stack(_pole_jacobian_columns(t, fixed + unpack(x), coef, t_start)[2 * len(fixed) :])
         Q, _ = np.linalg.qr(X / np.sqrt(np.sum(X * X, axis=0)))
-        return -(Jp - Q @ (Q.T @ Jp))
+        Jd = -(Jp - Q @ (Q.T @ Jp))
+        if not prior_rows:
+            return Jd
+        rows = []
+        for k, _, R in prior_rows:
+            block = np.zeros((2, x.size))
+            block[:, 2 * k : 2 * k + 2] = R
+            rows.append(block)
+        return np.vstack([Jd] + rows)
 
     sol = least_squares(resid, x0, jac=jac, bounds=(lo, hi), x_scale="jac", max_nfev=40, xtol=1e-10, ftol=1e-12)
     x = sol.x
@@ -296,7 +357,9 @@ def _refine(t, v, omega, t_ref, poles, t_start, bands) -> tuple[DampedPole, ...]
 @_blas1
 def fit_sine_with_transients(t_s, y, omega_rad_s: float, bands: tuple[PoleSearchBand, ...] = (), *,
                              t_ref_s: float | None = None, significance: float = 25.0,
-                             max_poles: int = 4) -> SineFit:
+                             max_poles: int = 4, fixed_poles: tuple[DampedPole, ...] = (),
+                             fixed_covariance: np.ndarray | None = None,
+                             pole_priors: dict | None = None) -> SineFit:
     """Sine fit whose transient poles are found from estimates and refined on the data.
 
     For each band (in order) the mode's damped frequency is scanned on a grid of resolution
@@ -316,6 +379,15 @@ def fit_sine_with_transients(t_s, y, omega_rad_s: float, bands: tuple[PoleSearch
     significance : float
         Residual reduction, in units of the noise variance, needed to add a pole.
     max_poles : int
+    fixed_poles : tuple of DampedPole
+        Poles known from elsewhere (kept in the model, not refined; listed first in the result).
+    fixed_covariance : ndarray (2M, 2M), optional
+        Their covariance, propagated to the phasor (see :func:`fit_sine`).
+    pole_priors : dict, optional
+        ``{band index: (DampedPole, covariance (2, 2))}``: a Gaussian prior on that band's pole
+        (e.g. the posterior of earlier dwells). The band is then not scanned: its pole starts
+        at the prior mean, is refined with the prior term, and the returned
+        ``pole_covariance`` is the posterior one (data and prior information combined).
 
     Returns
     -------
@@ -329,10 +401,24 @@ def fit_sine_with_transients(t_s, y, omega_rad_s: float, bands: tuple[PoleSearch
         raise DataQualityError("sine fit: samples span no time")
     kept: list[DampedPole] = []
     kept_bands: list[tuple[float, float]] = []
-    rss = _rss(t, v, omega_rad_s, t_ref, (), t_start)
-    for band in bands:
+    kept_idx: list[int] = []
+    fixed = tuple(fixed_poles)
+    rss = _rss(t, v, omega_rad_s, t_ref, fixed, t_start)
+    pole_priors = dict(pole_priors or {})
+    kept_priors: list = []
+    for band_index, band in enumerate(bands):
         if len(kept) >= max_poles:
             break
+        if band_index in pole_priors:
+            mean_pole, pcov = pole_priors[band_index]
+            kept.append(mean_pole)
+            lo_w = min(float(band.omega_min_rad_s), mean_pole.omega_d_rad_s)
+            hi_w = max(float(band.omega_max_rad_s), mean_pole.omega_d_rad_s)
+            kept_bands.append((lo_w, hi_w))
+            kept_idx.append(band_index)
+            kept_priors.append((np.array([mean_pole.sigma_per_s, mean_pole.omega_d_rad_s]), np.linalg.inv(pcov)))
+            rss = _rss(t, v, omega_rad_s, t_ref, fixed + tuple(kept), t_start)
+            continue
         w_lo, w_hi = float(band.omega_min_rad_s), float(band.omega_max_rad_s)
         if not (0 < w_lo <= w_hi):
             continue
@@ -346,16 +432,28 @@ def fit_sine_with_transients(t_s, y, omega_rad_s: float, bands: tuple[PoleSearch
             continue
         sig0 = max(float(band.guess.sigma_per_s), 1e-4)
         sigmas = np.array(sorted({min(sig0, 4.0 / T), 0.2 / T, 1.0 / T}))
-        best = _scan(t, v, omega_rad_s, t_ref, tuple(kept), t_start, grid, sigmas)
-        n_par = 3 + 4 * (len(kept) + 1)
+        best = _scan(t, v, omega_rad_s, t_ref, fixed + tuple(kept), t_start, grid, sigmas)
+        n_par = 3 + 2 * len(fixed) + 4 * (len(kept) + 1)
         s2 = best[0] / max(1, t.size - n_par)
         if rss - best[0] > significance * s2:
             kept.append(best[1])
             kept_bands.append((w_lo, w_hi))
+            kept_idx.append(band_index)
+            kept_priors.append(None)
             rss = best[0]
+    prior_info = None
     if kept:
-        kept = list(_refine(t, v, omega_rad_s, t_ref, tuple(kept), t_start, kept_bands))
-    return fit_sine(t, v, omega_rad_s, tuple(kept), t_ref_s=t_ref, refined_poles=bool(kept))
+        noise_scale = math.sqrt(rss / max(1, t.size - 3 - 2 * len(fixed) - 4 * len(kept)))
+        kept = list(_refine(t, v, omega_rad_s, t_ref, tuple(kept), t_start, kept_bands, fixed, kept_priors, noise_scale))
+        if any(pr is not None for pr in kept_priors):
+            prior_info = np.zeros((2 * len(kept), 2 * len(kept)))
+            for k, pr in enumerate(kept_priors):
+                if pr is not None:
+                    prior_info[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = pr[1]
+    mask = (False,) * len(fixed) + (True,) * len(kept)
+    fit = fit_sine(t, v, omega_rad_s, fixed + tuple(kept), t_ref_s=t_ref, refined_poles=mask,
+                   pole_prior_covariance=fixed_covariance, refined_prior_information=prior_info)
+    return dataclasses.replace(fit, pole_sources=tuple(kept_idx))
 
 
 def _real_matrix(c: complex) -> np.ndarray:

@@ -214,3 +214,22 @@ def test_safety_checks_are_inclusive_at_the_limits_and_reject_non_finite():
         safe.set_sine(20.0, 0.1)
     safe.set_sine(2.0, 0.1)
     assert rig.sent == [("sine", 2.0, 0.1)]
+
+
+def test_learned_poles_converge_to_the_true_pole_and_shrink_the_bound():
+    core = FakeDeviceCore.from_procedure(default_procedure(), 12)
+    settings = DwellSettings(max_window_s=60.0, learn_poles=True)
+    exp = SineDwellExperiment(CoreRig(core), SafetyLimits(), settings, model=thesis_beam_prior().initial_bounds())
+    _, plain = _experiment(seed=12, settings=DwellSettings(max_window_s=60.0))
+    g = TRUTH.frequency_response(0.95)[0]
+    bounds, plain_bounds = [], []
+    for _ in range(12):
+        m = exp.measure(0.95)
+        assert abs(m.response - g) <= m.bound
+        bounds.append(m.bound)
+        plain_bounds.append(plain.measure(0.95).bound)
+    pole, cov = exp.pole_tracker.estimate(0)
+    true = TRUTH.natural_frequencies[0] * np.sqrt(1 - 0.01**2)
+    assert abs(pole.omega_d_rad_s - true) < 5 * np.sqrt(cov[1, 1]) and np.sqrt(cov[1, 1]) < 1e-3  # prior: 0.1
+    assert abs(pole.sigma_per_s - 0.01) < 5 * np.sqrt(cov[0, 0])
+    assert np.mean(bounds[-4:]) < 0.85 * np.mean(plain_bounds[-4:])

@@ -122,3 +122,43 @@ def test_bad_input_raises_data_quality_errors():
         fit_sine(t, np.zeros(10), 1.0)
     with pytest.raises(DataQualityError, match="at least 8"):
         fit_sine(t[:4], np.zeros(4), 1.0)
+
+
+def test_fixed_pole_uncertainty_is_propagated_to_the_phasor_covariance():
+    # the pole is known only to within a Gaussian error; Monte Carlo over pole errors and noise
+    rng = np.random.default_rng(8)
+    w = 0.95
+    true = DampedPole.from_modal(1.0, 0.01)
+    t = _t(w, periods=10, ppp=16)
+    P = np.diag([2e-4, 3e-4]) ** 2
+    errs, covs = [], []
+    for _ in range(300):
+        y = 40 * np.cos(w * t + 1.0) + 35 * np.exp(-true.sigma_per_s * t) * np.cos(true.omega_d_rad_s * t + 2.0)
+        y = y + 0.5 * rng.standard_normal(t.size)
+        d = rng.multivariate_normal([0, 0], P)
+        guess = DampedPole(true.sigma_per_s + d[0], true.omega_d_rad_s + d[1])
+        fit = fit_sine(t, y, w, (guess,), pole_prior_covariance=P)
+        errs.append(fit.phasor - 40 * np.exp(1j))
+        covs.append(fit.covariance)
+    errs = np.array(errs)
+    emp = np.cov(np.vstack([errs.real, errs.imag]))
+    pred = np.mean(covs, axis=0)
+    assert np.trace(emp) == pytest.approx(np.trace(pred), rel=0.25)
+    no_prior = fit_sine(t, y, w, (guess,)).covariance
+    assert np.trace(pred) > 2 * np.trace(no_prior)  # the pole error dominates here
+
+
+def test_pole_prior_tightens_the_posterior_and_keeps_the_estimate_consistent():
+    rng = np.random.default_rng(9)
+    w = 0.95
+    true = DampedPole.from_modal(1.0, 0.01)
+    t = _t(w, periods=8, ppp=16)
+    y = 40 * np.cos(w * t) + 35 * np.exp(-true.sigma_per_s * t) * np.sin(true.omega_d_rad_s * t) + 0.5 * rng.standard_normal(t.size)
+    band = PoleSearchBand(DampedPole.from_modal(1.0, 0.2), 0.88, 1.12)
+    free = fit_sine_with_transients(t, y, w, (band,))
+    prior_cov = np.diag([1e-5, 1e-5]) ** 2
+    with_prior = fit_sine_with_transients(t, y, w, (band,), pole_priors={0: (true, prior_cov)})
+    assert with_prior.pole_sources == (0,) and free.pole_sources == (0,)
+    assert np.trace(with_prior.pole_covariance) < 0.5 * np.trace(free.pole_covariance)
+    assert np.trace(with_prior.covariance) < np.trace(free.covariance)
+    assert abs(with_prior.phasor - 40) < 4 * with_prior.phasor_std
