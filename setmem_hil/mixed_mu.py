@@ -61,7 +61,8 @@ class MixedMuBound:
     Attributes
     ----------
     beta : np.ndarray, shape (K,)
-        The upper bound ``sqrt(lambda_max(H))``, evaluated exactly at the returned scalings.
+        The upper bound ``sqrt(lambda_max(H) + margin)`` at the returned scalings, the margin
+        (:func:`rounding_margin`) covering the eigensolver's rounding.
     d : np.ndarray, shape (K, n)
         ``D`` of eq. (2.15) (``M_D = D M D^{-1}``), normalised to ``d_1 = 1``.
     g : np.ndarray, shape (K, n)
@@ -97,9 +98,23 @@ def scaled_hermitian(M: np.ndarray, d: np.ndarray, g: np.ndarray) -> np.ndarray:
     return MDh @ MD + 1j * (GM - np.conj(np.swapaxes(GM, -1, -2)))
 
 
+def rounding_margin(H: np.ndarray) -> np.ndarray:
+    """Bound on the rounding error of a computed eigenvalue of Hermitian ``H``: ``2 n eps ||H||_F``.
+
+    A backward-stable Hermitian eigensolver returns the eigenvalues of ``H + E`` with
+    ``||E||_2 <= p(n) eps ||H||_2`` (Weyl: each eigenvalue moves by at most ``||E||_2``). Near a ray
+    optimum (``d_k -> 0``, ``|g_k| -> inf``) ``||H||`` can exceed ``lambda_max`` by 1e10, so the
+    margin matters there and is added to every reported ``beta^2``: the bound stays rigorous.
+    """
+    n = H.shape[-1]
+    return 2.0 * n * np.finfo(float).eps * np.linalg.norm(H, axis=(-2, -1))
+
+
 def bound_at_scalings(M: np.ndarray, d: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """``sqrt(lambda_max(H))`` for given scalings: a valid mu upper bound for any ``d > 0``, real ``g``."""
-    lam = np.linalg.eigvalsh(scaled_hermitian(M, d, g))[..., -1]
+    """``sqrt(lambda_max(H) + margin)`` for given scalings: a valid mu upper bound for any ``d > 0``,
+    real ``g`` (the margin of :func:`rounding_margin` covers the eigensolver's rounding)."""
+    H = scaled_hermitian(M, d, g)
+    lam = np.linalg.eigvalsh(H)[..., -1] + rounding_margin(H)
     return np.sqrt(np.maximum(lam, 0.0))
 
 
@@ -143,18 +158,22 @@ class _Problem:
         return np.exp(y), g
 
     def eig(self, x: np.ndarray, idx: np.ndarray):
+        """Eigen-decomposition of ``H`` and the certified top (``lambda_max + rounding margin``)."""
         d, g = self.unpack(x)
         M = self.M[idx]
         MD = M * (d[:, :, None] / d[:, None, :])
         GM = g[:, :, None] * MD
         H = np.conj(np.swapaxes(MD, -1, -2)) @ MD + 1j * (GM - np.conj(np.swapaxes(GM, -1, -2)))
         lam, U = np.linalg.eigh(H)
-        return lam, U, MD, g
+        return lam, U, MD, g, lam[:, -1] + rounding_margin(H)
 
     def value(self, x, idx, tau):
-        lam = np.linalg.eigvalsh(scaled_hermitian(self.M[idx], *self.unpack(x)))
+        """Smoothed value (for the line search) and certified top (for the best iterate)."""
+        H = scaled_hermitian(self.M[idx], *self.unpack(x))
+        lam = np.linalg.eigvalsh(H)
         top = lam[:, -1]
-        return top + tau * np.log(np.exp((lam - top[:, None]) / tau[:, None]).sum(axis=1)), top
+        f = top + tau * np.log(np.exp((lam - top[:, None]) / tau[:, None]).sum(axis=1))
+        return f, top + rounding_margin(H)
 
 
 def mixed_mu_upper(
@@ -222,10 +241,10 @@ def mixed_mu_upper(
             dh, gh = prob_h.unpack(xh)
             x = np.concatenate([np.log(dh[:, 1:]), gh[:, : prob.p]], axis=1)
     d, g = prob.unpack(x)
-    lam, U, _, _ = prob.eig(x, np.arange(K))
+    lam, U, _, _, top_cert = prob.eig(x, np.arange(K))
     lam = lam[:, ::-1] * (scale**2)[:, None]
     U = U[:, :, ::-1]
-    beta = np.sqrt(np.maximum(lam[:, 0], 0.0))
+    beta = np.sqrt(np.maximum(top_cert * scale**2, 0.0))
     g = g * scale[:, None]
     return MixedMuBound(beta=beta, d=d, g=g, eigenvalues=lam, eigenvectors=U)
 
@@ -265,13 +284,14 @@ def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: n
     eigen-decomposition (Daleckii-Krein); the second-order part is ``trace(W d^2 H)`` with the
     softmax matrix ``W = U diag(w) U^*``.
     """
-    lam, U, MD, g = prob.eig(x, idx)
+    lam, U, MD, g, top_cert = prob.eig(x, idx)
     K, n = lam.shape
     p = prob.p
     top = lam[:, -1]
     e = np.exp((lam - top[:, None]) / tau[:, None])
     s = e.sum(axis=1)
     f = top + tau * np.log(s)
+    top = top_cert  # returned for the choice of the best iterate
     w = e / s[:, None]
     MDh = np.conj(np.swapaxes(MD, -1, -2))
     V = MD @ U

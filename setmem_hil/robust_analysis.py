@@ -43,7 +43,7 @@ from setmem_hil.weights import THESIS_WEIGHTS, Weights
 __all__ = ["RobustAnalysis", "analyze_robust_performance", "design_h2_controller", "default_omega_grid"]
 
 PEAK_TIE_RTOL = 1e-6  # frequencies within this of the peak count as attaining it (4.2.2)
-FAST_TOL, FAST_MAX_ITER = 1e-4, 45  # pass 1 over the grid
+FAST_TOL, FAST_MAX_ITER = 1e-4, 60  # pass 1 over the grid
 PRECISE_TOL, PRECISE_MAX_ITER = 1e-7, 100  # pass 2 near the peak and the refinement points
 LOWER_SEARCH_POINTS = 8  # frequencies (highest upper bound) given the full lower-bound search
 PEAK_WINDOW = 0.03  # pass-1 values within 3 % of the pass-1 maximum are solved precisely
