@@ -40,7 +40,7 @@ def rank_one_mu(a, b, p):
     return min(cands + [f(x) for x in kinks])
 
 
-@pytest.mark.parametrize("seed,p,n", [(1, 2, 4), (2, 3, 5), (3, 1, 3)])
+@pytest.mark.parametrize("seed,p,n", [(1, 2, 4), (2, 3, 5), (3, 1, 3), (4, 4, 6)])  # (4, 4, 6): a ray optimum
 def test_rank_one_matches_closed_form(seed, p, n):
     rng = np.random.default_rng(seed)
     a = rng.normal(size=n) + 1j * rng.normal(size=n)
