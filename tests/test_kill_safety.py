@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -20,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from setmem_hil.errors import InputFormatError
 from setmem_hil.experiment import Measurement
 from setmem_hil.journal import Journal
 
@@ -138,6 +140,20 @@ sys.exit(main(sys.argv[2:]))
 """
 
 
+def _stored_measurements(run_dir) -> int:
+    """Measurements committed so far (a read-only look; WAL readers never block the writer)."""
+    if not (run_dir / "journal.sqlite").exists():
+        return 0
+    try:
+        j = Journal.open(run_dir)
+    except (InputFormatError, sqlite3.Error):  # not yet renamed into place: nothing stored
+        return 0
+    try:
+        return j.n_measurements()
+    finally:
+        j.close()
+
+
 @pytest.mark.slow
 def test_campaign_killed_repeatedly_then_resumed_equals_uninterrupted(tmp_path, monkeypatch):
     """SIGKILL ``setmem-hil run`` at random moments KILL_ROUNDS times (SETMEM_CAMPAIGN_KILLS=20
@@ -172,7 +188,15 @@ def test_campaign_killed_repeatedly_then_resumed_equals_uninterrupted(tmp_path, 
         if not line.startswith("ready"):
             child.wait()
             pytest.fail(f"child failed to start: {line!r} {child.stderr.read()}")
-        time.sleep(float(rng.uniform(0.0, 1.6)))
+        # Kill at a random point of progress, not a random wall-clock time, so the kill lands
+        # mid-campaign however loaded the machine is: wait for a random number of stored
+        # measurements beyond those already there, then SIGKILL after a random few milliseconds.
+        stored = _stored_measurements(run_dir)
+        target = int(rng.integers(stored + 1, len(ref_ms))) if stored + 1 < len(ref_ms) else stored
+        deadline = time.monotonic() + 120
+        while child.poll() is None and _stored_measurements(run_dir) < target and time.monotonic() < deadline:
+            time.sleep(0.005)
+        time.sleep(float(rng.uniform(0.0, 0.05)))
         if child.poll() is None:
             os.kill(child.pid, signal.SIGKILL)
         child.wait()
