@@ -157,6 +157,10 @@ def analyze_robust_performance(
     True
     """
     plant = augmented_plant(uncertain_plant(model), weights, design_w2=True)
+    if controller is not None and not hasattr(controller, "A"):
+        import control
+
+        controller = control.ss(controller)  # e.g. a TransferFunction
     K = h2_controller_for_plant(plant) if controller is None else controller
     order = int(np.asarray(K.A).shape[0]) if np.asarray(K.A).size else 0
     omega = default_omega_grid() if omega_rad_s is None else np.sort(np.asarray(omega_rad_s, dtype=float).ravel())

@@ -87,3 +87,13 @@ def test_unstable_given_controller_reports_infinite_peak():
     r = analyze_robust_performance(model, controller=K)
     assert r.mu_peak == float("inf")
     assert r.to_document()["mu_peak"] is None
+
+
+def test_transfer_function_controller_is_accepted():
+    import control
+
+    model = IntervalModel.point(beam_parameters().truncated(3))
+    K = design_h2_controller(model)
+    r_ss = analyze_robust_performance(model, controller=K)
+    r_tf = analyze_robust_performance(model, controller=control.ss2tf(K))
+    assert r_tf.mu_peak == pytest.approx(r_ss.mu_peak, rel=1e-4)
