@@ -20,7 +20,10 @@ transient poles, and, when the simulated structure keeps its unmodelled modes
 (``simulation.unmodelled_dynamics`` with fewer modelled modes than the beam's 8), the extra
 bound ``|W1(j omega)|`` of the procedure's weights (section 6.2: the identification's noise
 bound must also cover the unmodelled dynamics). The dwell amplitude is
-``min(1, safety.max_amplitude_n)``. ``close()`` (or leaving the ``with`` block) commands zero
+``min(1, safety.max_amplitude_n)``. ``[backend.transport]`` may set ``learn_poles`` (carry
+the transient poles from dwell to dwell: shorter dwells near modes at the same variance, but a
+resumed campaign no longer repeats an uninterrupted one bit for bit) and ``max_window_s``.
+``close()`` (or leaving the ``with`` block) commands zero
 output and tears the fake device down.
 
 Example
@@ -97,7 +100,20 @@ def retry_policy(transport: Mapping[str, Any], source: str = "procedure") -> Ret
     return RetryPolicy(**kw)
 
 
-def dwell_experiment(procedure: Procedure, rig) -> SineDwellExperiment:
+def dwell_settings(procedure: Procedure) -> DwellSettings:
+    """DwellSettings from the procedure (amplitude, ``learn_poles``, ``max_window_s``)."""
+    transport = procedure.backend.transport
+    source = procedure.source_path or procedure.name
+    learn = transport.get("learn_poles", False)
+    if not isinstance(learn, bool):
+        raise ProcedureError(source, "[backend.transport] key 'learn_poles'", f"expected true or false, found {learn!r}")
+    window = transport.get("max_window_s", DwellSettings.max_window_s)
+    if isinstance(window, bool) or not isinstance(window, (int, float)) or not window > 0:
+        raise ProcedureError(source, "[backend.transport] key 'max_window_s'", f"expected a positive number of seconds, found {window!r}")
+    return DwellSettings(amplitude_n=min(1.0, procedure.safety.max_amplitude_n), learn_poles=learn, max_window_s=float(window))
+
+
+def dwell_experiment(procedure: Procedure, rig, settings: DwellSettings | None = None) -> SineDwellExperiment:
     """A SineDwellExperiment on ``rig`` configured from the procedure (see the module docs)."""
     sim = procedure.backend.simulation
     n_modelled = procedure.prior.n_modes
@@ -108,7 +124,7 @@ def dwell_experiment(procedure: Procedure, rig) -> SineDwellExperiment:
         def extra(omega_rad_s: float) -> float:
             return float(weights.w1_magnitude(omega_rad_s))
 
-    settings = DwellSettings(amplitude_n=min(1.0, procedure.safety.max_amplitude_n))
+    settings = settings or dwell_settings(procedure)
     return SineDwellExperiment(rig, procedure.safety, settings, model=procedure.prior.initial_bounds(), extra_bound=extra)
 
 
@@ -135,6 +151,9 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
             w1_num=tuple(procedure.weights.w1_num),
             w1_den=tuple(procedure.weights.w1_den),
         )
+    if kind not in BACKENDS:
+        raise ProcedureError(source, "[backend] key 'kind'", f"expected one of {list(BACKENDS)}, found {kind!r}")
+    settings = dwell_settings(procedure)  # validated before any device is started
     if kind == "serial-loopback":
         from setmem_hil.drivers.serial_rig import SerialRig
         from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
@@ -148,13 +167,18 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
         except BaseException:
             device.close()
             raise
-        return dwell_experiment(procedure, OwningRig(rig, device))
+        owning = OwningRig(rig, device)
+        try:
+            return dwell_experiment(procedure, owning, settings)
+        except BaseException:
+            owning.close()
+            raise
     if kind == "can-virtual":
         from setmem_hil.drivers.can_rig import open_can_virtual_rig
 
-        return dwell_experiment(procedure, open_can_virtual_rig(procedure, seed))
+        return dwell_experiment(procedure, open_can_virtual_rig(procedure, seed), settings)
     if kind == "modbus-loopback":
         from setmem_hil.drivers.modbus_rig import open_modbus_loopback_rig
 
-        return dwell_experiment(procedure, open_modbus_loopback_rig(procedure, seed))
+        return dwell_experiment(procedure, open_modbus_loopback_rig(procedure, seed), settings)
     raise ProcedureError(source, "[backend] key 'kind'", f"expected one of {list(BACKENDS)}, found {kind!r}")

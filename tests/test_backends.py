@@ -76,5 +76,15 @@ def test_bad_backend_settings_raise_procedure_errors():
         open_experiment(dataclasses.replace(default_procedure(), backend=BackendSettings(kind="telepathy")), 1)
     with pytest.raises(ProcedureError, match="reply_timeout_s"):
         open_experiment(_procedure("serial-loopback", transport={"reply_timeout_s": -1}), 1)
+    with pytest.raises(ProcedureError, match="learn_poles"):
+        open_experiment(_procedure("serial-loopback", transport={"learn_poles": "yes"}), 1)
     with pytest.raises(ProcedureError, match="unknown kinds"):
         open_experiment(_procedure("serial-loopback", faults={"kinds": ["gremlin"]}), 1)
+
+
+def test_dwell_options_from_the_transport_table():
+    with open_experiment(_procedure("serial-loopback", transport={"learn_poles": True, "max_window_s": 60}), seed=1) as exp:
+        assert exp.settings.learn_poles and exp.settings.max_window_s == 60.0
+        m = exp.measure(0.95)
+        assert abs(m.response - TRUTH8.frequency_response(0.95)[0]) <= m.bound
+        assert exp.pole_tracker.estimate(0) is not None
