@@ -45,6 +45,24 @@ def run_case(args):
     }
 
 
+def _figure(r: dict, lean: bool, margin: float, directory: str) -> None:
+    """Re-run one case (deterministic from its seed) and plot it."""
+    from pathlib import Path
+
+    from setmem_hil.discrepancy import DiscrepancySettings, discrepancy_from_prior
+    from setmem_hil.discrepancy_plot import plot_discrepancy
+    from setmem_hil.procedure import thesis_beam_prior
+    from setmem_hil.sim_backends.hidden_effects import draw_hidden_effect_case
+
+    case = draw_hidden_effect_case(r["effect"], r["seed"], detectable_margin=margin)
+    settings = DiscrepancySettings(inflation_steps=0, interval_steps=0) if lean else DiscrepancySettings()
+    report = discrepancy_from_prior(case.data, thesis_beam_prior(), settings)
+    Path(directory).mkdir(parents=True, exist_ok=True)
+    path = Path(directory) / f"discrepancy_{r['effect']}_{r['seed']}.png"
+    plot_discrepancy(report, path, title=f"hidden {r['effect']} (seed {r['seed']}): named {report.decision}")
+    print(f"  {'':16s} figure: {path}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--per-effect", type=int, default=24, help="hidden cases per effect")
@@ -53,6 +71,7 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--lean", action="store_true", help="skip the inflation factor and effect intervals")
     ap.add_argument("--json", help="write every case's outcome here")
+    ap.add_argument("--figures", metavar="DIR", help="write the plot of the one case of each kind shown here")
     ap.add_argument("--margin", type=float, default=None,
                     help="detectability margin of the generator (default: its DETECTABLE_MARGIN, 2)")
     a = ap.parse_args(argv)
@@ -117,6 +136,8 @@ def main(argv=None) -> int:
         print(f"  {'':16s} before: max rho {b['max_normalized_residual']:.3g}, feasible {b['feasible']}, "
               f"inflation x{b.get('bound_inflation_factor', float('nan')) or float('nan'):.3g}; "
               f"after: max rho {f['max_normalized_residual']:.3g}, feasible {f['feasible']}")
+        if a.figures:
+            _figure(r, lean=a.lean, margin=margin, directory=a.figures)
     misses = [r for r in results if r["named"] != r["effect"]]
     if misses:
         print("\nmisses:")
