@@ -31,6 +31,11 @@ Determinism
     campaign), which could flip a close input choice. So a (seed, strategy) campaign takes the
     same measurements and choices serially, on the local cluster and on remote workers.
 
+Modules
+    :mod:`setmem_hil.sweep_task` (the task), :mod:`setmem_hil.sweep_storage` (layout, atomic
+    install, skip-done planning), :mod:`setmem_hil.sweep_summary` (statistics, table),
+    :mod:`setmem_hil.sweep_plot` (figure); this module parses the arguments and orchestrates.
+
 Results
     ``DIR/sweep.json`` = ``{"runs": [...], "summary": {strategy: {...}}, ...}`` (see
     :func:`summarize_runs`) and ``DIR/sweep.png`` (:mod:`setmem_hil.sweep_plot`).
@@ -39,32 +44,30 @@ Results
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import hashlib
-import json
 import logging
-import math
 import os
-import shutil
-import socket
-import statistics
-import tempfile
 import time
-import traceback
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Callable, Sequence
 
-from setmem_hil.errors import InputFormatError, ProcedureError
+from setmem_hil.errors import InputFormatError
 from setmem_hil.procedure import STRATEGIES, Procedure
+from setmem_hil.sweep_storage import (
+    clean_partials,
+    error_record,
+    plan_runs,
+    procedure_fingerprint,
+    read_run,
+    record_failure,
+    run_name,
+    run_record,
+    write_json_atomic,
+)
+from setmem_hil.sweep_summary import format_summary_table, summarize_runs
+from setmem_hil.sweep_task import check_sweep_procedure, open_sim_experiment, sweep_campaign
 
-RUNS_DIRNAME = "runs"
-PARTIAL_DIRNAME = ".partial"
 LOCK_NAME = ".sweep.lock"
-SUMMARY_NAME = "summary.json"
-ERROR_NAME = "error.json"
-JOURNAL_NAME = "journal.sqlite"
 THREAD_ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 WORKER_WAIT_S = 60.0
 """How long to wait for workers to connect to a remote scheduler."""
@@ -122,264 +125,6 @@ def parse_strategies(text: str | Sequence[str]) -> tuple[str, ...]:
     return tuple(items)
 
 
-def run_name(strategy: str, seed: int) -> str:
-    """Directory name of one campaign under ``DIR/runs``: ``<strategy>-seed<N>``."""
-    return f"{strategy}-seed{int(seed)}"
-
-
-def procedure_fingerprint(procedure: Procedure) -> str:
-    """SHA-256 of everything in ``procedure`` that changes a campaign's results.
-
-    The seed (set per campaign by the sweep), the file's text, path and description (comments
-    and prose) are left out; the parsed prior, goal, initial frequencies, input design, weights,
-    backend settings and safety limits are in.
-    """
-    core = dataclasses.replace(procedure, seed=0, source_text="", source_path="", description="")
-    return hashlib.sha256(repr(core).encode("utf-8")).hexdigest()
-
-
-def check_sweep_procedure(procedure: Procedure) -> None:
-    """Sweeps run on the simulated backend only.
-
-    Raises
-    ------
-    ProcedureError
-        When ``[backend] kind`` is not ``"sim"``.
-    """
-    if procedure.backend.kind != "sim":
-        raise ProcedureError(
-            procedure.source_path or procedure.name, "[backend] kind",
-            f"a sweep runs campaigns on the simulated backend (kind = \"sim\"), found {procedure.backend.kind!r}",
-        )
-
-
-# ---------------------------------------------------------------------------- one campaign (the task)
-def open_sim_experiment(procedure: Procedure, seed: int):
-    """The simulated experiment of ``procedure`` with noise seed ``seed``.
-
-    :func:`setmem_hil.drivers.backends.open_experiment`, so a sweep campaign equals
-    ``setmem-hil run`` with the same procedure and seed.
-    """
-    check_sweep_procedure(procedure)
-    from setmem_hil.drivers.backends import open_experiment
-
-    return open_experiment(procedure, int(seed))
-
-
-def _finite_or_none(x: Any) -> Any:
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _finite_or_none(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite_or_none(v) for v in x]
-    return x
-
-
-def write_json_atomic(doc: Any, path: str | os.PathLike) -> None:
-    """Write JSON via a temporary file and ``os.replace``; non-finite floats become ``null``."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(json.dumps(_finite_or_none(doc), indent=1, allow_nan=False) + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
-def _new_partial_dir(runs_dir: Path, name: str) -> Path:
-    partial = runs_dir / PARTIAL_DIRNAME
-    partial.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{name}-", dir=partial))
-    tmp.chmod(0o755)  # mkdtemp makes it private; a finished run is readable like any directory
-    return tmp
-
-
-def _install(tmp_dir: Path, final_dir: Path) -> None:
-    """Move a finished run directory into place (replacing a failed earlier attempt)."""
-    if final_dir.exists():
-        old = final_dir.parent / PARTIAL_DIRNAME / f"{final_dir.name}-replaced-{uuid.uuid4().hex}"
-        os.replace(final_dir, old)
-        os.replace(tmp_dir, final_dir)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp_dir, final_dir)
-
-
-def run_record(seed: int, strategy: str, summary: dict) -> dict:
-    """The ``sweep.json`` row of a finished campaign."""
-    return {
-        "seed": int(seed),
-        "strategy": strategy,
-        "reached_goal": bool(summary["reached_goal"]),
-        "experiments_added": int(summary["experiments_added"]),
-        "final_mu_peak": float(summary["final_mu_peak"]),
-        "wall_s": float(summary["wall_s"]),
-    }
-
-
-def error_record(seed: int, strategy: str, error: str) -> dict:
-    """The ``sweep.json`` row of a failed campaign."""
-    return {"seed": int(seed), "strategy": strategy, "reached_goal": False, "experiments_added": None,
-            "final_mu_peak": None, "wall_s": None, "error": error}
-
-
-def _error_document(seed: int, strategy: str, exc: BaseException, where: str) -> dict:
-    return {
-        "seed": int(seed),
-        "strategy": strategy,
-        "error": f"{type(exc).__name__}: {exc}",
-        "error_type": type(exc).__name__,
-        "traceback": "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)),
-        "where": where,
-        "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
-
-
-def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str) -> dict:
-    """Run one campaign of a sweep and store it in ``out_dir/runs/<strategy>-seed<N>`` (the Dask task).
-
-    Algorithm 5.1 (:func:`setmem_hil.campaign.run_campaign`) on the simulated experiment with
-    noise seed ``seed``, input choice ``strategy`` (eq. 5.3 for ``"mu"``) and single-threaded
-    BLAS. Skips a run whose ``summary.json`` exists. Writes into a temporary directory that is
-    renamed into place when done (see the module docstring).
-
-    Parameters
-    ----------
-    procedure : Procedure
-        Everything but the seed (``procedure.seed`` is replaced by ``seed``).
-    seed : int
-        Noise seed of the simulated beam and of the ``"random"`` baseline.
-    strategy : str
-        One of :data:`setmem_hil.procedure.STRATEGIES`.
-    out_dir : str
-        The sweep directory (absolute path, visible to the worker).
-
-    Returns
-    -------
-    dict
-        The ``sweep.json`` row (:func:`run_record` or :func:`error_record`) plus ``"status"``:
-        ``"done"``, ``"skipped"`` or ``"failed"``. Exceptions of the campaign are caught and
-        recorded in ``error.json``; only ``KeyboardInterrupt`` / ``SystemExit`` propagate (the
-        partial directory is then removed).
-    """
-    from setmem_hil import __version__
-    from setmem_hil.blas_threads import blas_one_thread
-    from setmem_hil.campaign import run_campaign
-    from setmem_hil.journal import Journal
-
-    seed = int(seed)
-    runs_dir = Path(out_dir) / RUNS_DIRNAME
-    final = runs_dir / run_name(strategy, seed)
-    done_file = final / SUMMARY_NAME
-    if done_file.is_file():
-        summary = json.loads(done_file.read_text(encoding="utf-8"))
-        return {**run_record(seed, strategy, summary), "status": "skipped"}
-    tmp = _new_partial_dir(runs_dir, final.name)
-    journal = None
-    try:
-        proc = dataclasses.replace(procedure, seed=seed)
-        journal = Journal.create(tmp / JOURNAL_NAME, procedure_text=proc.source_text, procedure_name=proc.name,
-                                 seed=seed, software_version=__version__, backend="sim", strategy=strategy)
-        journal.add_event("sweep", f"sweep campaign {final.name}: goal mu-bar < {proc.goal.mu_target:g}, "
-                                   f"at most {proc.goal.max_experiments} added experiments, "
-                                   f"procedure fingerprint {procedure_fingerprint(proc)[:16]}, "
-                                   f"host {socket.gethostname()} pid {os.getpid()}")
-        with blas_one_thread():
-            experiment = open_sim_experiment(proc, seed)
-            try:
-                result = run_campaign(proc, experiment, journal, seed=seed, strategy=strategy)
-            finally:
-                close = getattr(experiment, "close", None)
-                if callable(close):
-                    close()
-        journal.close()
-        doc = result.to_document()
-        doc["sweep"] = {"procedure_fingerprint": procedure_fingerprint(proc), "procedure_name": proc.name,
-                        "seed": seed, "strategy": strategy, "host": socket.gethostname(), "pid": os.getpid(),
-                        "software_version": __version__}
-        write_json_atomic(doc, tmp / SUMMARY_NAME)
-        _install(tmp, final)
-        return {**run_record(seed, strategy, doc), "status": "done"}
-    except Exception as exc:  # recorded, not fatal to the sweep (issue 9, item 3)
-        err = _error_document(seed, strategy, exc, f"{socket.gethostname()} pid {os.getpid()}")
-        if journal is not None:
-            with contextlib.suppress(Exception):
-                journal.add_event("error", err["error"])
-            with contextlib.suppress(Exception):
-                journal.close()
-        write_json_atomic(err, tmp / ERROR_NAME)
-        _install(tmp, final)
-        return {**error_record(seed, strategy, err["error"]), "status": "failed"}
-    except BaseException:
-        if journal is not None:
-            with contextlib.suppress(Exception):
-                journal.close()
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def record_failure(out_dir: str | os.PathLike, seed: int, strategy: str, exc: BaseException, where: str) -> dict:
-    """Store ``error.json`` for a campaign whose task failed outside :func:`sweep_campaign`
-    (worker died, task not deserialisable, ...); never touches a finished run."""
-    final = Path(out_dir) / RUNS_DIRNAME / run_name(strategy, seed)
-    err = _error_document(seed, strategy, exc, where)
-    if not (final / SUMMARY_NAME).is_file():
-        tmp = _new_partial_dir(final.parent, final.name)
-        write_json_atomic(err, tmp / ERROR_NAME)
-        _install(tmp, final)
-    return {**error_record(seed, strategy, err["error"]), "status": "failed"}
-
-
-# ---------------------------------------------------------------------------- stored runs and summary
-def read_run(out_dir: str | os.PathLike, seed: int, strategy: str) -> dict | None:
-    """The stored ``sweep.json`` row of one campaign, or ``None`` if it has not run."""
-    final = Path(out_dir) / RUNS_DIRNAME / run_name(strategy, seed)
-    if (final / SUMMARY_NAME).is_file():
-        return run_record(seed, strategy, json.loads((final / SUMMARY_NAME).read_text(encoding="utf-8")))
-    if (final / ERROR_NAME).is_file():
-        err = json.loads((final / ERROR_NAME).read_text(encoding="utf-8"))
-        return error_record(seed, strategy, str(err.get("error", "unknown error")))
-    return None
-
-
-def _median_experiments(runs: Sequence[dict]) -> float | None:
-    """Median added experiments to reach the goal; a run that did not reach it counts as infinite.
-
-    ``None`` when fewer than half the runs reached the goal (the median is then "more than the
-    budget") or there are no runs.
-    """
-    values = sorted(r["experiments_added"] if r["reached_goal"] else math.inf for r in runs)
-    if not values:
-        return None
-    med = statistics.median(values)
-    return float(med) if math.isfinite(med) else None
-
-
-def summarize_runs(runs: Iterable[dict], strategies: Sequence[str]) -> dict:
-    """Per-strategy summary of ``sweep.json`` rows.
-
-    For each strategy: ``runs`` (campaigns), ``failed`` (rows with ``"error"``), ``reached``
-    (finished with mu-bar < goal), ``median_experiments`` (median added experiments over the
-    finished runs, a run that missed the goal counting as infinitely many; ``None`` when that
-    median is not finite) and ``median_experiments_reached`` (over the runs that reached it).
-    """
-    runs = list(runs)
-    out: dict[str, dict] = {}
-    for s in strategies:
-        rows = [r for r in runs if r["strategy"] == s]
-        ok = [r for r in rows if not r.get("error")]
-        reached = [r["experiments_added"] for r in ok if r["reached_goal"]]
-        out[s] = {
-            "median_experiments": _median_experiments(ok),
-            "reached": len(reached),
-            "runs": len(rows),
-            "failed": len(rows) - len(ok),
-            "median_experiments_reached": float(statistics.median(reached)) if reached else None,
-        }
-    return out
-
-
 # ---------------------------------------------------------------------------- orchestration
 @dataclass(frozen=True)
 class SweepResult:
@@ -429,41 +174,6 @@ def _sweep_lock(out_dir: Path):
         yield
     finally:
         fh.close()
-
-
-def _plan(procedure: Procedure, seeds: Sequence[int], strategies: Sequence[str], out_dir: Path
-          ) -> tuple[list[tuple[int, str]], list[tuple[int, str]]]:
-    """Split the campaigns into (pending, done); refuse done runs of a different procedure."""
-    fingerprint = procedure_fingerprint(procedure)
-    pending, done = [], []
-    for seed in seeds:
-        for strategy in strategies:
-            summary_path = out_dir / RUNS_DIRNAME / run_name(strategy, seed) / SUMMARY_NAME
-            if not summary_path.is_file():
-                pending.append((seed, strategy))
-                continue
-            try:
-                stored = json.loads(summary_path.read_text(encoding="utf-8")).get("sweep", {})
-            except (OSError, ValueError):
-                stored = {}
-            if stored.get("procedure_fingerprint") != fingerprint:
-                raise InputFormatError(
-                    str(summary_path), "",
-                    "this finished campaign was run with a different procedure or goal than this sweep; "
-                    "use another --out directory (or delete the runs to redo them)",
-                )
-            done.append((seed, strategy))
-    return pending, done
-
-
-def _clean_partials(out_dir: Path) -> None:
-    partial = out_dir / RUNS_DIRNAME / PARTIAL_DIRNAME
-    if partial.is_dir():
-        for entry in partial.iterdir():
-            if entry.is_dir():
-                shutil.rmtree(entry, ignore_errors=True)
-            else:
-                entry.unlink(missing_ok=True)
 
 
 class _RichProgress:
@@ -594,8 +304,8 @@ def run_sweep(
     executed: list[str] = []
     failed: list[str] = []
     with _sweep_lock(out):
-        pending, done = _plan(procedure, seeds, strategies, out)
-        _clean_partials(out)
+        pending, done = plan_runs(procedure, seeds, strategies, out)
+        clean_partials(out)
         total = len(seeds) * len(strategies)
         bar: _RichProgress | None = None
         if progress is True:
@@ -701,21 +411,6 @@ def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str]], out: Path
         if cluster is not None:
             with contextlib.suppress(Exception):
                 cluster.close()
-
-
-def format_summary_table(document: dict) -> str:
-    """Plain-text per-strategy table of a ``sweep.json`` document."""
-    cap = document.get("goal", {}).get("max_experiments")
-    lines = [f"{'strategy':>13s} | {'runs':>4s} | {'reached':>7s} | {'failed':>6s} | {'median experiments':>18s}"]
-    lines.append("-" * len(lines[0]))
-    for s, row in document["summary"].items():
-        med = row["median_experiments"]
-        if row["runs"] == row["failed"]:
-            med_s = "-"  # no finished campaign
-        else:
-            med_s = f"{med:g}" if med is not None else (f">{cap}" if cap is not None else "-")
-        lines.append(f"{s:>13s} | {row['runs']:>4d} | {row['reached']:>7d} | {row['failed']:>6d} | {med_s:>18s}")
-    return "\n".join(lines)
 
 
 __all__ = [
