@@ -14,9 +14,11 @@ One :meth:`SineDwellExperiment.measure` call (a *dwell*):
    ``max_attempts``), never used;
 4. fits both channels with :func:`setmem_hil.sine_fit.fit_sine_with_transients`: the IEEE-1057
    sine fit plus decaying regressors for the modelled modes' transients, with poles from the
-   current model (eq. 2.25 midpoint; bands from the interval model) refined on the data. When
-   the model's pole intervals are already narrow the poles are *fixed* instead and their
-   interval half-widths enter the bound as a worst-case linearised term;
+   current model (eq. 2.25 midpoint; bands from the interval model) refined on the data, and a
+   search for one unmodelled mode near ``omega``. When the model's pole intervals are already
+   narrow the poles are *fixed* instead and their interval half-widths enter the bound as a
+   worst-case linearised term; with ``learn_poles`` each dwell's posterior pole estimate is the
+   next dwell's prior (:class:`PoleTracker`);
 5. detects settling: the two halves of the window must give estimates that agree within their
    uncertainty (chi-square test at ``settle_confidence``); otherwise the window is extended
    (up to ``safety.max_dwell_s``);
@@ -266,6 +268,14 @@ class SineDwellExperiment:
     last_result : DwellResult or None
     counters : dict
         Discarded dwells and device faults survived, per kind.
+    pole_tracker : PoleTracker
+        Pole estimates carried between dwells (used with ``settings.learn_poles``).
+
+    Notes
+    -----
+    A campaign that calls :meth:`update_model` with each iteration's interval model (eq.
+    5.4-5.5) narrows the pole bands the dwells search; the result still depends only on the
+    model and ``(seed, n_measured)``, so resumed campaigns stay reproducible.
     """
 
     def __init__(

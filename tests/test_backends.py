@@ -29,8 +29,11 @@ def test_sim_backend_is_the_simulated_beam_with_the_procedure_settings():
 
 
 def test_serial_loopback_measures_the_model_within_bound_including_w1():
+    from setmem_hil.experiment import Experiment
+
     proc = _procedure("serial-loopback")
     with open_experiment(proc, seed=3) as exp:
+        assert isinstance(exp, Experiment)
         for w in proc.initial_omegas_rad_s[::3]:
             m = exp.measure(w)
             # what the identification needs: |g - g_3modes| <= R (eq. 3.7 with unmodelled modes)

@@ -233,3 +233,18 @@ def test_learned_poles_converge_to_the_true_pole_and_shrink_the_bound():
     assert abs(pole.omega_d_rad_s - true) < 5 * np.sqrt(cov[1, 1]) and np.sqrt(cov[1, 1]) < 1e-3  # prior: 0.1
     assert abs(pole.sigma_per_s - 0.01) < 5 * np.sqrt(cov[0, 0])
     assert np.mean(bounds[-4:]) < 0.85 * np.mean(plain_bounds[-4:])
+
+
+def test_update_model_uses_the_new_poles():
+    from setmem_hil.drivers.sine_dwell import pole_bands
+    from setmem_hil.modal_model import IntervalModel
+
+    _, exp = _experiment(seed=13)
+    wide = exp.plan(5.0)
+    v = TRUTH.truncated(3).values
+    exp.update_model(IntervalModel(v * [0.999, 0.999, 1, 0.9], v * [1.001, 1.001, 1, 1.1]))
+    bands = pole_bands(exp.model)
+    assert bands[1].omega_min_rad_s == pytest.approx(np.sqrt(v[1, 1] * 0.999))
+    assert exp.plan(5.0).window_s != wide.window_s  # the separation from mode 2 is now known
+    m = exp.measure(5.0)
+    assert abs(m.response - TRUTH.frequency_response(5.0)[0]) <= m.bound
