@@ -289,6 +289,14 @@ def run_sweep(
         ``workers`` workers connected to it within ``WORKER_WAIT_S``.
     KeyboardInterrupt
         Propagates after cancelling the tasks and closing the cluster; finished campaigns stay.
+
+    Examples
+    --------
+    >>> from setmem_hil.procedure_file import load_procedure
+    >>> result = run_sweep(load_procedure("procedures/beam_6_3_2.toml"), range(1, 11),
+    ...                    ["mu", "random"], "study", workers=2)  # doctest: +SKIP
+    >>> result.summary["mu"]["median_experiments"]  # doctest: +SKIP
+    6.0
     """
     t0 = time.perf_counter()
     check_sweep_procedure(procedure)
