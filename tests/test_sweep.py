@@ -314,3 +314,30 @@ def test_summary_table_text():
     assert lines[2].split() == ["mu", "|", "10", "|", "10", "|", "0", "|", "7"]
     assert lines[3].split() == ["random", "|", "10", "|", "2", "|", "1", "|", ">30"]
     assert lines[4].split() == ["log-sweep", "|", "2", "|", "0", "|", "2", "|", "-"]
+
+
+def test_progress_counts_done_total_and_failures(tmp_path):
+    def half_boom(procedure, seed, strategy, out_dir):
+        if seed == 2:
+            raise RuntimeError("boom")
+        rec = {"seed": seed, "strategy": strategy, "status": "done"}
+        # a stand-in finished run, stored like a real one so the next sweep skips it
+        from setmem_hil.sweep_storage import procedure_fingerprint, write_json_atomic
+
+        run = Path(out_dir) / "runs" / f"{strategy}-seed{seed}"
+        run.mkdir(parents=True)
+        write_json_atomic({"reached_goal": True, "experiments_added": seed, "final_mu_peak": 0.5, "wall_s": 0.0,
+                           "sweep": {"procedure_fingerprint": procedure_fingerprint(procedure)}}, run / "summary.json")
+        return rec
+
+    calls = []
+    run_sweep(fast_procedure(0), [1, 2, 3], ["mu"], tmp_path, serial=True, task=half_boom, plot=False,
+              progress=lambda done, total, failures, rec: calls.append((done, total, failures, rec["seed"])))
+    assert calls == [(1, 3, 0, 1), (2, 3, 1, 2), (3, 3, 1, 3)]
+    calls.clear()
+    again = run_sweep(fast_procedure(0), [1, 2, 3], ["mu"], tmp_path, serial=True, task=half_boom, plot=False,
+                      progress=lambda done, total, failures, rec: calls.append((done, total, failures, rec["seed"])))
+    assert calls == [(3, 3, 1, 2)]  # seeds 1 and 3 were done: counted from the start, only seed 2 runs
+    assert again.skipped == ("mu-seed1", "mu-seed3") and again.failed == ("mu-seed2",)
+    assert again.summary["mu"] == {"median_experiments": 2.0, "reached": 2, "runs": 3, "failed": 1,  # (1 + 3) / 2
+                                   "median_experiments_reached": 2.0}
