@@ -262,6 +262,21 @@ def choose_effect(fits: dict[str, CandidateFit], threshold: float, omega_top: fl
     return min(consistent, key=lambda n: consistent[n].n_added_params + consistent[n].max_normalized_residual / threshold)
 
 
+def _refit_delay_from_lag(data: FrequencyData, box: ModalBox, fits: dict, threshold: float, top: float) -> None:
+    """A consistent lag with its corner above the band is, in band, a delay of the same ``tau``:
+    if the delay fit missed that, fit the delay again from the lag's ``tau`` and modes."""
+    from setmem_hil.discrepancy_effects import fit_time_delay
+
+    lag, delay = fits.get("first_order_lag"), fits.get("time_delay")
+    if lag is None or delay is None or lag.max_normalized_residual > threshold or delay.max_normalized_residual <= threshold:
+        return
+    tau = lag.params.get("tau", 0.0)
+    if tau > 0 and 1.0 / tau > top:
+        again = fit_time_delay(data, box, lag.theta[: 4 * box.n_modes], tau_starts=(tau,))
+        if again.max_normalized_residual < delay.max_normalized_residual:
+            fits["time_delay"] = again
+
+
 def _fit_candidates(data: FrequencyData, box: ModalBox, settings: DiscrepancySettings) -> tuple[dict, str]:
     """Fit in order of added parameters, stopping at the first level with a consistent candidate."""
     none = fit_none(data, box)
@@ -274,6 +289,7 @@ def _fit_candidates(data: FrequencyData, box: ModalBox, settings: DiscrepancySet
             break
         for name in level:
             fits[name] = fit_candidate(name, data, box, none)
+        _refit_delay_from_lag(data, box, fits, settings.threshold, top)
         if decision == "unexplained":
             decision = choose_effect(fits, settings.threshold, top)
     return fits, decision

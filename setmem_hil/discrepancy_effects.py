@@ -216,10 +216,12 @@ def _best_of_starts(name, data, box, modal0, starts, lo_e, hi_e, scale_e, polish
     return _candidate(name, final, n, n_added)
 
 
-def fit_time_delay(data: FrequencyData, box: ModalBox, modal0: np.ndarray, polish: bool = True) -> CandidateFit:
-    """``G e^{-s tau}``, ``tau >= 0``; starts: phase lags of 3, 15, 60 degrees at the top frequency."""
+def fit_time_delay(data: FrequencyData, box: ModalBox, modal0: np.ndarray, polish: bool = True,
+                   tau_starts: tuple[float, ...] = ()) -> CandidateFit:
+    """``G e^{-s tau}``, ``tau >= 0``; starts: phase lags of 3, 15, 60 degrees at the top frequency
+    (plus ``tau_starts``)."""
     top = float(data.omega_rad_s.max())
-    starts = [[np.deg2rad(p) / top] for p in DELAY_START_PHASE_DEG]
+    starts = [[np.deg2rad(p) / top] for p in DELAY_START_PHASE_DEG] + [[float(t)] for t in tau_starts]
     return _best_of_starts("time_delay", data, box, modal0, starts, np.array([0.0]), np.array([np.pi / top]), np.array([1.0 / top]), polish)
 
 
