@@ -8,8 +8,8 @@ the model explains every point. When the identification is infeasible there is n
 model; the "model built from the prior" is then a robust (soft-L1) least-squares fit inside the
 prior's box, which leaves a localised discrepancy where it is (a minimax fit would spread it
 over every resonance); the smallest worst residual over the prior's box is reported as well
-(``best_fit_in_prior_max_normalized_residual``, the exact-structure inflation factor). Disagreement bands are the runs of consecutive frequencies with
-``rho_i > 1``. Consistency of the identification itself: :func:`setmem_hil.identification.identify`
+(``best_fit_in_prior_max_normalized_residual``, the exact-structure inflation factor).
+Disagreement bands are the runs of consecutive frequencies with ``rho_i > 1``. Consistency of the identification itself: :func:`setmem_hil.identification.identify`
 failing (``InconsistentDataError``) is evidence of a missing effect; we report the smallest
 bound inflation factor with which it succeeds (bisection).
 
@@ -24,7 +24,8 @@ with ``k_c`` the number of added parameters (0, 1, 1, 1, 3 or 4): a penalty of o
 parameter, which outweighs any difference of residual among consistent candidates, so the
 fewest parameters win and the residual breaks ties. One refinement: a first-order lag whose
 fitted corner ``1 / tau`` lies above the measured band is, inside the band, a delay of ``tau``
-(its magnitude loss is second order), so when a delay is also consistent the delay is named.
+(its magnitude loss is second order), so when a delay is also consistent the delay is named
+(and the delay is refitted from the lag's ``tau`` if its own fit missed that equivalent).
 If no candidate is consistent the answer is ``unexplained``: no name is forced.
 
 **Add and show.** The chosen effect goes into the model structure and the model is
@@ -33,6 +34,24 @@ figures and (with :mod:`setmem_hil.discrepancy_plot`) a plot.
 
 The workflow never modifies its inputs; campaigns call :func:`check_discrepancy` after an
 identification and store the report (they never change the model silently).
+
+REPORT.json (public contract keys first, extra keys allowed): ``disagreement_bands``,
+``effects`` (``[]`` for none; ``[{"name": "unexplained", ...}]`` when nothing fits), ``before``
+and ``after`` (``max_normalized_residual``, ``feasible``; ``before`` adds
+``bound_inflation_factor``, ``best_fit_in_prior_max_normalized_residual``,
+``n_points_over_bound``; ``after`` adds ``bound_inflation_for_effect_interval``), then
+``decision``, ``candidates`` (every fitted candidate's residual, parameter count and
+parameters), ``rule`` and ``model_after`` (the re-identified model in the identify result
+format with an ``effect`` entry).
+
+Example
+-------
+>>> from setmem_hil.procedure import thesis_beam_prior
+>>> from setmem_hil.sim_backends.hidden_effects import draw_hidden_effect_case
+>>> case = draw_hidden_effect_case("feedthrough", seed=4)
+>>> report = discrepancy_from_prior(case.data, thesis_beam_prior())  # doctest: +SKIP
+>>> report.decision, report.after["max_normalized_residual"] <= 1.0  # doctest: +SKIP
+('feedthrough', True)
 """
 
 from __future__ import annotations
