@@ -74,10 +74,8 @@ class IdentificationResult:
         """The identify RESULT.json dict (public contract)."""
         from setmem_hil.result_file import result_document
 
-        gammas = [float(g) if np.isfinite(g) else None for g in self.embedding_gamma]
-        ratios = [float(r) if np.isfinite(r) else None for r in self.mismatch_ratio]
         return result_document(
-            self.model, gammas, ratios, self.iterations,
+            self.model, self.embedding_gamma, self.mismatch_ratio, self.iterations,
             n_solves=int(self.n_solves), partitions=[list(p) for p in self.partitions],
         )
 

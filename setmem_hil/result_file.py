@@ -58,11 +58,14 @@ def read_result(path: str | os.PathLike) -> IntervalModel:
 
 
 def result_document(model: IntervalModel, embedding_gamma, mismatch_ratio, iterations: int, **extra) -> dict[str, Any]:
+    def finite_or_null(values):  # JSON has no infinity: an unbounded ratio is written as null
+        return [float(v) if v is not None and math.isfinite(float(v)) else None for v in values]
+
     doc: dict[str, Any] = {
         "modes": model.named_intervals(),
         "conservatism": {
-            "embedding_gamma": [float(g) for g in embedding_gamma],
-            "mismatch_ratio": [float(r) for r in mismatch_ratio],
+            "embedding_gamma": finite_or_null(embedding_gamma),
+            "mismatch_ratio": finite_or_null(mismatch_ratio),
         },
         "iterations": int(iterations),
     }

@@ -1,0 +1,36 @@
+"""Modal model containers: containment with unbounded intervals, result document with
+unbounded conservatism ratios (JSON has no infinity)."""
+
+import json
+
+import numpy as np
+
+from setmem_hil.modal_model import IntervalModel, ModalParameters
+from setmem_hil.result_file import parse_result_mapping, result_document
+
+
+def test_contains_with_unbounded_residues():
+    model = IntervalModel([[0.0, 0.8, 0.0, -np.inf]], [[1.0, 1.3, 0.0, np.inf]])
+    truth = ModalParameters.from_modal([1.0], [0.01], [4.0])
+    assert model.contains(truth).all()
+    assert model.contains(truth, rtol=1e-6).all()
+    outside = ModalParameters.from_modal([2.0], [0.01], [4.0])
+    assert not model.contains(outside).all()
+
+
+def test_result_document_writes_infinite_ratios_as_null_and_reads_back():
+    model = IntervalModel([[0.01, 0.9, 0.0, 3.0]], [[0.03, 1.1, 0.0, 5.0]])
+    doc = result_document(model, [np.inf], [1.02], 3)
+    text = json.dumps(doc, allow_nan=False)
+    assert json.loads(text)["conservatism"]["embedding_gamma"] == [None]
+    back = parse_result_mapping(json.loads(text), "r.json")
+    assert np.array_equal(back.lower, model.lower) and np.array_equal(back.upper, model.upper)
+
+
+def test_state_space_of_intervals_midpoint_matches_response():
+    model = IntervalModel([[0.01, 0.9, 0.0, 3.0]], [[0.03, 1.1, 0.2, 5.0]])
+    mid = model.midpoint
+    A, B, C, D = mid.state_space_matrices()
+    w = np.array([0.3, 1.0, 3.0])
+    direct = np.array([(C @ np.linalg.solve(1j * wi * np.eye(2) - A, B))[0, 0] for wi in w])
+    assert np.allclose(direct, mid.frequency_response(w))
