@@ -34,6 +34,7 @@ import numpy as np
 from setmem_hil.drivers import can_protocol as cp
 from setmem_hil.drivers.can_link import CanLink, CanSettings
 from setmem_hil.drivers.fieldbus_common import (
+    FieldbusRigLifecycle,
     RetryPolicy,
     SafeShutdown,
     check_duration,
@@ -118,7 +119,7 @@ def _to_units(counts: np.ndarray, full_range: float) -> np.ndarray:
     return values
 
 
-class CanRig:
+class CanRig(FieldbusRigLifecycle):
     """A rig on a CAN link (see the module docstring).
 
     Parameters
@@ -180,29 +181,6 @@ class CanRig:
         self.link._reconnect()
         self.exciter.stop()
 
-    def transport_statistics(self) -> dict[str, int]:
-        return self.link.stats.as_dict()
-
-    def close(self) -> None:
-        """Command zero, release the bus, stop an owned fake device (idempotent, never raises)."""
-        if self._closed:
-            return
-        self._closed = True
-        self.guard.unregister_exit()
-        try:
-            self.guard.stop_quietly()
-        finally:
-            try:
-                self.link.close()
-            finally:
-                if self._on_close is not None:
-                    self._on_close()
-
-    def __enter__(self) -> "CanRig":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def open_can_virtual_rig(procedure, seed: int) -> CanRig:

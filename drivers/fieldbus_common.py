@@ -152,3 +152,36 @@ def transport_option(procedure, key: str, kind: type, default, *, choices=None, 
         bounds = f" in [{lo}, {hi}]" if lo is not None or hi is not None else ""
         raise ProcedureError(source, where, f"expected {'an integer' if kind is int else 'a number'}{bounds}, found {value!r}")
     return kind(value)
+
+
+class FieldbusRigLifecycle:
+    """Shutdown and context management shared by the CAN and Modbus rigs.
+
+    Needs ``self.guard`` (a :class:`SafeShutdown`), ``self.link`` (with ``close()`` and
+    ``stats``), ``self._on_close`` (the owner's hook, e.g. stopping a fake device) and
+    ``self._closed``. ``close()`` commands zero, releases the link, then runs the hook; it is
+    idempotent and never raises.
+    """
+
+    def transport_statistics(self) -> dict[str, int]:
+        return self.link.stats.as_dict()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.guard.unregister_exit()
+        try:
+            self.guard.stop_quietly()
+        finally:
+            try:
+                self.link.close()
+            finally:
+                if self._on_close is not None:
+                    self._on_close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

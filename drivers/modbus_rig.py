@@ -41,6 +41,7 @@ from pymodbus.framer import FramerType
 
 from setmem_hil.drivers import modbus_registers as mr
 from setmem_hil.drivers.fieldbus_common import (
+    FieldbusRigLifecycle,
     RetryPolicy,
     SafeShutdown,
     TransportStats,
@@ -225,7 +226,7 @@ class ModbusSensor:
             return SampleBlock(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("t_s", "force", "response")))
 
 
-class ModbusRig:
+class ModbusRig(FieldbusRigLifecycle):
     """A rig on a :class:`ModbusLink` (see the module docstring).
 
     Parameters
@@ -319,29 +320,6 @@ class ModbusRig:
         self.link.reconnect()
         self.exciter.stop()
 
-    def transport_statistics(self) -> dict[str, int]:
-        return self.link.stats.as_dict()
-
-    def close(self) -> None:
-        """Command zero, close the client, stop an owned fake device (idempotent)."""
-        if self._closed:
-            return
-        self._closed = True
-        self.guard.unregister_exit()
-        try:
-            self.guard.stop_quietly()
-        finally:
-            try:
-                self.link.close()
-            finally:
-                if self._on_close is not None:
-                    self._on_close()
-
-    def __enter__(self) -> "ModbusRig":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def open_modbus_loopback_rig(procedure, seed: int) -> ModbusRig:

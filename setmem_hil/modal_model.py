@@ -150,7 +150,7 @@ class IntervalModel:
         """Elementwise ``lower <= theta <= upper`` (with optional relative slack)."""
         p = params.values if isinstance(params, ModalParameters) else _as_param_array(params, "params")
         scale = np.maximum(np.abs(self.lower), np.abs(self.upper))
-        slack = np.where(np.isfinite(scale), rtol * scale, 0.0)  # an infinite bound needs no slack
+        slack = rtol * np.where(np.isfinite(scale), scale, 0.0)  # an infinite bound needs no slack
         return (p >= self.lower - slack) & (p <= self.upper + slack)
 
     def intersect(self, other: "IntervalModel") -> "IntervalModel":
