@@ -20,6 +20,13 @@ stored measurements, so the simulated noise continues exactly. Nothing depends o
 clock or a global RNG: the same seed gives the same measurements and choices serially, resumed
 or on Dask workers.
 
+**Model hook.** After every identification the experiment's ``update_model(model)`` (if it has
+one, e.g. :class:`setmem_hil.drivers.sine_dwell.SineDwellExperiment`) is called with the
+iteration's interval model (the bounds the journal stores), so later dwells fit their decaying
+transients with the narrowed pole estimates (eq. 2.25 midpoints, interval bands). A replay
+repeats the same identifications in the same order and so makes the same calls: the experiment
+is in the same state at the first new dwell as in an uninterrupted run.
+
 **Single-threaded BLAS.** The numerics of every iteration (identification, H2 design, mu
 analysis, input choice) run with BLAS pinned to one thread in the calling thread
 (:func:`setmem_hil.blas_threads.blas_one_thread`): the matrices are small, so this is about
@@ -255,8 +262,9 @@ def run_campaign(
     procedure : Procedure
         Prior, initial frequencies, goal, input-design settings and weights.
     experiment : Experiment
-        Anything with ``measure(omega)``; ``total_bound(omega)`` and ``n_measured`` are used when
-        present. Closing it is the caller's job.
+        Anything with ``measure(omega)``; ``total_bound(omega)``, ``n_measured`` and
+        ``update_model(model)`` (called after every identification) are used when present.
+        Closing it is the caller's job.
     journal : setmem_hil.journal.Journal, optional
         Receives every measurement immediately and every iteration; an existing journal's
         contents are replayed (resume). ``finish(summary)`` is called at the end unless the run
@@ -323,6 +331,9 @@ def run_campaign(
                 journal.add_event("inconsistent-data", f"iteration {k}: {exc}")
             raise
         model = result.model if previous_model is None else result.model.intersect(previous_model)
+        update_model = getattr(experiment, "update_model", None)
+        if callable(update_model):  # later dwells model their transients with these poles
+            update_model(model)
         with blas_one_thread():
             outcome = safeguarded_design(model, previous_outcome, analyze)
         analysis = outcome.analysis
