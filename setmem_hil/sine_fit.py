@@ -426,6 +426,10 @@ def fit_sine_with_transients(t_s, y, omega_rad_s: float, bands: tuple[PoleSearch
         grid = np.arange(w_lo, w_hi + step, step) if w_hi > w_lo else np.array([w_lo])
         if grid.size > 400:
             grid = np.linspace(w_lo, w_hi, 400)
+        # The band's own estimate belongs on the grid: a grid point a fraction of pi/T away from
+        # it leaves ringing that the search for an unmodelled pole then mistakes for a mode.
+        guess_w = float(np.clip(band.guess.omega_d_rad_s, w_lo, w_hi))
+        grid = np.union1d(grid[grid <= w_hi], [guess_w])
         for a, b in band.exclude:
             grid = grid[(grid < a) | (grid > b)]
         if grid.size == 0:
