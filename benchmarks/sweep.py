@@ -94,8 +94,14 @@ def main(argv=None) -> int:
     names = [run_name(s, seed) for seed in seeds for s in timing]
     same = sum(_same(serial_dir, cluster_dir, n) for n in names)
     print(f"identical campaigns (measurements, choices, mu-bar) serial vs cluster: {same}/{len(names)}")
-    cpu = [json.loads((serial_dir / "runs" / n / "summary.json").read_text())["wall_s"] for n in names]
-    print(f"campaign wall time (serial): median {statistics.median(cpu):.1f} s, max {max(cpu):.1f} s", flush=True)
+    ser = [json.loads((serial_dir / "runs" / n / "summary.json").read_text())["wall_s"] for n in names]
+    par = [json.loads((cluster_dir / "runs" / n / "summary.json").read_text())["wall_s"] for n in names]
+    print(f"campaign wall time (serial): median {statistics.median(ser):.1f} s, max {max(ser):.1f} s")
+    overhead = t_cluster - sum(par) / args.workers
+    print(f"campaigns' own wall times: serial sum {sum(ser):.1f} s, cluster sum {sum(par):.1f} s "
+          f"({sum(par) / sum(ser):.2f}x: slow-down of a campaign when {args.workers} run at once, i.e. CPU contention)")
+    print(f"Dask overhead (cluster wall - cluster sum / workers: start-up, scheduling, idle tail): {overhead:.1f} s; "
+          f"on {args.workers} uncontended cores expect ~{t_serial / (sum(ser) / args.workers + overhead):.2f}x", flush=True)
     if args.skip_table:
         return 0
 
