@@ -46,6 +46,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -375,6 +376,19 @@ def run_sweep(
                        wall_s=time.perf_counter() - t0, mode=mode, document=document)
 
 
+def _prepare_local_worker() -> int:
+    """Run on each local worker process (in its main thread): leave Ctrl-C to the sweep process.
+
+    A terminal's Ctrl-C reaches the whole process group. A worker would otherwise print a
+    traceback and then linger until its running campaign ends; instead the sweep process stops
+    its workers at once (:func:`_run_on_dask`). Returns the worker's pid.
+    """
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return os.getpid()
+
+
 def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str]], out: Path, scheduler: str | None,
                  workers: int | None, task: TaskFn, finished: Callable[[dict], None]) -> None:
     """Submit the pending campaigns and collect them as they complete."""
@@ -383,6 +397,7 @@ def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str]], out: Path
     cluster = None
     client = None
     futures: dict = {}
+    local_pids: list[int] = []
     try:
         if scheduler:
             try:
@@ -399,6 +414,7 @@ def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str]], out: Path
         else:
             cluster = _start_local_cluster(workers)
             client = Client(cluster)
+            local_pids = [int(pid) for pid in client.run(_prepare_local_worker).values()]
         for seed, strategy in pending:
             fut = client.submit(task, procedure, seed, strategy, str(out), pure=False)
             futures[fut] = (seed, strategy)
@@ -410,6 +426,13 @@ def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str]], out: Path
                 rec = record_failure(out, seed, strategy, exc, f"dask ({scheduler or 'local cluster'})")
             finished(rec)
             fut.release()
+    except KeyboardInterrupt:
+        # Stop our own workers now rather than after their running campaigns: what they were
+        # writing is under runs/.partial and is discarded by the next run of the sweep.
+        for pid in local_pids:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+        raise
     finally:
         if client is not None:
             with contextlib.suppress(Exception):

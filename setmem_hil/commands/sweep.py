@@ -65,6 +65,13 @@ def run(args: argparse.Namespace) -> int:
     except TimeoutError as exc:
         print(f"setmem-hil: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        from setmem_hil.sweep import read_run
+
+        done = sum(1 for seed in seeds for s in strategies if (r := read_run(args.out, seed, s)) and not r.get("error"))
+        print(f"setmem-hil: sweep interrupted with {done} of {len(seeds) * len(strategies)} campaigns finished in "
+              f"{args.out}; run the same command again to complete the others", file=sys.stderr)
+        raise
     print(f"sweep {procedure.name}: {len(result.runs)} campaigns ({len(result.skipped)} already done, "
           f"{len(result.executed)} run now, {len(result.failed)} failed now) in {result.wall_s:.1f} s ({result.mode})")
     print(format_summary_table(result.document))
