@@ -3,7 +3,7 @@
 Subcommands live one per module in :mod:`setmem_hil.commands` and are discovered here.
 Exit codes (public contract): 0 success; 2 malformed input (the message names file, line or
 key); 3 data inconsistent with the prior (the message names the frequencies); 4 device fault
-(the exciter was commanded to zero); 130 interrupted (Ctrl-C, exciter at zero, journal closed);
+(the exciter was commanded to zero); 130 interrupted (Ctrl-C; commands that drive a device zero the exciter and close the journal);
 1 any other failure.
 """
 
@@ -57,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"setmem-hil: device fault: {exc} (exciter commanded to zero)", file=sys.stderr)
         return EXIT_DEVICE
     except KeyboardInterrupt:
-        print("setmem-hil: interrupted; exciter at zero, journal closed", file=sys.stderr)
+        # commands that drive a device or write a journal say themselves what they left safe
+        print("setmem-hil: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 

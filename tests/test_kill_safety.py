@@ -124,7 +124,7 @@ def test_sigkill_at_random_moments_then_resume(tmp_path):
 # The whole campaign: `setmem-hil run` killed with SIGKILL again and again, then resumed.
 # ------------------------------------------------------------------------------------------
 HELPERS = Path(__file__).with_name("_campaign_helpers.py")
-KILL_ROUNDS = int(os.environ.get("SETMEM_CAMPAIGN_KILLS", "5"))
+KILL_ROUNDS = int(os.environ.get("SETMEM_CAMPAIGN_KILLS", "20"))  # issue 8: 20 kills
 
 CAMPAIGN_CHILD = r"""
 import runpy, sys
