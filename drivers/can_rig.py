@@ -182,7 +182,6 @@ class CanRig(FieldbusRigLifecycle):
         self.exciter.stop()
 
 
-
 def open_can_virtual_rig(procedure, seed: int) -> CanRig:
     """Start a fake CAN device on a unique ``virtual`` channel and return a rig that owns it.
 

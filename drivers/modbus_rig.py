@@ -321,7 +321,6 @@ class ModbusRig(FieldbusRigLifecycle):
         self.exciter.stop()
 
 
-
 def open_modbus_loopback_rig(procedure, seed: int) -> ModbusRig:
     """Start a fake Modbus device (pymodbus server on 127.0.0.1, free port) and return a rig owning it.
 

@@ -63,7 +63,7 @@ def bootstrap_residue_bounds(data: FrequencyData, box: IntervalModel) -> Interva
         T = np.zeros((m, m))
         for r, k in enumerate(unknown_idx):
             j = choice[r]
-            others = known_term[j] - (known_num[k, j] * inv_dmin[k, j] if not unknown[k] else 0.0)
+            others = known_term[j]  # the known modes' contribution at point j
             fixed_part = sum(fixed_b1[l] * w[j] * inv_dmin[l, j] for l in unknown_idx if l != k)
             b[r] = dmax[k, j] * (abs(data.response[j]) + data.bound[j] + others + fixed_part)
             for c, l in enumerate(unknown_idx):

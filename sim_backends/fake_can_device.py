@@ -35,7 +35,7 @@ import can
 from setmem_hil.drivers import can_protocol as cp
 from setmem_hil.errors import FrameError
 from setmem_hil.sim_backends.fake_device_core import DeviceCommandError, FakeDeviceCore
-from setmem_hil.sim_backends.transport_faults import TransportFaults
+from setmem_hil.sim_backends.transport_faults import TransportFaults, injected_counts
 
 FLAG_WATCHDOG_TRIPPED = 0x01
 
@@ -121,9 +121,7 @@ class FakeCanDevice:
     @property
     def injected(self) -> dict[str, int]:
         """Faults injected so far, per kind (core and CAN kinds)."""
-        counts = {k: v for k, v in self.core.faults.injected.items() if v}
-        counts.update({k: v for k, v in self.transport_faults.injected.items() if v})
-        return counts
+        return injected_counts(self.core.faults, self.transport_faults)
 
     # -- main loop -----------------------------------------------------------------------------
     def _run(self) -> None:

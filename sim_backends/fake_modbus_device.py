@@ -48,7 +48,7 @@ from pymodbus.simulator.simdata import DataType
 
 from setmem_hil.drivers import modbus_registers as mr
 from setmem_hil.sim_backends.fake_device_core import DeviceCommandError, FakeDeviceCore
-from setmem_hil.sim_backends.transport_faults import TransportFaults
+from setmem_hil.sim_backends.transport_faults import TransportFaults, injected_counts
 
 N_REGISTERS = mr.BUFFER_BASE + mr.n_pages(mr.MAX_SAMPLES) * mr.PAGE_REGISTERS
 WRITABLE = {
@@ -196,9 +196,7 @@ class FakeModbusDevice:
 
     @property
     def injected(self) -> dict[str, int]:
-        counts = {k: v for k, v in self.core.faults.injected.items() if v}
-        counts.update({k: v for k, v in self.transport_faults.injected.items() if v})
-        return counts
+        return injected_counts(self.core.faults, self.transport_faults)
 
     async def _watchdog_loop(self) -> None:
         while True:

@@ -33,6 +33,7 @@ import threading
 from setmem_hil.drivers import serial_protocol as sp
 from setmem_hil.errors import DeviceError, FrameError
 from setmem_hil.sim_backends.fake_device_core import DeviceCommandError, FakeDeviceCore
+from setmem_hil.sim_backends.transport_faults import injected_counts
 
 log = logging.getLogger(__name__)
 
@@ -238,6 +239,11 @@ class FakeSerialDevice:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    @property
+    def injected(self) -> dict[str, int]:
+        """Faults injected so far, per kind (the serial fake has only the core's kinds)."""
+        return injected_counts(self.core.faults)
 
 
 def _guess_seq(line: bytes) -> int:

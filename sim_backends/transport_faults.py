@@ -111,3 +111,14 @@ def split_faults(procedure, transport_kinds: tuple[str, ...]) -> tuple[Any, Tran
         float(rate) if rate_ok else 0.0, mine, int(seed) if isinstance(seed, int) else 0, tuple(my_rates)
     )
     return core_procedure, transport
+
+
+def injected_counts(core_faults, transport_faults: "TransportFaults | None" = None) -> dict[str, int]:
+    """Faults injected so far per kind, over the core's kinds and the transport's (non-zero only).
+
+    Every fake device reports its ``injected`` property through this one function.
+    """
+    counts = {k: v for k, v in core_faults.injected.items() if v}
+    if transport_faults is not None:
+        counts.update({k: v for k, v in transport_faults.injected.items() if v})
+    return counts

@@ -38,11 +38,11 @@ def fake_device_cores(experiment):
 
 
 def injected_counts(experiment) -> dict:
+    """Faults injected per kind, summed over the experiment's fake devices."""
     counts: dict[str, int] = {}
-    for res in fake_devices(experiment):
-        for faults in (getattr(getattr(res, "core", None), "faults", None), getattr(res, "transport_faults", None)):
-            for kind, n in (getattr(faults, "injected", None) or {}).items():
-                counts[kind] = counts.get(kind, 0) + n
+    for device in fake_devices(experiment):
+        for kind, n in device.injected.items():
+            counts[kind] = counts.get(kind, 0) + n
     return counts
 
 
