@@ -8,7 +8,7 @@ Usage::
 Each case: :func:`setmem_hil.sim_backends.hidden_effects.draw_hidden_effect_case` (three-mode
 beam, the effect hidden at a random strength, random noise level and seed; see that module for
 the ranges and the detectability rule), then
-:func:`setmem_hil.discrepancy.discrepancy_from_prior` with the thesis's three-mode prior
+:func:`setmem_hil.discrepancy.workflow.discrepancy_from_prior` with the thesis's three-mode prior
 (default settings: bound inflation factor and effect intervals included; ``--lean`` skips both).
 Prints the confusion table (true effect x named effect), the rates the issue asks for, the
 after-figures, timing, and the before/after figures of one case of each kind.
@@ -27,8 +27,8 @@ NAMES = ("none", "time_delay", "first_order_lag", "feedthrough", "extra_mode", "
 
 def run_case(args):
     effect, seed, lean, margin = args
-    from setmem_hil.discrepancy import DiscrepancySettings, discrepancy_from_prior
-    from setmem_hil.procedure import thesis_beam_prior
+    from setmem_hil.discrepancy.workflow import DiscrepancySettings, discrepancy_from_prior
+    from setmem_hil.io.procedure import thesis_beam_prior
     from setmem_hil.sim_backends.hidden_effects import draw_hidden_effect_case
 
     case = draw_hidden_effect_case(effect, seed, detectable_margin=margin)
@@ -49,9 +49,9 @@ def _figure(r: dict, lean: bool, margin: float, directory: str) -> None:
     """Re-run one case (deterministic from its seed) and plot it."""
     from pathlib import Path
 
-    from setmem_hil.discrepancy import DiscrepancySettings, discrepancy_from_prior
-    from setmem_hil.discrepancy_plot import plot_discrepancy
-    from setmem_hil.procedure import thesis_beam_prior
+    from setmem_hil.discrepancy.workflow import DiscrepancySettings, discrepancy_from_prior
+    from setmem_hil.discrepancy.plot import plot_discrepancy
+    from setmem_hil.io.procedure import thesis_beam_prior
     from setmem_hil.sim_backends.hidden_effects import draw_hidden_effect_case
 
     case = draw_hidden_effect_case(r["effect"], r["seed"], detectable_margin=margin)

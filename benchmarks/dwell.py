@@ -27,10 +27,10 @@ a few campaign iterations); the prior with ``learn_poles=True`` (poles pooled ov
 :class:`setmem_hil.drivers.sine_dwell.PoleTracker` and then fixed, their covariance propagated);
 and two models the campaign actually hands the dwell through ``update_model`` (issue 5: pole
 estimates "known" from the campaign, default settings, no ``learn_poles``): ``id-initial``, the
-intervals identified (Algorithm 3.2, :func:`setmem_hil.identification.identify`) from the 15
+intervals identified (Algorithm 3.2, :func:`setmem_hil.identification.algorithm.identify`) from the 15
 section-6.3.2 initial measurements of the simulated beam with the thesis prior, and
 ``id-campaign``, the model after the first added experiment of the 6.3.2 campaign
-(:func:`setmem_hil.campaign.run_campaign` with one added experiment on the simulated beam). Near the first mode
+(:func:`setmem_hil.campaign.runner.run_campaign` with one added experiment on the simulated beam). Near the first mode
 the fit window trades variance against dwell time (the mode's ringing is nearly collinear with
 the steady state over a short window), so several window caps are shown; the default is 120 s.
 """
@@ -45,12 +45,12 @@ import time
 import numpy as np
 
 from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.procedure import SafetyLimits, default_procedure, thesis_6_3_2_initial_omegas, thesis_beam_prior
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.io.procedure import SafetyLimits, default_procedure, thesis_6_3_2_initial_omegas, thesis_beam_prior
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.core_rig import CoreRig
 from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
-from setmem_hil.sine_fit import fit_sine, phasor_ratio
+from setmem_hil.estimation.sine_fit import fit_sine, phasor_ratio
 
 TRUTH = beam_parameters()
 
@@ -65,8 +65,8 @@ def _simulated_beam(procedure):
 
 def identified_initial_model() -> IntervalModel:
     """Intervals identified from the 15 section-6.3.2 initial measurements (thesis prior, b1 = 0)."""
-    from setmem_hil.frequency_data import FrequencyData
-    from setmem_hil.identification import identify
+    from setmem_hil.model.frequency_data import FrequencyData
+    from setmem_hil.identification.algorithm import identify
 
     proc = default_procedure()
     beam = _simulated_beam(proc)
@@ -76,7 +76,7 @@ def identified_initial_model() -> IntervalModel:
 
 def identified_campaign_model() -> IntervalModel:
     """The model the 6.3.2 campaign passes to ``update_model`` after its first added experiment."""
-    from setmem_hil.campaign import run_campaign
+    from setmem_hil.campaign.runner import run_campaign
 
     proc = default_procedure()
     proc = dataclasses.replace(proc, goal=dataclasses.replace(proc.goal, max_experiments=1))

@@ -1,7 +1,7 @@
 """Experiments needed to reach mu-bar < 1 on the simulated beam (thesis section 6.3.2).
 
 For each strategy (the thesis's mu-based input design and the three baselines of
-:mod:`setmem_hil.strategies`) and each seed, runs the section 6.3.2 campaign (15 initial points,
+:mod:`setmem_hil.design.strategies`) and each seed, runs the section 6.3.2 campaign (15 initial points,
 fully damped noise bound plus W1, b1 = 0) until mu-bar < 1 or the cap, and prints the number
 of added experiments (">cap" when the goal was not reached), the median over seeds, and the
 compute time per iteration (identification + H2 design + mu analysis with the safeguard +
@@ -35,8 +35,8 @@ STRATEGIES = ("mu", "log-sweep", "random", "max-reduction")
 
 def run_one(strategy: str, seed: int, cap: int) -> dict:
     """One campaign; returns its summary document plus timing statistics."""
-    from setmem_hil.campaign import run_campaign
-    from setmem_hil.procedure import Goal, default_procedure
+    from setmem_hil.campaign.runner import run_campaign
+    from setmem_hil.io.procedure import Goal, default_procedure
     from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
 
     proc = default_procedure()

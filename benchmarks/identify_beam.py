@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from setmem_hil.identification import identify
-from setmem_hil.procedure import thesis_beam_prior
+from setmem_hil.identification.algorithm import identify
+from setmem_hil.io.procedure import thesis_beam_prior
 from setmem_hil.sim_backends.thesis_cases import section_6_2_data
 
 

@@ -20,14 +20,14 @@ import time
 
 import numpy as np
 
-from setmem_hil.augmented_plant import augmented_plant
-from setmem_hil.h2_design import h2_controller_for_plant
-from setmem_hil.mixed_mu import MuStructure, mixed_mu_upper
-from setmem_hil.mixed_mu_lmi import mixed_mu_upper_lmi
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.robust_analysis import analyze_robust_performance, default_omega_grid
-from setmem_hil.uncertain_plant import uncertain_plant
-from setmem_hil.weights import THESIS_WEIGHTS
+from setmem_hil.robust.augmented_plant import augmented_plant
+from setmem_hil.robust.h2_design import h2_controller_for_plant
+from setmem_hil.robust.mixed_mu import MuStructure, mixed_mu_upper
+from setmem_hil.robust.mixed_mu_lmi import mixed_mu_upper_lmi
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.robust.analysis import analyze_robust_performance, default_omega_grid
+from setmem_hil.robust.uncertain_plant import uncertain_plant
+from setmem_hil.model.weights import THESIS_WEIGHTS
 
 TABLE_B1_LOWER = [[2.0911e-9, 8.8827e-1, 0.0, 2.7028], [4.5511e-9, 3.3851e1, 0.0, -1.4572], [1.6299e-9, 2.6725e2, 0.0, -7.8492]]
 TABLE_B1_UPPER = [[1.2140e-1, 1.2333, 0.0, 7.6251], [5.3030e-1, 4.3162e1, 0.0, 7.6061], [2.5572, 3.5747e2, 0.0, 1.5549e1]]

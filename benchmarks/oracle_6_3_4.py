@@ -20,10 +20,10 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from setmem_hil.frequency_data import FrequencyData  # noqa: E402
-from setmem_hil.identification import identify  # noqa: E402
-from setmem_hil.procedure_file import load_procedure  # noqa: E402
-from setmem_hil.robust_analysis import analyze_robust_performance  # noqa: E402
+from setmem_hil.model.frequency_data import FrequencyData  # noqa: E402
+from setmem_hil.identification.algorithm import identify  # noqa: E402
+from setmem_hil.io.procedure_file import load_procedure  # noqa: E402
+from setmem_hil.robust.analysis import analyze_robust_performance  # noqa: E402
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent

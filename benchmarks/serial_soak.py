@@ -20,7 +20,7 @@ from setmem_hil.drivers.retry import RetryPolicy
 from setmem_hil.drivers.serial_rig import SerialRig
 from setmem_hil.drivers.sine_dwell import SineDwellExperiment
 from setmem_hil.errors import DataQualityError, DeviceError
-from setmem_hil.procedure import SafetyLimits, default_procedure, thesis_beam_prior
+from setmem_hil.io.procedure import SafetyLimits, default_procedure, thesis_beam_prior
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.fake_device_core import FAULT_KINDS, FakeDeviceCore, FaultSettings
 from setmem_hil.sim_backends.fake_serial_device import FakeSerialDevice

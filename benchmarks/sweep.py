@@ -41,7 +41,7 @@ def _loadavg() -> str:
 
 def _same(a: Path, b: Path, name: str) -> bool:
     """Same measurements and choices in two sweep directories for run ``name``."""
-    from setmem_hil.journal import Journal
+    from setmem_hil.io.journal import Journal
 
     with Journal.open(a / "runs" / name) as ja, Journal.open(b / "runs" / name) as jb:
         ma = [(r["omega_rad_s"], r["re"], r["im"], r["bound"]) for r in ja.measurement_rows()]
@@ -52,9 +52,9 @@ def _same(a: Path, b: Path, name: str) -> bool:
 
 
 def main(argv=None) -> int:
-    from setmem_hil.procedure import STRATEGIES, Goal
-    from setmem_hil.procedure_file import load_procedure
-    from setmem_hil.sweep import format_summary_table, parse_strategies, run_name, run_sweep
+    from setmem_hil.io.procedure import STRATEGIES, Goal
+    from setmem_hil.io.procedure_file import load_procedure
+    from setmem_hil.sweep.runner import format_summary_table, parse_strategies, run_name, run_sweep
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--procedure", default=str(REPO / "procedures" / "beam_6_3_2.toml"))

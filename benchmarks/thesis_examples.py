@@ -37,8 +37,8 @@ EXAMPLES = {
 
 
 def run_example(name: str, seed: int, cap: int | None) -> dict:
-    from setmem_hil.campaign import run_campaign
-    from setmem_hil.procedure_file import load_procedure
+    from setmem_hil.campaign.runner import run_campaign
+    from setmem_hil.io.procedure_file import load_procedure
     from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
 
     proc = load_procedure(ROOT / "procedures" / EXAMPLES[name][0])

@@ -28,7 +28,7 @@ output and tears the fake device down.
 
 Example
 -------
->>> from setmem_hil.procedure import default_procedure
+>>> from setmem_hil.io.procedure import default_procedure
 >>> with open_experiment(default_procedure(), seed=1) as exp:
 ...     m = exp.measure(2.0)
 """
@@ -41,8 +41,8 @@ from typing import Any, Mapping
 from setmem_hil.drivers.retry import RetryPolicy
 from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
 from setmem_hil.errors import ProcedureError
-from setmem_hil.experiment import Experiment
-from setmem_hil.procedure import BACKENDS, Procedure
+from setmem_hil.campaign.experiment import Experiment
+from setmem_hil.io.procedure import BACKENDS, Procedure
 from setmem_hil.sim_backends.beam import BEAM_N_MODES
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
 

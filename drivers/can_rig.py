@@ -13,7 +13,7 @@ eq. 3.7: ``g = g_0 + n``, ``|n| <= R``); nothing here depends on the identificat
 
 Example
 -------
->>> from setmem_hil.procedure import default_procedure
+>>> from setmem_hil.io.procedure import default_procedure
 >>> with open_can_virtual_rig(default_procedure(), seed=1) as rig:
 ...     rig.sensor.set_sample_rate(20.0)
 ...     rig.exciter.set_sine(5.0, 0.5)
@@ -187,7 +187,7 @@ def open_can_virtual_rig(procedure, seed: int) -> CanRig:
 
     Parameters
     ----------
-    procedure : setmem_hil.procedure.Procedure
+    procedure : setmem_hil.io.procedure.Procedure
         ``backend.simulation`` configures the simulated beam, ``backend.faults`` the fault
         injection (core kinds plus ``error_frame``, ``bus_off``), ``backend.transport`` may set
         ``channel``, ``node``, ``reply_timeout_s``, ``max_attempts``, ``backoff_s``,

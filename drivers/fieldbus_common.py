@@ -60,7 +60,7 @@ class TransportStats:
 
 
 def check_sine_command(limits, omega_rad_s: float, amplitude_n: float, where: str) -> None:
-    """Refuse a sine outside the procedure's :class:`~setmem_hil.procedure.SafetyLimits`.
+    """Refuse a sine outside the procedure's :class:`~setmem_hil.io.procedure.SafetyLimits`.
 
     The rule is :func:`setmem_hil.drivers.safety.check_sine_command` (one rule for every
     transport); this wrapper names the transport in the message.

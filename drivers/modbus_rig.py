@@ -19,7 +19,7 @@ frequency-response point (thesis eq. 3.7: ``g = g_0 + n``, ``|n| <= R``).
 
 Example
 -------
->>> from setmem_hil.procedure import default_procedure
+>>> from setmem_hil.io.procedure import default_procedure
 >>> with open_modbus_loopback_rig(default_procedure(), seed=1) as rig:
 ...     rig.sensor.set_sample_rate(20.0)
 ...     rig.exciter.set_sine(5.0, 0.5)
@@ -326,7 +326,7 @@ def open_modbus_loopback_rig(procedure, seed: int) -> ModbusRig:
 
     Parameters
     ----------
-    procedure : setmem_hil.procedure.Procedure
+    procedure : setmem_hil.io.procedure.Procedure
         ``backend.simulation`` configures the simulated beam, ``backend.faults`` the faults
         (core kinds plus ``exception``), ``backend.transport`` may set ``framer``
         (``"socket"`` default, or ``"rtu"``), ``unit``, ``reply_timeout_s``, ``max_attempts``,

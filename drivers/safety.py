@@ -1,7 +1,7 @@
 """Safety in the driver layer: limits checked before sending, output to zero on every abort path.
 
 :func:`check_sine_command` raises :class:`setmem_hil.errors.SafetyLimitError` for a command
-outside the procedure's :class:`setmem_hil.procedure.SafetyLimits` *before* anything is sent.
+outside the procedure's :class:`setmem_hil.io.procedure.SafetyLimits` *before* anything is sent.
 :class:`SafeExciter` wraps any :class:`~setmem_hil.drivers.protocols.Exciter` so that every
 ``set_sine`` is checked first. :func:`output_guard` is the context manager that commands zero
 output when its block raises anything (device errors, timeouts, ``KeyboardInterrupt``) and on
@@ -17,7 +17,7 @@ from typing import Iterator
 
 from setmem_hil.drivers.protocols import Exciter
 from setmem_hil.errors import SafetyLimitError
-from setmem_hil.procedure import SafetyLimits
+from setmem_hil.io.procedure import SafetyLimits
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ One :meth:`SineDwellExperiment.measure` call (a *dwell*):
 3. applies the sine and acquires; the samples are checked (finite, not clipped, uniformly
    spaced timestamps) and a dwell with bad data is discarded and measured again (up to
    ``max_attempts``), never used;
-4. fits both channels with :func:`setmem_hil.sine_fit.fit_sine_with_transients`: the IEEE-1057
+4. fits both channels with :func:`setmem_hil.estimation.sine_fit.fit_sine_with_transients`: the IEEE-1057
    sine fit plus decaying regressors for the modelled modes' transients, with poles from the
    current model (eq. 2.25 midpoint; bands from the interval model) refined on the data, and a
    search for one unmodelled mode near ``omega``. When the model's pole intervals are already
@@ -35,7 +35,7 @@ attempt. ``KeyboardInterrupt`` stops the exciter and propagates.
 
 Example
 -------
->>> from setmem_hil.procedure import SafetyLimits, thesis_beam_prior
+>>> from setmem_hil.io.procedure import SafetyLimits, thesis_beam_prior
 >>> from setmem_hil.sim_backends.core_rig import CoreRig
 >>> from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 >>> with SineDwellExperiment(CoreRig(FakeDeviceCore(seed=1)), SafetyLimits(),
@@ -67,10 +67,10 @@ from setmem_hil.drivers.protocols import (
 )
 from setmem_hil.drivers.safety import SafeExciter, check_dwell, check_sine_command, output_guard, safe_stop
 from setmem_hil.errors import DataQualityError, DeviceError, SafetyLimitError
-from setmem_hil.experiment import Measurement
-from setmem_hil.modal_model import IntervalModel, ModalParameters
-from setmem_hil.procedure import SafetyLimits
-from setmem_hil.sine_fit import (
+from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.modal_model import IntervalModel, ModalParameters
+from setmem_hil.io.procedure import SafetyLimits
+from setmem_hil.estimation.sine_fit import (
     DampedPole,
     PoleSearchBand,
     SineFit,
@@ -194,7 +194,7 @@ class PoleTracker:
     """Sequential Bayesian estimate of the modelled modes' poles over dwells.
 
     Each dwell refines a mode's pole ``(sigma, omega_d)`` with the tracker's current estimate
-    as a Gaussian prior (:func:`setmem_hil.sine_fit.fit_sine_with_transients`, ``pole_priors``);
+    as a Gaussian prior (:func:`setmem_hil.estimation.sine_fit.fit_sine_with_transients`, ``pole_priors``);
     the posterior (mean and covariance: data and prior information combined) replaces the
     tracker's estimate. The pole uncertainty, which dominates the variance of a short dwell near
     a mode, thus shrinks with every dwell and stays in each dwell's covariance.
@@ -244,7 +244,7 @@ def pole_bands(model: IntervalModel | ModalParameters | None, relative_band: flo
 
 
 class SineDwellExperiment:
-    """The :class:`setmem_hil.experiment.Experiment` protocol on a :class:`Rig`.
+    """The :class:`setmem_hil.campaign.experiment.Experiment` protocol on a :class:`Rig`.
 
     Parameters
     ----------
@@ -557,7 +557,7 @@ def _fixed_pole_term(t, y, w, t_ref, poles, halfwidths) -> float:
     ``dY = G dtheta`` with ``G`` the first two rows of ``-X^+ J_pole`` (the change of the
     linear coefficients when the pole parameters move); ``|dY| <= sum_i |G_i| h_i``.
     """
-    from setmem_hil.sine_fit import _design, _pole_jacobian_columns, _solve
+    from setmem_hil.estimation.sine_fit import _design, _pole_jacobian_columns, _solve
 
     t0 = float(t[0])
     X = _design(t, w, t_ref, poles, t0)

@@ -2,7 +2,7 @@
 
 Every error subclasses a built-in (``ValueError``, ``RuntimeError``, ``TimeoutError``) so callers
 may catch either. Messages say what was wrong and where (file, line or key, frequency).
-The CLI maps them to exit codes (see ``setmem_hil.cli``): 2 for malformed input,
+The CLI maps them to exit codes (see ``setmem_hil.cli.main``): 2 for malformed input,
 3 for data inconsistent with the prior, 4 for device faults, 1 for anything else.
 """
 

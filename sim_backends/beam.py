@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import brentq
 
-from setmem_hil.modal_model import ModalParameters
+from setmem_hil.model.modal_model import ModalParameters
 
 BEAM_DAMPING_RATIO = 0.01
 BEAM_RESIDUE = 4.0

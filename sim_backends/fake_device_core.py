@@ -71,7 +71,7 @@ import numpy as np
 
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.errors import DeviceError, ProcedureError
-from setmem_hil.modal_model import ModalParameters
+from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.time_domain_beam import TimeDomainBeam
 

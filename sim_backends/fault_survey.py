@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from setmem_hil.errors import DeviceError
-from setmem_hil.procedure import Procedure, SimulationSettings, default_procedure
+from setmem_hil.io.procedure import Procedure, SimulationSettings, default_procedure
 
 CAN_KINDS = ("timeout", "truncate", "corrupt", "duplicate", "reorder", "disconnect", "error_frame", "bus_off")
 MODBUS_KINDS = ("timeout", "truncate", "corrupt", "duplicate", "reorder", "disconnect", "exception")

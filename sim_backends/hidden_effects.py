@@ -1,7 +1,7 @@
 """Beam data with a hidden effect the three-mode model lacks (test data for issue 6).
 
 The truth is the first three modes of the simulated cantilever (:func:`beam_parameters`,
-``truncated(3)``; the prior of :func:`setmem_hil.procedure.thesis_beam_prior` knows exactly
+``truncated(3)``; the prior of :func:`setmem_hil.io.procedure.thesis_beam_prior` knows exactly
 these three modes) combined with one hidden effect, plus bounded complex noise (eq. 3.7):
 
 ``none``
@@ -43,8 +43,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from setmem_hil.frequency_data import FrequencyData
-from setmem_hil.modal_model import ModalParameters
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import PRIOR_OMEGA_BOUNDS, PRIOR_ZETA_MAX, beam_parameters, fully_damped_magnitude
 from setmem_hil.sim_backends.noise import bounded_complex_noise
 
@@ -146,13 +146,13 @@ def competitor_margin(effect: str, truth: ModalParameters, response: np.ndarray,
     """Smallest best worst normalised residual of the competitors of ``effect`` on ``response``.
 
     Competitors are the structures with no more added parameters (:func:`_competitors`), fitted
-    within the prior by the candidate library of :mod:`setmem_hil.discrepancy_effects`, started at
+    within the prior by the candidate library of :mod:`setmem_hil.discrepancy.effects`, started at
     the true modes (without the final SLSQP polish: a fit that stops short overstates the margin,
     i.e. admits a harder case). A first-order lag whose fitted corner lies above the band is, in
     the band, a delay (the workflow names it ``time_delay``), so it is no competitor of a delay.
     Stops early once a margin falls below ``stop_below``.
     """
-    from setmem_hil.discrepancy_effects import ModalBox, fit_candidate, fit_none
+    from setmem_hil.discrepancy.effects import ModalBox, fit_candidate, fit_none
 
     lo = np.array([[0.0, a**2, 0.0, -np.inf] for a, _ in PRIOR_OMEGA_BOUNDS])
     hi = np.array([[2 * PRIOR_ZETA_MAX * b, b**2, 0.0, np.inf] for _, b in PRIOR_OMEGA_BOUNDS])

@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from setmem_hil.modal_model import ModalParameters
+from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import fully_damped_magnitude
 
 NOISE_PROFILES = ("fully_damped", "snr10", "resonance", "none")

@@ -12,15 +12,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from setmem_hil.experiment import Measurement
-from setmem_hil.modal_model import ModalParameters
+from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import W1_DEN, W1_NUM, beam_parameters, polynomial_magnitude
 from setmem_hil.sim_backends.noise import bounded_complex_noise, noise_bound_function
 
 
 @dataclass
 class SimulatedBeamExperiment:
-    """The simulated beam behind the :class:`setmem_hil.experiment.Experiment` protocol.
+    """The simulated beam behind the :class:`setmem_hil.campaign.experiment.Experiment` protocol.
 
     Parameters
     ----------

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from setmem_hil.frequency_data import FrequencyData
+from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
 

@@ -78,8 +78,8 @@ def fast_analysis(model, weights=None, omega_rad_s=None, controller=None):
 
 
 def install_fast_analysis(monkeypatch=None) -> None:
-    """Patch ``setmem_hil.robust_analysis.analyze_robust_performance`` (run_campaign imports it per call)."""
-    import setmem_hil.robust_analysis as ra
+    """Patch ``setmem_hil.robust.analysis.analyze_robust_performance`` (run_campaign imports it per call)."""
+    import setmem_hil.robust.analysis as ra
 
     if monkeypatch is not None:
         monkeypatch.setattr(ra, "analyze_robust_performance", fast_analysis)

@@ -5,12 +5,12 @@ import json
 
 import pytest
 
-from setmem_hil.cli import main
-from setmem_hil.commands.analyze import _weights_from_table
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.result_file import result_document, write_json
+from setmem_hil.cli.main import main
+from setmem_hil.cli.commands.analyze import _weights_from_table
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.io.result_file import result_document, write_json
 from setmem_hil.sim_backends.beam import beam_parameters
-from setmem_hil.weights import THESIS_WEIGHTS
+from setmem_hil.model.weights import THESIS_WEIGHTS
 
 TABLE_B1_LOWER = [[2.0911e-9, 8.8827e-1, 0.0, 2.7028], [4.5511e-9, 3.3851e1, 0.0, -1.4572], [1.6299e-9, 2.6725e2, 0.0, -7.8492]]
 TABLE_B1_UPPER = [[1.2140e-1, 1.2333, 0.0, 7.6251], [5.3030e-1, 4.3162e1, 0.0, 7.6061], [2.5572, 3.5747e2, 0.0, 1.5549e1]]
@@ -37,8 +37,8 @@ def test_analyze_writes_the_contract(tmp_path):
 
 
 def test_procedure_weights_are_used(tmp_path):
-    from setmem_hil.procedure import default_procedure
-    from setmem_hil.procedure_file import format_procedure
+    from setmem_hil.io.procedure import default_procedure
+    from setmem_hil.io.procedure_file import format_procedure
 
     model_path = tmp_path / "RESULT.json"
     write_model(model_path, IntervalModel.point(beam_parameters().truncated(3)))

@@ -5,10 +5,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from setmem_hil.campaign import CampaignReplayError, candidate_noise_bound, run_campaign
-from setmem_hil.experiment import Measurement
-from setmem_hil.journal import Journal
-from setmem_hil.procedure import Goal, default_procedure
+from setmem_hil.campaign.runner import CampaignReplayError, candidate_noise_bound, run_campaign
+from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.io.journal import Journal
+from setmem_hil.io.procedure import Goal, default_procedure
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
 
 SEED = 2  # the 6.3.2 campaign reaches mu-bar < 1 in a few experiments for this seed

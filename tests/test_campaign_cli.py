@@ -6,10 +6,10 @@ import json
 import numpy as np
 import pytest
 
-from setmem_hil.cli import main
-from setmem_hil.journal import Journal
-from setmem_hil.procedure import Goal, default_procedure
-from setmem_hil.procedure_file import format_procedure
+from setmem_hil.cli.main import main
+from setmem_hil.io.journal import Journal
+from setmem_hil.io.procedure import Goal, default_procedure
+from setmem_hil.io.procedure_file import format_procedure
 
 
 @pytest.fixture

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from setmem_hil.campaign import run_campaign
+from setmem_hil.campaign.runner import run_campaign
 from setmem_hil.drivers.backends import dwell_experiment
-from setmem_hil.journal import Journal
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.procedure_file import load_procedure
+from setmem_hil.io.journal import Journal
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.io.procedure_file import load_procedure
 from setmem_hil.sim_backends.core_rig import CoreRig
 from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from setmem_hil.procedure import InputDesignSettings
-from setmem_hil.strategies import check_strategy, log_sweep_frequency, random_frequency, van_der_corput
+from setmem_hil.io.procedure import InputDesignSettings
+from setmem_hil.design.strategies import check_strategy, log_sweep_frequency, random_frequency, van_der_corput
 
 
 def test_van_der_corput_base_2():

@@ -4,7 +4,7 @@ import pytest
 
 from setmem_hil.drivers.fieldbus_common import RetryPolicy, SafeShutdown, check_duration, check_sine_command
 from setmem_hil.errors import DeviceError, SafetyLimitError
-from setmem_hil.procedure import SafetyLimits
+from setmem_hil.io.procedure import SafetyLimits
 
 
 def test_backoff_doubles_and_is_capped():

@@ -5,7 +5,7 @@ import dataclasses
 import pytest
 
 from setmem_hil.errors import ProcedureError
-from setmem_hil.procedure import default_procedure
+from setmem_hil.io.procedure import default_procedure
 from setmem_hil.sim_backends.fake_device_core import FaultSettings
 from setmem_hil.sim_backends.transport_faults import CAN_FAULT_KINDS, MODBUS_FAULT_KINDS, split_faults
 

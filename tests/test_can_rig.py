@@ -11,7 +11,7 @@ from setmem_hil.drivers import can_protocol as cp
 from setmem_hil.drivers.can_rig import CanLink, CanRig, CanSettings, open_can_virtual_rig
 from setmem_hil.drivers.fieldbus_common import RetryPolicy
 from setmem_hil.errors import DeviceError, DeviceTimeoutError, SafetyLimitError
-from setmem_hil.procedure import SafetyLimits, SimulationSettings, default_procedure
+from setmem_hil.io.procedure import SafetyLimits, SimulationSettings, default_procedure
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.fake_can_device import FakeCanDevice
 from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore

@@ -8,14 +8,14 @@ the named effect against it, the after-figures against the contract (worst norma
 import numpy as np
 import pytest
 
-from setmem_hil.discrepancy import (
+from setmem_hil.discrepancy.workflow import (
     DiscrepancySettings, check_discrepancy, choose_effect, disagreement_bands, discrepancy_from_prior, prior_from_model,
 )
-from setmem_hil.discrepancy_effects import CandidateFit
-from setmem_hil.discrepancy_reidentify import extra_mode_prior, transform_data
-from setmem_hil.frequency_data import FrequencyData
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.procedure import thesis_beam_prior
+from setmem_hil.discrepancy.effects import CandidateFit
+from setmem_hil.discrepancy.reidentify import extra_mode_prior, transform_data
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.io.procedure import thesis_beam_prior
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.hidden_effects import HIDDEN_EFFECTS, apply_effect, draw_hidden_effect_case
 

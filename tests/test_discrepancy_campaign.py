@@ -6,10 +6,10 @@ alarm; an effect hidden on top of the same data must still be named.
 
 import numpy as np
 
-from setmem_hil.discrepancy import check_discrepancy, discrepancy_from_prior
-from setmem_hil.frequency_data import FrequencyData
-from setmem_hil.identification import identify
-from setmem_hil.procedure import thesis_6_3_2_initial_omegas, thesis_beam_prior
+from setmem_hil.discrepancy.workflow import check_discrepancy, discrepancy_from_prior
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.identification.algorithm import identify
+from setmem_hil.io.procedure import thesis_6_3_2_initial_omegas, thesis_beam_prior
 from setmem_hil.sim_backends.hidden_effects import apply_effect, hidden_effect_omegas
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
 

@@ -4,10 +4,10 @@ import json
 
 import numpy as np
 
-from setmem_hil.cli import main
-from setmem_hil.data_file import write_data_csv
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.result_file import write_json
+from setmem_hil.cli.main import main
+from setmem_hil.io.data_file import write_data_csv
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.io.result_file import write_json
 from setmem_hil.sim_backends.hidden_effects import draw_hidden_effect_case
 
 PRIOR_TOML = """

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from setmem_hil.discrepancy import DiscrepancySettings, discrepancy_from_prior
-from setmem_hil.frequency_data import FrequencyData
-from setmem_hil.procedure import thesis_beam_prior
+from setmem_hil.discrepancy.workflow import DiscrepancySettings, discrepancy_from_prior
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.io.procedure import thesis_beam_prior
 from setmem_hil.sim_backends import hidden_effects as he
 from setmem_hil.sim_backends.beam import beam_parameters, fully_damped_magnitude
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from setmem_hil.discrepancy_fit import EFFECT_PARAM_NAMES, fit_minimax, model_response, normalized_residual
+from setmem_hil.discrepancy.fit import EFFECT_PARAM_NAMES, fit_minimax, model_response, normalized_residual
 from setmem_hil.sim_backends.beam import beam_parameters
 
 OMEGA = np.geomspace(0.3, 40.0, 50)

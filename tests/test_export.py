@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from setmem_hil.cli import main
-from setmem_hil.data_file import read_data_csv
-from setmem_hil.experiment import Measurement
-from setmem_hil.export import EXPORT_FILES, export_csv
-from setmem_hil.journal import IterationRecord, Journal
+from setmem_hil.cli.main import main
+from setmem_hil.io.data_file import read_data_csv
+from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.io.export import EXPORT_FILES, export_csv
+from setmem_hil.io.journal import IterationRecord, Journal
 
 
 def _journal(tmp_path, n_iterations=3, seed=5):

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from setmem_hil.augmented_plant import StateSpaceMatrices, augmented_plant
+from setmem_hil.robust.augmented_plant import StateSpaceMatrices, augmented_plant
 from setmem_hil.errors import SolverError
-from setmem_hil.h2_design import design_h2_controller, h2_controller_for_plant, h2_norm
-from setmem_hil.modal_model import IntervalModel
+from setmem_hil.robust.h2_design import design_h2_controller, h2_controller_for_plant, h2_norm
+from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.sim_backends.beam import beam_parameters
-from setmem_hil.uncertain_plant import uncertain_plant
-from setmem_hil.weights import THESIS_WEIGHTS, Weights
+from setmem_hil.robust.uncertain_plant import uncertain_plant
+from setmem_hil.model.weights import THESIS_WEIGHTS, Weights
 
 LOWER = [[0.01, 0.9, 0.0, 3.5], [0.1, 37.0, 0.0, 3.0], [0.2, 290.0, 0.0, 2.0]]
 UPPER = [[0.03, 1.1, 0.0, 4.5], [0.3, 41.0, 0.0, 5.0], [0.5, 320.0, 0.0, 6.0]]

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from setmem_hil.identification import identify
-from setmem_hil.modal_model import PARAM_NAMES
-from setmem_hil.procedure import thesis_beam_prior
+from setmem_hil.identification.algorithm import identify
+from setmem_hil.model.modal_model import PARAM_NAMES
+from setmem_hil.io.procedure import thesis_beam_prior
 from setmem_hil.sim_backends.thesis_cases import TABLE_6_4, section_6_2_data
 
 SEEDS = range(20)

@@ -4,10 +4,10 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from setmem_hil.frequency_data import FrequencyData
-from setmem_hil.identification import identify
-from setmem_hil.modal_model import ModalParameters
-from setmem_hil.prior import ModePrior, Prior
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.identification.algorithm import identify
+from setmem_hil.model.modal_model import ModalParameters
+from setmem_hil.model.prior import ModePrior, Prior
 from setmem_hil.sim_backends.noise import bounded_complex_noise
 
 

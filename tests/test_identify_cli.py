@@ -7,9 +7,9 @@ import sys
 import numpy as np
 import pytest
 
-from setmem_hil.cli import main
-from setmem_hil.data_file import write_data_csv
-from setmem_hil.frequency_data import FrequencyData
+from setmem_hil.cli.main import main
+from setmem_hil.io.data_file import write_data_csv
+from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.sim_backends.thesis_cases import section_6_2_data
 
 PRIOR = """gamma = 1.1
@@ -118,6 +118,6 @@ def test_malformed_prior_exits_2_naming_key(files, capsys, prior_text, fragment)
 
 def test_installed_console_script_runs(files):
     tmp, _, _ = files
-    proc = subprocess.run([sys.executable, "-m", "setmem_hil.cli", "identify", "--data", str(tmp / "data.csv"), "--prior",
+    proc = subprocess.run([sys.executable, "-m", "setmem_hil.cli.main", "identify", "--data", str(tmp / "data.csv"), "--prior",
                            str(tmp / "prior.toml"), "--out", str(tmp / "r.json")], capture_output=True, text=True, cwd=tmp)
     assert proc.returncode == 0, proc.stderr

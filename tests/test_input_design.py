@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from setmem_hil.input_design import (
+from setmem_hil.design.input_design import (
     candidate_frequencies,
     closeness_score,
     improvement_from_widths,
@@ -11,9 +11,9 @@ from setmem_hil.input_design import (
     sensitivity_matrix,
     top_indices,
 )
-from setmem_hil.input_effects import estimate_input_effects
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.procedure import InputDesignSettings
+from setmem_hil.design.input_effects import estimate_input_effects
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.io.procedure import InputDesignSettings
 
 
 def one_mode_box():

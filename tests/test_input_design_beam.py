@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from setmem_hil.campaign import EXACT_RESOLVE_OUTER_ITERATIONS
+from setmem_hil.campaign.runner import EXACT_RESOLVE_OUTER_ITERATIONS
 from setmem_hil.errors import InconsistentDataError
-from setmem_hil.frequency_data import FrequencyData
-from setmem_hil.identification import IdentifySettings, identify
-from setmem_hil.input_design import (
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.identification.algorithm import IdentifySettings, identify
+from setmem_hil.design.input_design import (
     approximate_scores,
     candidate_frequencies,
     improvement_from_widths,
@@ -15,8 +15,8 @@ from setmem_hil.input_design import (
     top_indices,
     uniform_weights,
 )
-from setmem_hil.procedure import InputDesignSettings, default_procedure
-from setmem_hil.robust_analysis import analyze_robust_performance
+from setmem_hil.io.procedure import InputDesignSettings, default_procedure
+from setmem_hil.robust.analysis import analyze_robust_performance
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
 
 

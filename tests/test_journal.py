@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from setmem_hil.errors import InputFormatError
-from setmem_hil.experiment import Measurement
-from setmem_hil.journal import IterationRecord, Journal, JournalError
+from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.io.journal import IterationRecord, Journal, JournalError
 
 
 def _create(tmp_path, **overrides):

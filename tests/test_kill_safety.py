@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 
 from setmem_hil.errors import InputFormatError
-from setmem_hil.experiment import Measurement
-from setmem_hil.journal import Journal
+from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.io.journal import Journal
 
 N_TOTAL = 120
 PER_ITERATION = 5
@@ -34,8 +34,8 @@ import time
 from pathlib import Path
 import numpy as np
 from pathlib import Path
-from setmem_hil.experiment import Measurement
-from setmem_hil.journal import IterationRecord, Journal
+from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.io.journal import IterationRecord, Journal
 
 path, n_total, per = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 if path.exists():
@@ -130,9 +130,9 @@ CAMPAIGN_CHILD = r"""
 import runpy, sys
 h = runpy.run_path(sys.argv[1])
 h["install_fast_analysis"]()
-import setmem_hil.campaign, setmem_hil.identification, setmem_hil.input_design  # noqa: F401  (imports before "ready")
-import setmem_hil.commands.run as run_cmd
-from setmem_hil.cli import main
+import setmem_hil.campaign.runner, setmem_hil.identification.algorithm, setmem_hil.design.input_design  # noqa: F401  (imports before "ready")
+import setmem_hil.cli.commands.run as run_cmd
+from setmem_hil.cli.main import main
 real_open = run_cmd.open_backend
 run_cmd.open_backend = lambda p, s: h["InterruptingExperiment"](real_open(p, s), None, delay_s=0.04)
 print("ready", flush=True)
@@ -160,8 +160,8 @@ def test_campaign_killed_repeatedly_then_resumed_equals_uninterrupted(tmp_path, 
     for the full issue-8 run), resuming each time; the final journal equals an uninterrupted run."""
     import importlib.util
 
-    from setmem_hil.campaign import run_campaign
-    from setmem_hil.procedure_file import load_procedure
+    from setmem_hil.campaign.runner import run_campaign
+    from setmem_hil.io.procedure_file import load_procedure
 
     spec = importlib.util.spec_from_file_location("_campaign_helpers", HELPERS)
     h = importlib.util.module_from_spec(spec)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize, minimize_scalar
 
-from setmem_hil.mixed_mu import MuStructure, bound_at_scalings, mixed_mu_upper, scaled_hermitian
-from setmem_hil.mixed_mu_lmi import mixed_mu_upper_lmi
-from setmem_hil.mu_lower_bound import mixed_mu_lower
+from setmem_hil.robust.mixed_mu import MuStructure, bound_at_scalings, mixed_mu_upper, scaled_hermitian
+from setmem_hil.robust.mixed_mu_lmi import mixed_mu_upper_lmi
+from setmem_hil.robust.mu_lower_bound import mixed_mu_lower
 
 PRECISE = dict(tol=1e-7, max_iter=300)
 

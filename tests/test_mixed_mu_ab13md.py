@@ -5,13 +5,13 @@ import pytest
 
 slycot = pytest.importorskip("slycot")
 
-from setmem_hil.augmented_plant import augmented_plant  # noqa: E402
-from setmem_hil.h2_design import h2_controller_for_plant  # noqa: E402
-from setmem_hil.mixed_mu import MuStructure, mixed_mu_upper  # noqa: E402
-from setmem_hil.modal_model import IntervalModel  # noqa: E402
-from setmem_hil.robust_analysis import analyze_robust_performance, default_omega_grid  # noqa: E402
-from setmem_hil.uncertain_plant import uncertain_plant  # noqa: E402
-from setmem_hil.weights import THESIS_WEIGHTS  # noqa: E402
+from setmem_hil.robust.augmented_plant import augmented_plant  # noqa: E402
+from setmem_hil.robust.h2_design import h2_controller_for_plant  # noqa: E402
+from setmem_hil.robust.mixed_mu import MuStructure, mixed_mu_upper  # noqa: E402
+from setmem_hil.model.modal_model import IntervalModel  # noqa: E402
+from setmem_hil.robust.analysis import analyze_robust_performance, default_omega_grid  # noqa: E402
+from setmem_hil.robust.uncertain_plant import uncertain_plant  # noqa: E402
+from setmem_hil.model.weights import THESIS_WEIGHTS  # noqa: E402
 
 # Table B-1 (appendix B); the a11 upper bound is the table's stray last entry (see test_robust_analysis)
 TABLE_B1_LOWER = [[2.0911e-9, 8.8827e-1, 0.0, 2.7028], [4.5511e-9, 3.3851e1, 0.0, -1.4572], [1.6299e-9, 2.6725e2, 0.0, -7.8492]]

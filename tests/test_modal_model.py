@@ -5,8 +5,8 @@ import json
 
 import numpy as np
 
-from setmem_hil.modal_model import IntervalModel, ModalParameters
-from setmem_hil.result_file import parse_result_mapping, result_document
+from setmem_hil.model.modal_model import IntervalModel, ModalParameters
+from setmem_hil.io.result_file import parse_result_mapping, result_document
 
 
 def test_contains_with_unbounded_residues():

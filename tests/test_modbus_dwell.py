@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from setmem_hil.drivers.backends import open_experiment
-from setmem_hil.procedure import default_procedure
+from setmem_hil.io.procedure import default_procedure
 from setmem_hil.sim_backends.beam import beam_parameters
 
 OMEGAS = (0.9, 5.9536, 16.6697, 30.0)

@@ -12,7 +12,7 @@ from setmem_hil.drivers import modbus_registers as mr
 from setmem_hil.drivers.fieldbus_common import RetryPolicy
 from setmem_hil.drivers.modbus_rig import open_modbus_loopback_rig
 from setmem_hil.errors import DeviceError, DeviceTimeoutError, SafetyLimitError
-from setmem_hil.procedure import SafetyLimits, SimulationSettings, default_procedure
+from setmem_hil.io.procedure import SafetyLimits, SimulationSettings, default_procedure
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from setmem_hil.modal_model import IntervalModel, modal_response
-from setmem_hil.mode_mismatch import mode_mismatch_bounds
+from setmem_hil.model.modal_model import IntervalModel, modal_response
+from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 
 
 def test_bound_covers_sampled_boxes_and_is_attained_nearly():

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from setmem_hil.augmented_plant import augmented_plant
-from setmem_hil.mixed_mu import MuStructure, mixed_mu_upper
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.mu_sensitivity import beta_derivatives, top_eigenspace
-from setmem_hil.robust_analysis import analyze_robust_performance
-from setmem_hil.uncertain_plant import uncertain_plant
-from setmem_hil.weights import THESIS_WEIGHTS
+from setmem_hil.robust.augmented_plant import augmented_plant
+from setmem_hil.robust.mixed_mu import MuStructure, mixed_mu_upper
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.robust.mu_sensitivity import beta_derivatives, top_eigenspace
+from setmem_hil.robust.analysis import analyze_robust_performance
+from setmem_hil.robust.uncertain_plant import uncertain_plant
+from setmem_hil.model.weights import THESIS_WEIGHTS
 
 TIGHT = dict(tol=1e-9, max_iter=200)
 TABLE_B1_LOWER = [[2.0911e-9, 8.8827e-1, 0.0, 2.7028], [4.5511e-9, 3.3851e1, 0.0, -1.4572], [1.6299e-9, 2.6725e2, 0.0, -7.8492]]

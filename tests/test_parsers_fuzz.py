@@ -6,10 +6,10 @@ import json
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from setmem_hil.data_file import parse_data_csv
+from setmem_hil.io.data_file import parse_data_csv
 from setmem_hil.errors import InputFormatError
-from setmem_hil.prior import parse_prior_mapping, parse_toml_text
-from setmem_hil.result_file import parse_result_mapping
+from setmem_hil.model.prior import parse_prior_mapping, parse_toml_text
+from setmem_hil.io.result_file import parse_result_mapping
 
 CELL = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), st.text(max_size=6), st.integers().map(str))
 ROW = st.lists(CELL, min_size=0, max_size=6).map(",".join)

@@ -4,8 +4,8 @@ ratio at most the target, at every frequency (dense grid), and fewer pieces woul
 import numpy as np
 import pytest
 
-from setmem_hil.embedding import denominator_max, denominator_min
-from setmem_hil.partitioning import minimal_partition, partition_boxes, partition_is_feasible
+from setmem_hil.identification.embedding import denominator_max, denominator_min
+from setmem_hil.identification.partitioning import minimal_partition, partition_boxes, partition_is_feasible
 
 OMEGA = np.geomspace(1e-2, 1e3, 20001)
 

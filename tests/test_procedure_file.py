@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from setmem_hil.errors import ProcedureError
-from setmem_hil.procedure import default_procedure
-from setmem_hil.procedure_file import SCHEMA, load_procedure, parse_procedure_text
+from setmem_hil.io.procedure import default_procedure
+from setmem_hil.io.procedure_file import SCHEMA, load_procedure, parse_procedure_text
 
 REPO = Path(__file__).resolve().parents[1]
 PROCEDURES = REPO / "procedures"
@@ -151,7 +151,7 @@ def test_fault_settings_and_transport_options_pass_through():
 
 def test_fault_kinds_are_the_device_simulations():
     """The validator accepts exactly the kinds the fake devices and transports know."""
-    from setmem_hil.procedure_file import TRANSPORT_FAULT_KINDS
+    from setmem_hil.io.procedure_file import TRANSPORT_FAULT_KINDS
     from setmem_hil.sim_backends import fake_device_core, transport_faults
 
     for kind, extra in TRANSPORT_FAULT_KINDS.items():
@@ -202,7 +202,7 @@ def test_every_schema_key_is_documented():
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
 def test_format_procedure_round_trips(path):
-    from setmem_hil.procedure_file import format_procedure
+    from setmem_hil.io.procedure_file import format_procedure
 
     p = dataclasses.replace(load_procedure(path), source_text="", source_path="")
     q = parse_procedure_text(format_procedure(p), "<written>")
@@ -210,7 +210,7 @@ def test_format_procedure_round_trips(path):
 
 
 def test_format_procedure_round_trips_free_form_options():
-    from setmem_hil.procedure_file import format_procedure
+    from setmem_hil.io.procedure_file import format_procedure
 
     text = FAULTY_LOOPBACK.replace("[safety]", 'url = "loop://"\nnested = { a = [1, 2.5], "odd key" = "x\\"y" }\n\n[backend.faults]\nrate = 0.1\n\n[safety]', 1)
     p = dataclasses.replace(parse_procedure_text(text, SRC), source_text="")

@@ -20,8 +20,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from setmem_hil.errors import InputFormatError, ProcedureError
-from setmem_hil.procedure import Procedure
-from setmem_hil.procedure_file import parse_procedure_mapping, parse_procedure_text
+from setmem_hil.io.procedure import Procedure
+from setmem_hil.io.procedure_file import parse_procedure_mapping, parse_procedure_text
 
 DEMO = (Path(__file__).resolve().parents[1] / "procedures" / "beam_6_3_2.toml").read_text()
 DEMO_DOC = tomllib.loads(DEMO)

@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from setmem_hil.cli import main
-from setmem_hil.experiment import Measurement
-from setmem_hil.journal import IterationRecord, Journal
-from setmem_hil.modal_model import IntervalModel, ModalParameters
-from setmem_hil.procedure import default_procedure
-from setmem_hil.procedure_file import format_procedure
-from setmem_hil.report import FIGURE_FILES, figure_iterations, write_report
-from setmem_hil.report_figures import TABLE_6_6, modal_poles_zeros, table_6_6_offsets
+from setmem_hil.cli.main import main
+from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.io.journal import IterationRecord, Journal
+from setmem_hil.model.modal_model import IntervalModel, ModalParameters
+from setmem_hil.io.procedure import default_procedure
+from setmem_hil.io.procedure_file import format_procedure
+from setmem_hil.report.document import FIGURE_FILES, figure_iterations, write_report
+from setmem_hil.report.figures import TABLE_6_6, modal_poles_zeros, table_6_6_offsets
 
 THESIS = Path("/work/shared/reference/thesis.txt")
 TRUTH = ModalParameters.from_modal([1.0, 6.267, 17.547], [0.02, 0.02, 0.02], [4.0, 3.5, 3.0], b1=[0.0, 0.0, 0.0])
@@ -177,7 +177,7 @@ def test_report_needs_no_display(tmp_path):
     run = _journal(tmp_path, n_iterations=1, discrepancy=False)
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     env["MPLBACKEND"] = "TkAgg"
-    code = "import sys; from setmem_hil.report import write_report; write_report(sys.argv[1]); print('matplotlib.pyplot' in sys.modules)"
+    code = "import sys; from setmem_hil.report.document import write_report; write_report(sys.argv[1]); print('matplotlib.pyplot' in sys.modules)"
     done = subprocess.run([sys.executable, "-c", code, str(run)],
                           capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 0, done.stderr

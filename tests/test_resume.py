@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from setmem_hil.campaign import run_campaign
-from setmem_hil.cli import main
-from setmem_hil.journal import Journal
-from setmem_hil.procedure_file import load_procedure
+from setmem_hil.campaign.runner import run_campaign
+from setmem_hil.cli.main import main
+from setmem_hil.io.journal import Journal
+from setmem_hil.io.procedure_file import load_procedure
 
 _spec = importlib.util.spec_from_file_location("_campaign_helpers", Path(__file__).with_name("_campaign_helpers.py"))
 H = importlib.util.module_from_spec(_spec)
@@ -60,7 +60,7 @@ def test_interrupted_and_resumed_equals_uninterrupted(tmp_path, monkeypatch, cap
     ref_rows, ref_iterations = _reference(tmp_path, proc)
     assert len(ref_rows) == 18 and len({r["omega_rad_s"] for r in ref_rows[15:]}) >= 2  # the design moves around
 
-    import setmem_hil.commands.run as run_cmd
+    import setmem_hil.cli.commands.run as run_cmd
 
     experiments = []
     real_open = run_cmd.open_backend
@@ -107,7 +107,7 @@ def test_real_analysis_interrupted_after_the_first_iteration(tmp_path, monkeypat
     """End to end with the real H2 design and mixed-mu analysis (one stop, after iteration 1)."""
     proc = _procedure_file(tmp_path, max_experiments=1)
     ref_rows, ref_iterations = _reference(tmp_path, proc)
-    import setmem_hil.commands.run as run_cmd
+    import setmem_hil.cli.commands.run as run_cmd
 
     real_open = run_cmd.open_backend
     made = []

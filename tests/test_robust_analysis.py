@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.robust_analysis import analyze_robust_performance, design_h2_controller
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.robust.analysis import analyze_robust_performance, design_h2_controller
 from setmem_hil.sim_backends.beam import beam_parameters
 
 # Table B-1 (thesis appendix B): rows a1, a0, b0 per mode; b1 fixed at 0. The a11 upper bound is

@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 
 from setmem_hil import __version__
-from setmem_hil.cli import main
+from setmem_hil.cli.main import main
 from setmem_hil.errors import DeviceError
-from setmem_hil.journal import Journal
-from setmem_hil.procedure import default_procedure
+from setmem_hil.io.journal import Journal
+from setmem_hil.io.procedure import default_procedure
 
 _spec = importlib.util.spec_from_file_location("_campaign_helpers", Path(__file__).with_name("_campaign_helpers.py"))
 H = importlib.util.module_from_spec(_spec)
@@ -77,7 +77,7 @@ def test_a_run_stores_everything_and_writes_the_summary(tmp_path, cheap, capsys)
 
 
 def test_resume_uses_the_stored_procedure_not_the_edited_file(tmp_path, cheap, monkeypatch):
-    import setmem_hil.commands.run as run_cmd
+    import setmem_hil.cli.commands.run as run_cmd
 
     real_open = run_cmd.open_backend
     made = []
@@ -93,7 +93,7 @@ def test_resume_uses_the_stored_procedure_not_the_edited_file(tmp_path, cheap, m
 
 
 def test_device_fault_zeroes_the_exciter_and_can_be_resumed(tmp_path, cheap, monkeypatch, capsys):
-    import setmem_hil.commands.run as run_cmd
+    import setmem_hil.cli.commands.run as run_cmd
 
     real_open = run_cmd.open_backend
     made = []
@@ -117,7 +117,7 @@ def test_device_fault_zeroes_the_exciter_and_can_be_resumed(tmp_path, cheap, mon
 
 
 def test_default_run_directory(tmp_path, cheap, monkeypatch, capsys):
-    from setmem_hil.commands.run import default_run_dir
+    from setmem_hil.cli.commands.run import default_run_dir
 
     when = datetime(2026, 11, 21, 23, 5, 9, tzinfo=timezone.utc)
     assert default_run_dir(default_procedure(), when) == Path("runs") / "beam-6.3.2-20261121T230509Z"
@@ -131,11 +131,11 @@ def test_programmatic_procedure_is_stored_as_text_and_resumable(tmp_path, monkey
     """start_run with default_procedure() (as the demo does) stores TOML that resume can read."""
     import dataclasses
 
-    from setmem_hil.commands.run import resume_run, start_run
-    from setmem_hil.procedure_file import parse_procedure_text
+    from setmem_hil.cli.commands.run import resume_run, start_run
+    from setmem_hil.io.procedure_file import parse_procedure_text
 
     H.install_fast_analysis(monkeypatch)
-    import setmem_hil.commands.run as run_cmd
+    import setmem_hil.cli.commands.run as run_cmd
 
     real_open = run_cmd.open_backend
     made = []
@@ -180,7 +180,7 @@ def test_no_stray_files_left(tmp_path, cheap):
 def test_a_second_process_cannot_run_the_same_campaign(tmp_path, cheap, monkeypatch, capsys):
     import fcntl
 
-    import setmem_hil.commands.run as run_cmd
+    import setmem_hil.cli.commands.run as run_cmd
 
     real_open = run_cmd.open_backend
     made = []
@@ -202,7 +202,7 @@ def test_live_progress_on_a_terminal():
 
     from rich.console import Console
 
-    from setmem_hil.progress import CampaignProgress
+    from setmem_hil.cli.progress import CampaignProgress
 
     buf = io.StringIO()
     console = Console(file=buf, force_terminal=True, width=160)
@@ -230,7 +230,7 @@ def test_live_progress_on_a_terminal():
 
 
 def test_device_counters_are_journaled(tmp_path, cheap, monkeypatch):
-    import setmem_hil.commands.run as run_cmd
+    import setmem_hil.cli.commands.run as run_cmd
 
     real_open = run_cmd.open_backend
 
@@ -253,7 +253,7 @@ def test_device_counters_are_journaled(tmp_path, cheap, monkeypatch):
 
 
 def test_discrepancy_check_each_iteration_is_journaled_once_per_iteration(tmp_path, cheap, monkeypatch):
-    import setmem_hil.commands.run as run_cmd
+    import setmem_hil.cli.commands.run as run_cmd
 
     cheap.write_text(cheap.read_text() + "\n[discrepancy]\ncheck_each_iteration = true\n")
     real_open = run_cmd.open_backend
@@ -273,7 +273,7 @@ def test_discrepancy_check_each_iteration_is_journaled_once_per_iteration(tmp_pa
 
 
 def test_a_rig_that_does_not_open_leaves_no_run_behind(tmp_path, cheap, monkeypatch, capsys):
-    import setmem_hil.commands.run as run_cmd
+    import setmem_hil.cli.commands.run as run_cmd
     from setmem_hil.errors import ProcedureError
 
     def refuse(p, s):

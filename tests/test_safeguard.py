@@ -5,8 +5,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from setmem_hil.modal_model import IntervalModel
-from setmem_hil.safeguard import expanded_model, safeguarded_design
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.design.safeguard import expanded_model, safeguarded_design
 
 
 @dataclass(frozen=True)

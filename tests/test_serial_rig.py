@@ -11,7 +11,7 @@ from setmem_hil.drivers.retry import RetryPolicy
 from setmem_hil.drivers.serial_rig import SerialLink, SerialRig
 from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
 from setmem_hil.errors import DeviceTimeoutError, SafetyLimitError
-from setmem_hil.procedure import SafetyLimits, default_procedure, thesis_beam_prior
+from setmem_hil.io.procedure import SafetyLimits, default_procedure, thesis_beam_prior
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.core_rig import CoreRig
 from setmem_hil.sim_backends.fake_device_core import FRAME_FAULT_KINDS, FakeDeviceCore, FaultSettings

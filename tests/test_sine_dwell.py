@@ -6,7 +6,7 @@ import pytest
 from setmem_hil.drivers.protocols import SampleBlock
 from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment, check_block
 from setmem_hil.errors import DataQualityError, DeviceError, SafetyLimitError
-from setmem_hil.procedure import SafetyLimits, default_procedure, thesis_beam_prior
+from setmem_hil.io.procedure import SafetyLimits, default_procedure, thesis_beam_prior
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.core_rig import CoreRig
 from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore, FaultSettings
@@ -181,7 +181,7 @@ def test_interpreter_exit_without_close_zeroes_the_output():
     code = textwrap.dedent("""
         import atexit
         from setmem_hil.drivers.sine_dwell import SineDwellExperiment
-        from setmem_hil.procedure import SafetyLimits
+        from setmem_hil.io.procedure import SafetyLimits
         from setmem_hil.sim_backends.core_rig import CoreRig
         from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
         core = FakeDeviceCore(seed=1)
@@ -237,7 +237,7 @@ def test_learned_poles_converge_to_the_true_pole_and_shrink_the_bound():
 
 def test_update_model_uses_the_new_poles():
     from setmem_hil.drivers.sine_dwell import pole_bands
-    from setmem_hil.modal_model import IntervalModel
+    from setmem_hil.model.modal_model import IntervalModel
 
     _, exp = _experiment(seed=13)
     wide = exp.plan(5.0)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from setmem_hil.errors import DataQualityError
-from setmem_hil.sine_fit import (
+from setmem_hil.estimation.sine_fit import (
     DampedPole,
     PoleSearchBand,
     confidence_radius,

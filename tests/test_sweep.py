@@ -18,19 +18,19 @@ from pathlib import Path
 
 import pytest
 
-from setmem_hil.cli import main as cli_main
+from setmem_hil.cli.main import main as cli_main
 from setmem_hil.errors import InputFormatError, ProcedureError
-from setmem_hil.journal import Journal
-from setmem_hil.procedure import BackendSettings, Goal
-from setmem_hil.procedure_file import load_procedure, parse_procedure_text
-from setmem_hil.sweep import (
+from setmem_hil.io.journal import Journal
+from setmem_hil.io.procedure import BackendSettings, Goal
+from setmem_hil.io.procedure_file import load_procedure, parse_procedure_text
+from setmem_hil.sweep.runner import (
     parse_seeds,
     parse_strategies,
     run_sweep,
     summarize_runs,
     sweep_campaign,
 )
-from setmem_hil.sweep_plot import plot_experiments_to_goal
+from setmem_hil.sweep.plot import plot_experiments_to_goal
 
 REPO = Path(__file__).resolve().parents[1]
 PROCEDURE_FILE = REPO / "procedures" / "beam_6_3_2.toml"
@@ -232,7 +232,7 @@ def test_one_sweep_per_directory(tmp_path):
 def _sweep_process(args: list[str], cwd: Path) -> subprocess.Popen:
     """``setmem-hil`` in a new session, with Ctrl-C handled even if this process ignores SIGINT."""
     code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-            "from setmem_hil.cli import main; sys.exit(main(sys.argv[1:]))")
+            "from setmem_hil.cli.main import main; sys.exit(main(sys.argv[1:]))")
     return subprocess.Popen([sys.executable, "-c", code, *args], cwd=cwd, start_new_session=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
@@ -290,7 +290,7 @@ def test_killed_serial_sweep_leaves_no_half_run_and_resumes(tmp_path, capsys):
 def test_unreachable_scheduler_exit_1_and_nothing_run(tmp_path, capsys, monkeypatch):
     import socket
 
-    import setmem_hil.sweep as sweep_module
+    import setmem_hil.sweep.runner as sweep_module
 
     monkeypatch.setattr(sweep_module, "CONNECT_TIMEOUT_S", 1.0)
     with socket.socket() as s:  # a port nobody listens on
@@ -304,7 +304,7 @@ def test_unreachable_scheduler_exit_1_and_nothing_run(tmp_path, capsys, monkeypa
 
 
 def test_summary_table_text():
-    from setmem_hil.sweep import format_summary_table
+    from setmem_hil.sweep.runner import format_summary_table
 
     doc = {"goal": {"max_experiments": 30}, "summary": {
         "mu": {"median_experiments": 7.0, "reached": 10, "runs": 10, "failed": 0},
@@ -322,7 +322,7 @@ def test_progress_counts_done_total_and_failures(tmp_path):
             raise RuntimeError("boom")
         rec = {"seed": seed, "strategy": strategy, "status": "done"}
         # a stand-in finished run, stored like a real one so the next sweep skips it
-        from setmem_hil.sweep_storage import procedure_fingerprint, write_json_atomic
+        from setmem_hil.sweep.storage import procedure_fingerprint, write_json_atomic
 
         run = Path(out_dir) / "runs" / f"{strategy}-seed{seed}"
         run.mkdir(parents=True)

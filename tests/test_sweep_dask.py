@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from setmem_hil.cli import main as cli_main
-from setmem_hil.journal import Journal
-from setmem_hil.procedure import Goal
-from setmem_hil.procedure_file import load_procedure
-from setmem_hil.sweep import THREAD_ENV_VARS, run_name, run_sweep
+from setmem_hil.cli.main import main as cli_main
+from setmem_hil.io.journal import Journal
+from setmem_hil.io.procedure import Goal
+from setmem_hil.io.procedure_file import load_procedure
+from setmem_hil.sweep.runner import THREAD_ENV_VARS, run_name, run_sweep
 
 REPO = Path(__file__).resolve().parents[1]
 PROCEDURE_FILE = REPO / "procedures" / "beam_6_3_2.toml"
@@ -179,7 +179,7 @@ def test_interrupted_local_cluster_sweep_resumes_only_missing(serial_reference, 
     args = ["sweep", "--procedure", str(PROCEDURE_FILE), "--seeds", "1", "--strategies", "log-sweep,max-reduction",
             "--out", str(out), "--workers", "1", "--max-experiments", str(BUDGET), "--quiet"]
     code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-            "from setmem_hil.cli import main; sys.exit(main(sys.argv[1:]))")
+            "from setmem_hil.cli.main import main; sys.exit(main(sys.argv[1:]))")
     runs = out / "runs"
     proc = subprocess.Popen([sys.executable, "-c", code, *args], cwd=tmp_path, start_new_session=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)

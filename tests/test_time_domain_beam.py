@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from setmem_hil.modal_model import ModalParameters
+from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.time_domain_beam import TimeDomainBeam
 

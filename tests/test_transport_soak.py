@@ -7,11 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from setmem_hil.campaign import run_campaign
+from setmem_hil.campaign.runner import run_campaign
 from setmem_hil.drivers.backends import open_experiment
-from setmem_hil.journal import Journal
-from setmem_hil.procedure import BackendSettings, Goal
-from setmem_hil.procedure_file import load_procedure
+from setmem_hil.io.journal import Journal
+from setmem_hil.io.procedure import BackendSettings, Goal
+from setmem_hil.io.procedure_file import load_procedure
 from setmem_hil.sim_backends.beam import beam_parameters
 
 PROCEDURES = {

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from setmem_hil.augmented_plant import augmented_plant
-from setmem_hil.modal_model import IntervalModel, ModalParameters
-from setmem_hil.uncertain_plant import uncertain_plant
-from setmem_hil.weights import THESIS_WEIGHTS
+from setmem_hil.robust.augmented_plant import augmented_plant
+from setmem_hil.model.modal_model import IntervalModel, ModalParameters
+from setmem_hil.robust.uncertain_plant import uncertain_plant
+from setmem_hil.model.weights import THESIS_WEIGHTS
 
 LOWER = [[0.01, 0.9, 0.0, 3.0], [0.05, 35.0, -0.2, -1.0]]
 UPPER = [[0.05, 1.2, 0.0, 5.0], [0.30, 42.0, 0.1, 6.0]]

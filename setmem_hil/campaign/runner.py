@@ -1,0 +1,431 @@
+"""The iterative identification / control / experiment loop (thesis Algorithm 5.1, chapter 5).
+
+``run_campaign`` measures the procedure's initial frequencies, then repeats:
+
+2. identify the parameter intervals from all data so far, never loosening the previous bounds
+   (eq. 5.4-5.5; the result is also intersected with them);
+3. design the H2 controller and compute mu-bar with the monotone safeguard (eq. 5.8-5.12,
+   :mod:`setmem_hil.design.safeguard`), so the reported mu-bar never increases;
+4. stop when mu-bar < the goal (default 1) or when the experiment budget is spent;
+5-7. choose the next frequency with the procedure's strategy (:mod:`setmem_hil.design.strategies`;
+   ``"mu"`` is eq. 5.3 via :func:`setmem_hil.design.input_design.choose_input`), measure it, and go on.
+
+**Journal and resume (REPLAY).** Every measurement is written to the journal as soon as it is
+taken, every iteration's bounds, mu-bar, sensitivities and candidate scores after it is
+computed. A campaign resumed from its journal reruns the loop from the start: whenever it needs
+measurement ``n`` and the journal holds it, the stored one is used (its frequency must match:
+otherwise :class:`CampaignReplayError`), and iterations already stored are not re-added. Before
+the first new dwell the experiment's ``n_measured`` (if it has one) is set to the number of
+stored measurements, so the simulated noise continues exactly. Nothing depends on the wall
+clock or a global RNG: the same seed gives the same measurements and choices serially, resumed
+or on Dask workers.
+
+**Model hook.** After every identification the experiment's ``update_model(model)`` (if it has
+one, e.g. :class:`setmem_hil.drivers.sine_dwell.SineDwellExperiment`) is called with the
+iteration's interval model (the bounds the journal stores), so later dwells fit their decaying
+transients with the narrowed pole estimates (eq. 2.25 midpoints, interval bands). A replay
+repeats the same identifications in the same order and so makes the same calls: the experiment
+is in the same state at the first new dwell as in an uninterrupted run.
+
+**Single-threaded BLAS.** The numerics of every iteration (identification, H2 design, mu
+analysis, input choice) run with BLAS pinned to one thread in the calling thread
+(:func:`setmem_hil.sweep.blas_threads.blas_one_thread`): the matrices are small, so this is about
+twice as fast in CPU time on the 2-core target, and results do not depend on how many BLAS
+threads a machine or Dask worker would otherwise use.
+
+**Noise bound of a candidate.** The effect estimate needs ``R(omega)``, the total error bound a
+measurement at ``omega`` will report. ``experiment.total_bound(omega)`` is used when the
+experiment has it (the simulated beam); otherwise the bounds measured so far are interpolated
+linearly in ``log omega`` (of ``log R`` when all are positive), held constant outside the
+measured range.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from setmem_hil.sweep.blas_threads import blas_one_thread
+from setmem_hil.errors import InputFormatError
+from setmem_hil.campaign.experiment import Experiment, Measurement
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.design.input_design import InputChoice, candidate_frequencies, choose_input, sensitivity_matrix, uniform_weights
+from setmem_hil.io.procedure import Procedure
+from setmem_hil.design.safeguard import SafeguardOutcome, safeguarded_design
+from setmem_hil.design.strategies import check_strategy, log_sweep_frequency, random_frequency
+
+ProgressFn = Callable[..., None]
+
+EXACT_RESOLVE_OUTER_ITERATIONS = 1
+"""Algorithm 3.1 passes of the exact re-solves of the top candidates (speed; see the report)."""
+
+
+class CampaignReplayError(InputFormatError):
+    """A journal whose stored measurements do not match what the procedure would measure."""
+
+
+@dataclass(frozen=True)
+class IterationSummary:
+    """One row of the figure-6-12 table."""
+
+    k: int
+    n_points: int
+    mu_peak: float
+    mu_peak_omega: float
+    next_omega: float | None
+    safeguard: str
+    basis: str
+    compute_s: float
+    compute_cpu_s: float = 0.0
+
+    def to_document(self) -> dict:
+        return {
+            "k": self.k,
+            "mu_peak": self.mu_peak,
+            "next_omega": self.next_omega,
+            "n_points": self.n_points,
+            "mu_peak_omega": self.mu_peak_omega,
+            "safeguard": self.safeguard,
+            "basis": self.basis,
+            "compute_s": self.compute_s,
+            "compute_cpu_s": self.compute_cpu_s,
+        }
+
+
+@dataclass(frozen=True)
+class CampaignSummary:
+    """Result of :func:`run_campaign`; :meth:`to_document` is ``summary.json``."""
+
+    reached_goal: bool
+    final_mu_peak: float
+    experiments_added: int
+    wall_s: float
+    iterations: tuple[IterationSummary, ...]
+    strategy: str
+    seed: int | None
+    goal_mu: float
+    max_experiments: int
+    stop_reason: str
+    replayed_measurements: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def compute_s_per_iteration(self) -> float:
+        """Mean compute time of an iteration (identification, design, analysis, input choice)."""
+        if not self.iterations:
+            return 0.0
+        return float(np.mean([it.compute_s for it in self.iterations]))
+
+    def to_document(self) -> dict:
+        return {
+            "reached_goal": bool(self.reached_goal),
+            "final_mu_peak": float(self.final_mu_peak),
+            "experiments_added": int(self.experiments_added),
+            "wall_s": float(self.wall_s),
+            "iterations": [it.to_document() for it in self.iterations],
+            "strategy": self.strategy,
+            "seed": self.seed,
+            "goal_mu": float(self.goal_mu),
+            "max_experiments": int(self.max_experiments),
+            "stop_reason": self.stop_reason,
+            "compute_s_per_iteration": self.compute_s_per_iteration,
+            "compute_cpu_s_per_iteration": float(np.mean([it.compute_cpu_s for it in self.iterations])) if self.iterations else 0.0,
+            "replayed_measurements": int(self.replayed_measurements),
+            **self.extra,
+        }
+
+
+def candidate_noise_bound(experiment: Any, omega_rad_s: np.ndarray, measured: list[Measurement]) -> np.ndarray:
+    """``R(omega)`` expected at the candidates (see the module docstring)."""
+    w = np.asarray(omega_rad_s, dtype=float)
+    total_bound = getattr(experiment, "total_bound", None)
+    if callable(total_bound):
+        return np.broadcast_to(np.asarray(total_bound(w), dtype=float), w.shape).copy()
+    if not measured:
+        raise ValueError("candidate_noise_bound: no measurements to interpolate the error bound from")
+    mw = np.array([m.omega_rad_s for m in measured], dtype=float)
+    mb = np.array([m.bound for m in measured], dtype=float)
+    order = np.argsort(mw, kind="stable")
+    mw, mb = mw[order], mb[order]
+    x = np.log(mw)
+    if np.all(mb > 0):
+        return np.exp(np.interp(np.log(w), x, np.log(mb)))
+    return np.interp(np.log(w), x, mb)
+
+
+class _Replay:
+    """Measurement source that serves stored journal measurements first (REPLAY resume)."""
+
+    def __init__(self, experiment: Experiment, journal, emit: ProgressFn, total: int):
+        self.experiment = experiment
+        self.journal = journal
+        self.emit = emit
+        self.total = total
+        self.stored = journal.measurements() if journal is not None else []
+        self.count = 0
+        self._synced = False
+
+    def measure(self, omega_rad_s: float, *, iteration: int, role: str) -> Measurement:
+        index = self.count
+        self.count += 1
+        if index < len(self.stored):
+            m = self.stored[index]
+            if not math.isclose(m.omega_rad_s, omega_rad_s, rel_tol=1e-9, abs_tol=1e-12):
+                raise CampaignReplayError(
+                    str(getattr(self.journal, "path", "journal")),
+                    f"measurement {index + 1}",
+                    f"stored at {m.omega_rad_s:.9g} rad/s but the procedure now asks for {omega_rad_s:.9g} rad/s "
+                    "(different procedure, seed, strategy or software version?)",
+                )
+            self.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=True)
+            return m
+        if not self._synced:
+            if self.stored and hasattr(self.experiment, "n_measured"):
+                self.experiment.n_measured = len(self.stored)
+            self._synced = True
+        self.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=False)
+        m = self.experiment.measure(float(omega_rad_s))
+        if self.journal is not None:
+            self.journal.add_measurement(m, iteration=iteration, role=role)
+        return m
+
+
+def _identify_settings(exact_resolve: bool = False):
+    from setmem_hil.identification.algorithm import IdentifySettings
+
+    if exact_resolve:
+        return IdentifySettings(max_outer_iterations=EXACT_RESOLVE_OUTER_ITERATIONS)
+    return IdentifySettings()
+
+
+def next_frequency(
+    strategy: str,
+    k: int,
+    n_added: int,
+    procedure: Procedure,
+    result,
+    data: FrequencyData,
+    outcome: SafeguardOutcome,
+    experiment: Any,
+    measured: list[Measurement],
+    seed: int | None,
+) -> InputChoice:
+    """Algorithm 5.1 steps 5-7 for one strategy (see :mod:`setmem_hil.design.strategies`)."""
+    settings = procedure.input_design
+    empty = np.zeros(0)
+    if strategy == "log-sweep":
+        return InputChoice(log_sweep_frequency(n_added, settings), empty, empty, "sweep")
+    if strategy == "random":
+        return InputChoice(random_frequency(seed, k, settings), empty, empty, "random")
+    model = result.model
+    omega = candidate_frequencies(k, settings)
+    R = candidate_noise_bound(experiment, omega, measured)
+    if strategy == "mu":
+        weights = sensitivity_matrix(outcome.analysis.sensitivities, model.n_modes)
+        weights = np.where(model.fixed, 0.0, weights)
+        if not np.any(weights > 0):  # no parameter limits mu (section 5.4.2): fall back to widths
+            weights = uniform_weights(model)
+        scoring = "mu"
+    else:
+        weights = uniform_weights(model)
+        scoring = "max-reduction"
+    return choose_input(
+        result,
+        data,
+        procedure.prior,
+        omega,
+        R,
+        weights,
+        scoring=scoring,
+        exact_resolve_top=settings.exact_resolve_top,
+        identify_settings=_identify_settings(exact_resolve=True),
+    )
+
+
+def run_campaign(
+    procedure: Procedure,
+    experiment: Experiment,
+    journal=None,
+    *,
+    seed: int | None = None,
+    strategy: str | None = None,
+    progress: ProgressFn | None = None,
+) -> CampaignSummary:
+    """Run Algorithm 5.1 on ``experiment`` until mu-bar < goal or the budget is spent.
+
+    Parameters
+    ----------
+    procedure : Procedure
+        Prior, initial frequencies, goal, input-design settings and weights.
+    experiment : Experiment
+        Anything with ``measure(omega)``; ``total_bound(omega)``, ``n_measured`` and
+        ``update_model(model)`` (called after every identification) are used when present.
+        Closing it is the caller's job.
+    journal : setmem_hil.io.journal.Journal, optional
+        Receives every measurement immediately and every iteration; an existing journal's
+        contents are replayed (resume). ``finish(summary)`` is called at the end unless the run
+        was already finished.
+    seed : int, optional
+        Seed of the random baseline (default ``procedure.seed``); the experiment's own noise seed
+        is set where the experiment is built.
+    strategy : str, optional
+        Overrides ``procedure.input_design.strategy``: ``"mu"``, ``"log-sweep"``, ``"random"``,
+        ``"max-reduction"``.
+    progress : callable, optional
+        ``progress(event, **info)`` with events ``"measure"`` (index, total, omega_rad_s,
+        replayed), ``"iteration"`` (k, n_points, mu_peak, mu_peak_omega, safeguard),
+        ``"chosen"`` (k, next_omega) and ``"finished"`` (summary).
+
+    Returns
+    -------
+    CampaignSummary
+
+    Raises
+    ------
+    setmem_hil.errors.InconsistentDataError
+        When no parameters fit the data and the prior (logged to the journal first).
+    CampaignReplayError
+        When a resumed journal's measurements differ from what this procedure would measure.
+    KeyboardInterrupt
+        Propagates unchanged; every completed dwell is already in the journal.
+    """
+    from setmem_hil.errors import InconsistentDataError
+    from setmem_hil.identification.algorithm import identify
+    from setmem_hil.robust.analysis import analyze_robust_performance
+
+    strategy = check_strategy(strategy or procedure.input_design.strategy)
+    seed = procedure.seed if seed is None else int(seed)
+    emit: ProgressFn = progress if progress is not None else (lambda event, **info: None)
+    goal = procedure.goal
+    t_start = time.perf_counter()
+
+    stored_iterations = {}
+    already_finished = False
+    if journal is not None:
+        stored_iterations = {rec.k: rec for rec in journal.iterations()}
+        already_finished = bool(journal.run_info().get("finished"))
+    total = len(procedure.initial_omegas_rad_s) + int(goal.max_experiments)
+    source = _Replay(experiment, journal, emit, total)
+    replayed_before = len(source.stored)
+
+    def analyze(model, controller):
+        return analyze_robust_performance(model, procedure.weights, controller=controller)
+
+    measured = [source.measure(w, iteration=0, role="initial") for w in procedure.initial_omegas_rad_s]
+    previous_model = None
+    previous_outcome: SafeguardOutcome | None = None
+    rows: list[IterationSummary] = []
+    k, n_added = 1, 0
+    while True:
+        t_it, cpu_it = time.perf_counter(), time.process_time()
+        data = FrequencyData.from_measurements(measured)
+        try:
+            with blas_one_thread():
+                result = identify(data, procedure.prior, previous=previous_model, settings=_identify_settings())
+        except InconsistentDataError as exc:
+            if journal is not None and k not in stored_iterations:
+                journal.add_event("inconsistent-data", f"iteration {k}: {exc}")
+            raise
+        model = result.model if previous_model is None else result.model.intersect(previous_model)
+        update_model = getattr(experiment, "update_model", None)
+        if callable(update_model):  # later dwells model their transients with these poles
+            update_model(model)
+        with blas_one_thread():
+            outcome = safeguarded_design(model, previous_outcome, analyze)
+        analysis = outcome.analysis
+        emit("iteration", k=k, n_points=len(measured), mu_peak=outcome.mu_peak,
+             mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch)
+        reached = outcome.mu_peak < goal.mu_target
+        budget_spent = n_added >= goal.max_experiments
+        choice: InputChoice | None = None
+        if not (reached or budget_spent):
+            with blas_one_thread():
+                choice = next_frequency(strategy, k, n_added, procedure, result, data, outcome, experiment, measured, seed)
+        next_omega = None if choice is None else choice.next_omega_rad_s
+        compute_s = time.perf_counter() - t_it
+        compute_cpu_s = time.process_time() - cpu_it
+
+        if journal is not None:
+            stored = stored_iterations.get(k)
+            if stored is None:
+                from setmem_hil.io.journal import IterationRecord
+
+                journal.add_iteration(IterationRecord(
+                    k=k,
+                    n_points=len(measured),
+                    lower=model.lower,
+                    upper=model.upper,
+                    mu_peak=float(outcome.mu_peak),
+                    mu_peak_omega=float(analysis.mu_peak_omega),
+                    mu_lower_peak=float(analysis.mu_lower_peak),
+                    omega=np.asarray(analysis.omega, dtype=float),
+                    mu=np.asarray(analysis.mu, dtype=float),
+                    sensitivities={str(key): float(v) for key, v in analysis.sensitivities.items()},
+                    next_omega=next_omega,
+                    candidate_omega=np.zeros(0) if choice is None else choice.candidate_omega_rad_s,
+                    estimated_improvement=np.zeros(0) if choice is None else choice.estimated_improvement,
+                    controller_order=int(analysis.controller_order),
+                    safeguard=outcome.branch,
+                    wall_s=float(compute_s),
+                    embedding_gamma=np.asarray(result.embedding_gamma, dtype=float),
+                    mismatch_ratio=np.asarray(result.mismatch_ratio, dtype=float),
+                ))
+                if outcome.branch != "new-design":
+                    tried = ", ".join(f"{b} {v:.4f}" for b, v in outcome.tried.items())
+                    journal.add_event("safeguard", f"iteration {k}: eq. 5.12 branch {outcome.branch} (mu-bar {tried})")
+            elif not _same_choice(stored.next_omega, next_omega):
+                raise CampaignReplayError(
+                    str(getattr(journal, "path", "journal")), f"iteration {k}",
+                    f"stored next frequency {stored.next_omega} rad/s but the replay chose {next_omega} rad/s",
+                )
+        rows.append(IterationSummary(
+            k=k, n_points=len(measured), mu_peak=float(outcome.mu_peak), mu_peak_omega=float(analysis.mu_peak_omega),
+            next_omega=next_omega, safeguard=outcome.branch, basis="" if choice is None else choice.basis,
+            compute_s=float(compute_s), compute_cpu_s=float(compute_cpu_s),
+        ))
+        if choice is None:
+            break
+        emit("chosen", k=k, next_omega=next_omega)
+        measured.append(source.measure(next_omega, iteration=k, role="added"))
+        n_added += 1
+        previous_model, previous_outcome = model, outcome
+        k += 1
+
+    summary = CampaignSummary(
+        reached_goal=bool(rows[-1].mu_peak < goal.mu_target),
+        final_mu_peak=rows[-1].mu_peak,
+        experiments_added=n_added,
+        wall_s=time.perf_counter() - t_start,
+        iterations=tuple(rows),
+        strategy=strategy,
+        seed=seed,
+        goal_mu=float(goal.mu_target),
+        max_experiments=int(goal.max_experiments),
+        stop_reason="goal" if rows[-1].mu_peak < goal.mu_target else "budget",
+        replayed_measurements=min(replayed_before, source.count),
+    )
+    if journal is not None and not already_finished:
+        journal.finish(summary.to_document())
+    emit("finished", summary=summary)
+    return summary
+
+
+def _same_choice(a: float | None, b: float | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+
+
+__all__ = [
+    "CampaignReplayError",
+    "CampaignSummary",
+    "EXACT_RESOLVE_OUTER_ITERATIONS",
+    "IterationSummary",
+    "candidate_noise_bound",
+    "next_frequency",
+    "run_campaign",
+]

@@ -1,0 +1,43 @@
+"""``setmem-hil identify --data DATA.csv --prior PRIOR.toml --out RESULT.json`` (public contract).
+
+Exit 0 on success; 2 on malformed input (the message names file, line or key); 3 when the data
+are inconsistent with the prior (the message names the frequencies). With ``--reject-outliers``
+(thesis section 7.2) the fewest points needed to regain consistency are dropped and reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from setmem_hil.io.data_file import read_data_csv
+from setmem_hil.identification.algorithm import identify
+from setmem_hil.model.prior import read_prior
+from setmem_hil.io.result_file import write_json
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("identify", help="guaranteed interval bounds of a modal model from frequency data")
+    p.add_argument("--data", required=True, metavar="DATA.csv", help="CSV with header omega,re,im,bound")
+    p.add_argument("--prior", required=True, metavar="PRIOR.toml", help="one [[mode]] table per mode")
+    p.add_argument("--out", required=True, metavar="RESULT.json", help="where to write the intervals")
+    p.add_argument("--reject-outliers", action="store_true",
+                   help="drop the fewest points needed to regain consistency (thesis 7.2) and report them")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    data = read_data_csv(args.data)
+    prior = read_prior(args.prior)
+    if args.reject_outliers:
+        from setmem_hil.identification.outlier_rejection import identify_rejecting_outliers
+
+        result, rejected = identify_rejecting_outliers(data, prior)
+        doc = result.to_document()
+        doc["rejected_points"] = [{"omega": float(w)} for w in rejected]
+        if rejected:
+            print(f"rejected {len(rejected)} point(s) at omega = {', '.join(f'{w:.6g}' for w in rejected)} rad/s", file=sys.stderr)
+    else:
+        doc = identify(data, prior).to_document()
+    write_json(doc, args.out)
+    return 0

@@ -1,0 +1,197 @@
+"""Live progress of a campaign on the terminal (rich), from ``run_campaign``'s progress events.
+
+Events (see :func:`setmem_hil.campaign.runner.run_campaign`): ``"measure"`` (index, total, omega_rad_s,
+replayed) just before a dwell starts (or a stored measurement is replayed), ``"iteration"``
+(k, n_points, mu_peak, mu_peak_omega, safeguard) after each identification and analysis
+(Algorithm 5.1 steps 2-3), ``"chosen"`` (k, next_omega) after the input design (steps 5-7),
+``"finished"`` (summary).
+
+On a terminal two bars show the measurements done (with the iteration, the current peak of
+mu-bar and the next frequency) and the dwell under way (frequency; elapsed against the dwell's
+length when the experiment can tell it, else a pulsing bar); iteration results are printed as
+lines above them. Elsewhere (a
+pipe, a log file, CI) the same information is printed as plain lines, one per event.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Any, Callable
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+__all__ = ["CampaignProgress", "format_mu"]
+
+
+def format_mu(mu: float) -> str:
+    """mu-bar for humans: ``inf`` when the nominal loop is unstable."""
+    return "inf (nominal loop unstable)" if not math.isfinite(mu) else f"{mu:.4f}"
+
+
+class CampaignProgress:
+    """Callable ``progress(event, **info)`` that renders a campaign; a context manager.
+
+    Parameters
+    ----------
+    console : rich.console.Console, optional
+        Where to draw (default: stdout).
+    planned_dwell_s : callable, optional
+        ``planned_dwell_s(omega_rad_s) -> float`` (seconds) for the dwell line, e.g. from
+        :meth:`setmem_hil.drivers.sine_dwell.SineDwellExperiment.plan`.
+    on_event : callable, optional
+        Called with every event after rendering (the run command uses it to log device
+        counters to the journal).
+    live : bool, optional
+        Draw a live bar (default: when the console is a terminal).
+    """
+
+    def __init__(
+        self,
+        console: Console | None = None,
+        *,
+        planned_dwell_s: Callable[[float], float] | None = None,
+        on_event: Callable[..., None] | None = None,
+        live: bool | None = None,
+    ):
+        self.console = console or Console()
+        self.planned_dwell_s = planned_dwell_s
+        self.on_event = on_event
+        self.live = self.console.is_terminal if live is None else live
+        self.k = 0
+        self.mu_peak = math.nan
+        self.next_omega: float | None = None
+        self.replayed = 0
+        self.measured = 0
+        self.last_index = 0
+        self._progress: Progress | None = None
+        self._task = None
+        self._dwell_task = None
+        self._dwell_started: float | None = None
+        self._dwell_total: float | None = None
+        self._stop = threading.Event()
+        self._ticker: threading.Thread | None = None
+
+    # -- context -------------------------------------------------------------------------
+    def __enter__(self) -> "CampaignProgress":
+        if self.live:
+            self._progress = Progress(
+                SpinnerColumn(),
+                TextColumn("{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeElapsedColumn(),
+                TextColumn("{task.fields[status]}"),
+                console=self.console,
+                transient=False,
+            )
+            self._progress.start()
+            self._task = self._progress.add_task("measurements", total=None, status="starting")
+            self._dwell_task = self._progress.add_task("waiting", total=None, status="")
+            self._stop.clear()
+            self._ticker = threading.Thread(target=self._tick, name="dwell-progress", daemon=True)
+            self._ticker.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._ticker is not None:
+            self._ticker.join(timeout=2.0)
+            self._ticker = None
+        if self._progress is not None:
+            self._progress.stop()
+            self._progress = None
+
+    def _tick(self) -> None:
+        """Advance the dwell bar with the wall clock (the dwell itself reports nothing until done)."""
+        while not self._stop.wait(0.2):
+            started, total, progress = self._dwell_started, self._dwell_total, self._progress
+            if started is None or progress is None or self._dwell_task is None:
+                continue
+            elapsed = time.monotonic() - started
+            if total:
+                progress.update(self._dwell_task, completed=min(elapsed, 0.99 * total))
+            progress.update(self._dwell_task, status=f"{elapsed:.0f} s")
+
+    # -- events --------------------------------------------------------------------------
+    def _status(self) -> str:
+        parts = []
+        if self.k:
+            parts.append(f"iteration {self.k}, mu-bar {format_mu(self.mu_peak)}")
+        if self.next_omega is not None:
+            parts.append(f"next {self.next_omega:.4g} rad/s")
+        return "; ".join(parts)
+
+    def _line(self, text: str) -> None:
+        self.console.print(text, highlight=False, markup=False)
+
+    def __call__(self, event: str, **info: Any) -> None:
+        if event == "measure":
+            self._measure(**info)
+        elif event == "iteration":
+            self._set_dwell(f"iteration {info.get('k')}: choosing the next frequency", None, running=False)
+            self.k = int(info.get("k", self.k))
+            self.mu_peak = float(info.get("mu_peak", math.nan))
+            safeguard = info.get("safeguard")
+            extra = f" [{safeguard}]" if safeguard and safeguard != "new-design" else ""
+            self._line(
+                f"iteration {self.k}: {info.get('n_points')} points, mu-bar peak {format_mu(self.mu_peak)}"
+                f" at {float(info.get('mu_peak_omega', math.nan)):.4g} rad/s{extra}"
+            )
+        elif event == "chosen":
+            self.next_omega = float(info["next_omega"])
+            self._line(f"iteration {info.get('k')}: next frequency {self.next_omega:.6g} rad/s")
+        elif event == "finished":
+            summary = info.get("summary")
+            if self._progress is not None and self._task is not None:
+                self._progress.update(self._task, total=self.last_index, completed=self.last_index, description="done", status=self._status())
+                self._set_dwell("finished", None, running=False)
+                self._progress.update(self._dwell_task, visible=False)
+            if summary is not None:
+                reached = "goal reached" if getattr(summary, "reached_goal", False) else f"stopped ({getattr(summary, 'stop_reason', '?')})"
+                self._line(
+                    f"finished: {reached}; mu-bar {format_mu(float(getattr(summary, 'final_mu_peak', math.nan)))} after "
+                    f"{getattr(summary, 'experiments_added', '?')} added experiments"
+                )
+        if self.on_event is not None:
+            self.on_event(event, **info)
+
+    def _measure(self, index: int, total: int, omega_rad_s: float, replayed: bool = False, **_: Any) -> None:
+        self.last_index = int(index)
+        if replayed:
+            self.replayed += 1
+        else:
+            self.measured += 1
+        if self._progress is not None and self._task is not None:
+            if replayed:
+                desc = f"replaying stored measurement {index} ({omega_rad_s:.4g} rad/s)"
+            else:
+                planned = self._planned(omega_rad_s)
+                desc = f"dwell {index} at {omega_rad_s:.4g} rad/s" + (f" ({planned:.3g} s of excitation)" if planned else "")
+            self._progress.update(self._task, total=total, completed=index - 1, description="measurements", status=self._status())
+            if replayed:
+                self._set_dwell(desc, None, running=False)
+            else:
+                self._set_dwell(desc, planned, running=True)
+        elif not replayed:
+            planned = self._planned(omega_rad_s)
+            self._line(f"dwell {index}/{total} at {omega_rad_s:.6g} rad/s" + (f" ({planned:.3g} s of excitation)" if planned else ""))
+        elif index == 1:
+            self._line("replaying the measurements stored in the journal")
+
+    def _set_dwell(self, description: str, total_s: float | None, running: bool) -> None:
+        if self._progress is None or self._dwell_task is None:
+            return
+        self._dwell_started = time.monotonic() if running else None
+        self._dwell_total = total_s if running else None
+        self._progress.reset(self._dwell_task, total=total_s if running else None, description=description, status="")
+
+    def _planned(self, omega_rad_s: float) -> float | None:
+        if self.planned_dwell_s is None:
+            return None
+        try:
+            return float(self.planned_dwell_s(omega_rad_s))
+        except Exception:  # a display nicety must never stop a campaign
+            return None

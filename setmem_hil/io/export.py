@@ -1,0 +1,153 @@
+"""CSV export of a run's journal (``setmem-hil export DIR --csv OUT/``).
+
+Files written to ``OUT/`` (UTF-8, comma-separated, header row, floats with full precision,
+empty cell for "none", ``inf``/``nan`` spelled so):
+
+``measurements.csv``
+    ``seq, iteration, role, omega_rad_s, re, im, bound, utc``: every measurement in order;
+    ``iteration`` is the loop iteration that asked for it (0 = initial design).
+``data.csv``
+    ``omega, re, im, bound``: the same measurements in the data-CSV format that
+    ``setmem-hil identify --data`` reads.
+``bounds.csv``
+    ``k, n_points, mode, parameter, lower, upper``: the parameter intervals of every iteration
+    (modes from 1; parameters a1, a0, b1, b0 of eq. 2.24), as the appendix B tables.
+``mu.csv``
+    ``k, omega_rad_s, mu``: mu-bar (upper bound) on the analysis grid per iteration (figure 6-13).
+``iterations.csv``
+    ``k, n_points, mu_peak, mu_peak_omega, mu_lower_peak, next_omega, safeguard,
+    controller_order, wall_s``: one row per iteration (figure 6-12).
+``sensitivities.csv``
+    ``k, parameter, sensitivity``: mu-sensitivities per iteration (appendix B).
+``candidates.csv``
+    ``k, omega_rad_s, estimated_improvement``: the input-design scores (figure 6-14).
+``events.csv``
+    ``id, utc, kind, message``: faults, retries, interruptions, resumes, safeguard actions.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from pathlib import Path
+from typing import Iterable, Sequence
+
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.io.journal import Journal
+from setmem_hil.model.modal_model import PARAM_NAMES
+
+__all__ = ["export_csv", "EXPORT_FILES"]
+
+EXPORT_FILES = (
+    "measurements.csv", "data.csv", "bounds.csv", "mu.csv", "iterations.csv",
+    "sensitivities.csv", "candidates.csv", "events.csv",
+)
+
+
+def _cell(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    return str(v)
+
+
+def _csv_text(header: Sequence[str], rows: Iterable[Sequence]) -> str:
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(header)
+    for row in rows:
+        w.writerow([_cell(v) for v in row])
+    return out.getvalue()
+
+
+def _write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[Path]:
+    """Write the CSV files listed in the module docstring; returns their paths.
+
+    Parameters
+    ----------
+    run_dir : path
+        A run directory (or its ``journal.sqlite``).
+    out_dir : path
+        Created if missing; existing files of the same names are replaced.
+
+    Raises
+    ------
+    InputFormatError
+        If ``run_dir`` holds no journal.
+    """
+    journal = Journal.open(run_dir)
+    try:
+        rows = journal.measurement_rows()
+        measurements = journal.measurements()
+        iterations = journal.iterations()
+        events = journal.events()
+    finally:
+        journal.close()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files: dict[str, str] = {}
+    cols = ("seq", "iteration", "role", "omega_rad_s", "re", "im", "bound", "utc")
+    files["measurements.csv"] = _csv_text(cols, ([r[c] for c in cols] for r in rows))
+    if measurements:
+        from setmem_hil.io.data_file import format_data_csv
+
+        files["data.csv"] = format_data_csv(FrequencyData.from_measurements(measurements))
+    else:
+        files["data.csv"] = "omega,re,im,bound\n"
+    files["bounds.csv"] = _csv_text(
+        ("k", "n_points", "mode", "parameter", "lower", "upper"),
+        (
+            (rec.k, rec.n_points, i + 1, name, float(rec.lower[i, j]), float(rec.upper[i, j]))
+            for rec in iterations for i in range(rec.lower.shape[0]) for j, name in enumerate(PARAM_NAMES)
+        ),
+    )
+    files["mu.csv"] = _csv_text(
+        ("k", "omega_rad_s", "mu"),
+        ((rec.k, float(w), float(m)) for rec in iterations for w, m in zip(rec.omega, rec.mu)),
+    )
+    files["iterations.csv"] = _csv_text(
+        ("k", "n_points", "mu_peak", "mu_peak_omega", "mu_lower_peak", "next_omega", "safeguard", "controller_order", "wall_s"),
+        (
+            (rec.k, rec.n_points, float(rec.mu_peak), float(rec.mu_peak_omega), float(rec.mu_lower_peak),
+             None if rec.next_omega is None else float(rec.next_omega), rec.safeguard, rec.controller_order, float(rec.wall_s))
+            for rec in iterations
+        ),
+    )
+    files["sensitivities.csv"] = _csv_text(
+        ("k", "parameter", "sensitivity"),
+        ((rec.k, name, float(v)) for rec in iterations for name, v in sorted(rec.sensitivities.items(), key=lambda kv: _param_order(kv[0]))),
+    )
+    files["candidates.csv"] = _csv_text(
+        ("k", "omega_rad_s", "estimated_improvement"),
+        ((rec.k, float(w), float(e)) for rec in iterations for w, e in zip(rec.candidate_omega, rec.estimated_improvement)),
+    )
+    files["events.csv"] = _csv_text(("id", "utc", "kind", "message"), ((e["id"], e["utc"], e["kind"], e["message"]) for e in events))
+    paths = []
+    for name in EXPORT_FILES:
+        _write(out / name, files[name])
+        paths.append(out / name)
+    return paths
+
+
+def _param_order(key: str) -> tuple[int, int, str]:
+    """Sort ``a1_1, a0_1, b1_1, b0_1, a1_2, ...`` (mode, then parameter order of eq. 2.24)."""
+    name, _, mode = key.rpartition("_")
+    try:
+        return (int(mode), PARAM_NAMES.index(name), key)
+    except ValueError:
+        return (10**9, 0, key)

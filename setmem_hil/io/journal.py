@@ -1,0 +1,540 @@
+"""The campaign journal: a crash-safe, append-only record of one run (SQLite, WAL).
+
+One journal per run directory (``DIR/journal.sqlite``). It holds
+
+* the run: procedure text (exactly as loaded), procedure name, seed, software version,
+  backend kind, input-design strategy, creation time;
+* every measurement, each committed in its own transaction *before the next dwell starts*
+  (thesis chapter 5: the loop measures, identifies (eq. 5.4-5.5), analyses and chooses the next
+  frequency; only the measurements are expensive, everything else is recomputed on resume);
+* per iteration: the parameter bounds, mu-bar on the analysis grid, the peak, the
+  mu-sensitivities (appendix B), the chosen frequency and the candidates' estimated
+  improvement (figure 6-14), the safeguard branch of eq. 5.12;
+* discrepancy results, events (faults, retries, interruptions, safeguard actions) and, at the
+  end, the summary (the ``summary.json`` document) that marks the run finished.
+
+Crash safety
+------------
+The database runs in WAL mode with ``synchronous=FULL``; each ``add_*`` call is one
+``BEGIN IMMEDIATE ... COMMIT`` transaction, so a process killed at any instant (SIGKILL, power
+loss) leaves either the whole record or nothing. Triggers reject ``UPDATE`` and ``DELETE``
+on every table: the journal is append-only. A journal is created under a temporary name and
+renamed into place, so a half-created journal never exists under the final name.
+
+Resume (REPLAY design)
+----------------------
+``run --resume DIR`` re-reads procedure text, seed, backend and strategy from
+:meth:`Journal.run_info` and reruns the deterministic loop; whenever the loop needs measurement
+``n`` and the journal holds it, the stored one is used instead of measuring again.
+
+Example
+-------
+>>> import tempfile, pathlib
+>>> from setmem_hil.campaign.experiment import Measurement
+>>> d = pathlib.Path(tempfile.mkdtemp())
+>>> j = Journal.create(d / "journal.sqlite", procedure_text="name = 'x'", procedure_name="x",
+...                    seed=1, software_version="0.1.0", backend="sim", strategy="mu")
+>>> j.add_measurement(Measurement(1.0, 0.5 - 0.1j, 0.01), iteration=0, role="initial")
+1
+>>> j.measurements()[0].response
+(0.5-0.1j)
+>>> j.close()
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sqlite3
+import threading
+from dataclasses import dataclass, fields
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from setmem_hil.errors import InputFormatError, SetmemError
+from setmem_hil.campaign.experiment import Measurement
+
+__all__ = ["Journal", "IterationRecord", "JournalError", "JOURNAL_FILENAME", "journal_path", "ROLES"]
+
+JOURNAL_FILENAME = "journal.sqlite"
+APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
+SCHEMA_VERSION = 1
+ROLES = ("initial", "added")
+
+
+class JournalError(SetmemError, RuntimeError):
+    """A write that would break the journal's invariants (duplicate iteration, closed journal)."""
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """What one pass of the loop (chapter 5) computed, as stored in the journal.
+
+    Attributes
+    ----------
+    k : int
+        1-based iteration (identification with the data so far).
+    n_points : int
+        Number of measurements used.
+    lower, upper : numpy.ndarray
+        ``(n_modes, 4)`` parameter bounds in the order a1, a0, b1, b0 (eq. 5.4-5.5).
+    mu_peak, mu_peak_omega, mu_lower_peak : float
+        Peak of the mu upper bound, where it is attained, and the peak lower bound.
+    omega, mu : numpy.ndarray
+        Analysis grid and mu-bar upper bound on it (figure 6-13).
+    sensitivities : dict
+        ``'<param>_<mode>' -> float`` mu-sensitivities (appendix B).
+    next_omega : float or None
+        Frequency chosen for the next experiment; None when the loop stops.
+    candidate_omega, estimated_improvement : numpy.ndarray
+        Candidate frequencies and their estimated mu-bar improvement (figure 6-14).
+    controller_order : int
+        Order of the controller analysed.
+    safeguard : str
+        Branch of eq. 5.12: ``"new-design"``, ``"expanded"`` or ``"previous-controller"``.
+    wall_s : float
+        Compute time of the iteration.
+    embedding_gamma, mismatch_ratio : numpy.ndarray
+        ``(n_modes,)`` conservatism measures of the identification (section 3.2.3).
+    """
+
+    k: int
+    n_points: int
+    lower: np.ndarray
+    upper: np.ndarray
+    mu_peak: float
+    mu_peak_omega: float
+    mu_lower_peak: float
+    omega: np.ndarray
+    mu: np.ndarray
+    sensitivities: dict
+    next_omega: float | None
+    candidate_omega: np.ndarray
+    estimated_improvement: np.ndarray
+    controller_order: int
+    safeguard: str
+    wall_s: float
+    embedding_gamma: np.ndarray
+    mismatch_ratio: np.ndarray
+
+
+_ARRAY_FIELDS = ("lower", "upper", "omega", "mu", "candidate_omega", "estimated_improvement", "embedding_gamma", "mismatch_ratio")
+_ITERATION_COLUMNS = tuple(f.name for f in fields(IterationRecord))
+
+_SCHEMA = """
+CREATE TABLE run (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    procedure_text TEXT NOT NULL,
+    procedure_name TEXT NOT NULL,
+    seed INTEGER NOT NULL,
+    software_version TEXT NOT NULL,
+    backend TEXT NOT NULL,
+    strategy TEXT NOT NULL,
+    created_utc TEXT NOT NULL
+);
+CREATE TABLE measurement (
+    seq INTEGER PRIMARY KEY CHECK (seq >= 1),
+    iteration INTEGER NOT NULL,
+    role TEXT NOT NULL CHECK (role IN ('initial', 'added')),
+    omega_rad_s REAL NOT NULL,
+    re REAL NOT NULL,
+    im REAL NOT NULL,
+    bound REAL NOT NULL,
+    utc TEXT NOT NULL
+);
+CREATE TABLE iteration (
+    k INTEGER PRIMARY KEY CHECK (k >= 1),
+    n_points INTEGER NOT NULL,
+    lower TEXT NOT NULL,
+    upper TEXT NOT NULL,
+    mu_peak REAL,
+    mu_peak_omega REAL,
+    mu_lower_peak REAL,
+    omega TEXT NOT NULL,
+    mu TEXT NOT NULL,
+    sensitivities TEXT NOT NULL,
+    next_omega REAL,
+    candidate_omega TEXT NOT NULL,
+    estimated_improvement TEXT NOT NULL,
+    controller_order INTEGER NOT NULL,
+    safeguard TEXT NOT NULL,
+    wall_s REAL NOT NULL,
+    embedding_gamma TEXT NOT NULL,
+    mismatch_ratio TEXT NOT NULL,
+    utc TEXT NOT NULL
+);
+CREATE TABLE discrepancy (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    iteration INTEGER NOT NULL,
+    report TEXT NOT NULL,
+    utc TEXT NOT NULL
+);
+CREATE TABLE event (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    kind TEXT NOT NULL,
+    message TEXT NOT NULL,
+    utc TEXT NOT NULL
+);
+CREATE TABLE finish (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    summary TEXT NOT NULL,
+    utc TEXT NOT NULL
+);
+"""
+
+_TABLES = ("run", "measurement", "iteration", "discrepancy", "event", "finish")
+
+
+def _append_only_triggers() -> str:
+    out = []
+    for table in _TABLES:
+        for op in ("UPDATE", "DELETE"):
+            out.append(
+                f"CREATE TRIGGER {table}_no_{op.lower()} BEFORE {op} ON {table} "
+                f"BEGIN SELECT RAISE(ABORT, 'journal is append-only: {op} on {table} refused'); END;"
+            )
+    return "\n".join(out)
+
+
+def _utc_now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _to_json(value: Any) -> str:
+    """JSON text of arrays/dicts; NaN and +-inf are kept (Python's json extension tokens)."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, Mapping):
+        value = {str(k): (float(v) if isinstance(v, (np.floating, np.integer)) else v) for k, v in value.items()}
+    return json.dumps(value, default=_json_default)
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    raise TypeError(f"cannot store {type(obj).__name__} in the journal")
+
+
+def _opt_float(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+def journal_path(path: str | os.PathLike) -> Path:
+    """``path`` itself, or ``path/journal.sqlite`` when ``path`` is a directory."""
+    p = Path(path)
+    return p / JOURNAL_FILENAME if p.is_dir() else p
+
+
+class Journal:
+    """Append-only SQLite journal of one campaign (see the module docstring).
+
+    Use :meth:`create` for a new run and :meth:`open` for an existing one (resume, report,
+    export). Every ``add_*`` method commits before it returns. Usable as a context manager.
+    """
+
+    def __init__(self, conn: sqlite3.Connection, path: Path):
+        self._conn: sqlite3.Connection | None = conn
+        self.path = path
+        self._lock = threading.Lock()
+        self._wrote = False
+
+    # ------------------------------------------------------------------ opening
+    @staticmethod
+    def _connect(path: Path) -> sqlite3.Connection:
+        conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, timeout=30.0)
+        conn.execute("PRAGMA journal_mode=WAL")
+        conn.execute("PRAGMA synchronous=FULL")
+        conn.execute("PRAGMA foreign_keys=ON")
+        return conn
+
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike,
+        *,
+        procedure_text: str,
+        procedure_name: str,
+        seed: int,
+        software_version: str,
+        backend: str,
+        strategy: str,
+    ) -> "Journal":
+        """Create the journal of a new run; refuses to overwrite an existing one.
+
+        Raises
+        ------
+        InputFormatError
+            If a file already exists at ``path`` (or ``path/journal.sqlite`` for a directory).
+        """
+        p = journal_path(path)
+        if p.exists():
+            raise InputFormatError(str(p), "", "a journal already exists here; resume it with `setmem-hil run --resume` or choose another --out directory")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+            raise InputFormatError(str(p), "seed", f"expected an integer, found {seed!r}")
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp = p.with_name(p.name + ".creating")
+        for stale in (tmp, Path(str(tmp) + "-wal"), Path(str(tmp) + "-shm"), Path(str(tmp) + "-journal")):
+            if stale.exists():
+                stale.unlink()
+        # Build under a temporary name in rollback-journal mode, then rename: a crash here
+        # never leaves a half-made journal under the final name.
+        conn = sqlite3.connect(str(tmp), isolation_level=None)
+        try:
+            conn.execute("PRAGMA journal_mode=DELETE")
+            conn.execute("BEGIN")
+            for stmt in _SCHEMA.split(";"):
+                if stmt.strip():
+                    conn.execute(stmt)
+            for stmt in _append_only_triggers().splitlines():
+                conn.execute(stmt)
+            conn.execute(
+                "INSERT INTO run (id, procedure_text, procedure_name, seed, software_version, backend, strategy, created_utc)"
+                " VALUES (1, ?, ?, ?, ?, ?, ?, ?)",
+                (str(procedure_text), str(procedure_name), int(seed), str(software_version), str(backend), str(strategy), _utc_now()),
+            )
+            conn.execute(f"PRAGMA application_id={APPLICATION_ID}")
+            conn.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+            conn.execute("COMMIT")
+        except BaseException:
+            conn.close()
+            tmp.unlink(missing_ok=True)
+            raise
+        conn.close()
+        if p.exists():  # lost a race with another creator
+            tmp.unlink(missing_ok=True)
+            raise InputFormatError(str(p), "", "a journal already exists here")
+        os.replace(tmp, p)
+        return cls(cls._connect(p), p)
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> "Journal":
+        """Open an existing journal (a file or a run directory).
+
+        Raises
+        ------
+        InputFormatError
+            If the file is missing or is not a setmem-hil journal.
+        """
+        p = journal_path(path)
+        if not p.is_file():
+            raise InputFormatError(str(p), "", "no journal here (expected a run directory holding journal.sqlite)")
+        try:
+            with open(p, "rb") as fh:
+                header = fh.read(16)
+        except OSError as exc:
+            raise InputFormatError(str(p), "", f"cannot read: {exc}") from None
+        if header != b"SQLite format 3\x00":
+            raise InputFormatError(str(p), "", "not a journal (not an SQLite database)")
+        try:
+            conn = cls._connect(p)
+            app_id = conn.execute("PRAGMA application_id").fetchone()[0]
+            version = conn.execute("PRAGMA user_version").fetchone()[0]
+        except sqlite3.DatabaseError as exc:
+            raise InputFormatError(str(p), "", f"not a readable journal: {exc}") from None
+        if app_id != APPLICATION_ID:
+            conn.close()
+            raise InputFormatError(str(p), "", "not a setmem-hil journal (SQLite application_id differs)")
+        if version != SCHEMA_VERSION:
+            conn.close()
+            raise InputFormatError(str(p), "", f"journal schema version {version}; this software reads version {SCHEMA_VERSION}")
+        return cls(conn, p)
+
+    def close(self) -> None:
+        """Close the journal (idempotent). All records are already committed."""
+        with self._lock:
+            if self._conn is not None:
+                if self._wrote:  # fold the WAL into the main file; readers (report, export) never wait for this
+                    try:
+                        self._conn.execute("PRAGMA busy_timeout = 200")
+                        self._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+                    except sqlite3.DatabaseError:
+                        pass  # another connection is busy; the data is safe in the WAL regardless
+                self._conn.close()
+                self._conn = None
+
+    @property
+    def closed(self) -> bool:
+        return self._conn is None
+
+    def __enter__(self) -> "Journal":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Journal({str(self.path)!r}{', closed' if self.closed else ''})"
+
+    # ------------------------------------------------------------------ plumbing
+    def _db(self) -> sqlite3.Connection:
+        if self._conn is None:
+            raise JournalError(f"{self.path}: journal is closed")
+        return self._conn
+
+    def _write(self, sql: str, params: tuple) -> sqlite3.Cursor:
+        """One statement in one committed transaction."""
+        with self._lock:
+            db = self._db()
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                cur = db.execute(sql, params)
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
+            self._wrote = True
+            return cur
+
+    def _query(self, sql: str, params: tuple = ()) -> list[sqlite3.Row]:
+        with self._lock:
+            db = self._db()
+            cur = db.execute(sql, params)
+            names = [d[0] for d in cur.description]
+            return [dict(zip(names, row)) for row in cur.fetchall()]
+
+    # ------------------------------------------------------------------ run
+    def run_info(self) -> dict:
+        """The run's identity: procedure text and name, seed, version, backend, strategy, state."""
+        rows = self._query("SELECT * FROM run WHERE id = 1")
+        if not rows:
+            raise InputFormatError(str(self.path), "table run", "not a journal (no run record)")
+        info = dict(rows[0])
+        info.pop("id", None)
+        fin = self._query("SELECT summary, utc FROM finish WHERE id = 1")
+        info["finished"] = bool(fin)
+        info["summary"] = json.loads(fin[0]["summary"]) if fin else None
+        info["finished_utc"] = fin[0]["utc"] if fin else None
+        return info
+
+    def finish(self, summary: dict) -> None:
+        """Store the summary (the ``summary.json`` document) and mark the run finished."""
+        try:
+            self._write("INSERT INTO finish (id, summary, utc) VALUES (1, ?, ?)", (_to_json(dict(summary)), _utc_now()))
+        except sqlite3.IntegrityError:
+            raise JournalError(f"{self.path}: run already finished") from None
+
+    # ------------------------------------------------------------------ measurements
+    def add_measurement(self, m: Measurement, *, iteration: int, role: str) -> int:
+        """Append one measurement; committed before return. Returns its 1-based sequence number.
+
+        Parameters
+        ----------
+        m : Measurement
+            The measured frequency, response and error bound.
+        iteration : int
+            Loop iteration that requested it (0 for the initial points).
+        role : {"initial", "added"}
+            Initial design point or a point chosen by input design.
+        """
+        if role not in ROLES:
+            raise JournalError(f"{self.path}: measurement role {role!r}; expected one of {', '.join(ROLES)}")
+        omega, g, bound = float(m.omega_rad_s), complex(m.response), float(m.bound)
+        if not (math.isfinite(omega) and math.isfinite(g.real) and math.isfinite(g.imag) and math.isfinite(bound)):
+            raise JournalError(f"{self.path}: refusing a non-finite measurement at omega {omega:g} rad/s")
+        with self._lock:
+            db = self._db()
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                seq = db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM measurement").fetchone()[0]
+                db.execute(
+                    "INSERT INTO measurement (seq, iteration, role, omega_rad_s, re, im, bound, utc) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                    (seq, int(iteration), role, omega, g.real, g.imag, bound, _utc_now()),
+                )
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
+            self._wrote = True
+        return int(seq)
+
+    def measurement_rows(self) -> list[dict]:
+        """Rows ``seq, iteration, role, omega_rad_s, re, im, bound, utc`` in sequence order."""
+        return self._query("SELECT seq, iteration, role, omega_rad_s, re, im, bound, utc FROM measurement ORDER BY seq")
+
+    def measurements(self) -> list[Measurement]:
+        """All stored measurements in sequence order."""
+        return [Measurement(r["omega_rad_s"], complex(r["re"], r["im"]), r["bound"]) for r in self.measurement_rows()]
+
+    def n_measurements(self) -> int:
+        return int(self._query("SELECT COUNT(*) AS n FROM measurement")[0]["n"])
+
+    # ------------------------------------------------------------------ iterations
+    def add_iteration(self, record: IterationRecord) -> None:
+        """Append one iteration's results; a second record for the same ``k`` is refused."""
+        values = []
+        for name in _ITERATION_COLUMNS:
+            v = getattr(record, name)
+            if name in _ARRAY_FIELDS:
+                v = _to_json(np.asarray(v, dtype=float))
+            elif name == "sensitivities":
+                v = _to_json(dict(v))
+            elif name in ("k", "n_points", "controller_order"):
+                v = int(v)
+            elif name == "safeguard":
+                v = str(v)
+            else:
+                v = _opt_float(v)
+            values.append(v)
+        cols = ", ".join(_ITERATION_COLUMNS) + ", utc"
+        marks = ", ".join("?" * (len(_ITERATION_COLUMNS) + 1))
+        try:
+            self._write(f"INSERT INTO iteration ({cols}) VALUES ({marks})", tuple(values) + (_utc_now(),))
+        except sqlite3.IntegrityError as exc:
+            raise JournalError(f"{self.path}: iteration {record.k} is already stored ({exc})") from None
+
+    def iterations(self) -> list[IterationRecord]:
+        """All stored iterations, ordered by ``k``."""
+        out = []
+        for row in self._query(f"SELECT {', '.join(_ITERATION_COLUMNS)} FROM iteration ORDER BY k"):
+            kw: dict[str, Any] = {}
+            for name in _ITERATION_COLUMNS:
+                v = row[name]
+                if name in _ARRAY_FIELDS:
+                    v = np.asarray(json.loads(v), dtype=float)
+                elif name == "sensitivities":
+                    v = {k: float(x) for k, x in json.loads(v).items()}
+                elif name in ("mu_peak", "mu_peak_omega", "mu_lower_peak", "wall_s"):
+                    v = math.nan if v is None else float(v)
+                kw[name] = v
+            for name in ("lower", "upper"):
+                kw[name] = kw[name].reshape(-1, 4)
+            out.append(IterationRecord(**kw))
+        return out
+
+    # ------------------------------------------------------------------ discrepancy, events
+    def add_discrepancy(self, iteration: int, report: dict) -> None:
+        """Store the result of a discrepancy check (a JSON-able dict) for ``iteration``."""
+        self._write("INSERT INTO discrepancy (iteration, report, utc) VALUES (?, ?, ?)", (int(iteration), _to_json(dict(report)), _utc_now()))
+
+    def discrepancies(self) -> list[tuple[int, dict]]:
+        return [(int(r["iteration"]), json.loads(r["report"])) for r in self._query("SELECT iteration, report FROM discrepancy ORDER BY id")]
+
+    def add_event(self, kind: str, message: str) -> None:
+        """Record a fault, retry, interruption, resume or safeguard action."""
+        self._write("INSERT INTO event (kind, message, utc) VALUES (?, ?, ?)", (str(kind), str(message), _utc_now()))
+
+    def events(self) -> list[dict]:
+        """Events ``{"id", "kind", "message", "utc"}`` in the order recorded."""
+        return self._query("SELECT id, kind, message, utc FROM event ORDER BY id")
+
+    # ------------------------------------------------------------------ checks
+    def integrity_problems(self) -> list[str]:
+        """Problems found by SQLite's integrity check and the journal's own invariants (empty if sound)."""
+        problems = [r["integrity_check"] for r in self._query("PRAGMA integrity_check") if r["integrity_check"] != "ok"]
+        seqs = [r["seq"] for r in self._query("SELECT seq FROM measurement ORDER BY seq")]
+        if seqs != list(range(1, len(seqs) + 1)):
+            problems.append(f"measurement sequence numbers are not 1..{len(seqs)} without gaps")
+        ks = [r["k"] for r in self._query("SELECT k FROM iteration ORDER BY k")]
+        if ks != list(range(1, len(ks) + 1)):
+            problems.append(f"iterations are not 1..{len(ks)} without gaps")
+        return problems

@@ -1,0 +1,514 @@
+"""Procedure files (``procedures/*.toml``): loading and validation.
+
+A procedure file describes one campaign (thesis chapter 5 loop on one rig): the backend and
+its transport, the safety limits, the prior (``[[mode]]`` tables as in PRIOR.toml, section
+3.2.2 / 6.1), the noise model of simulated backends (section 6.2), the initial frequencies, the
+goal (``mu-bar <= mu_target``, eq. 5.1) and experiment budget, the input-design settings
+(section 5.2, 6.3.2) and the control weights W1, W2 (eq. 6.1, 6.13).
+
+Every key is described once, in :data:`SCHEMA` (table, key, type, unit, default, meaning); the
+validator, the unknown-key messages and ``docs/procedures.md`` all follow it. Every problem
+raises :class:`setmem_hil.errors.ProcedureError` naming the file, the table and the key::
+
+    procedures/x.toml: [[mode]] 2: omega_min 7.3 > omega_max 5.4
+    procedures/x.toml: [safety]: max_amplitude_n -1 must be > 0
+
+Example
+-------
+>>> p = parse_procedure_text('''
+... name = "tiny"
+... [[mode]]
+... omega_min = 0.9
+... omega_max = 1.1
+... zeta_max = 0.5
+... b1 = 0
+... [initial]
+... omega_rad_s = [0.8, 1.2]
+... ''', "tiny.toml")
+>>> p.prior.modes[0].omega_max, p.initial_omegas_rad_s
+(1.1, (0.8, 1.2))
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from setmem_hil.errors import InputFormatError, ProcedureError
+from setmem_hil.model.prior import ModePrior, Prior, parse_mode_table, parse_toml_text
+from setmem_hil.io.procedure import (
+    BACKENDS,
+    NOISE_PROFILES,
+    STRATEGIES,
+    BackendSettings,
+    Goal,
+    InputDesignSettings,
+    Procedure,
+    SafetyLimits,
+    SimulationSettings,
+)
+from setmem_hil.io.procedure_writer import format_procedure  # noqa: F401  (re-exported: load and write side by side)
+from setmem_hil.sim_backends.fake_device_core import FAULT_KINDS
+from setmem_hil.sim_backends.transport_faults import CAN_FAULT_KINDS, MODBUS_FAULT_KINDS
+from setmem_hil.model.weights import THESIS_WEIGHTS, Weights
+
+__all__ = ["load_procedure", "parse_procedure_text", "format_procedure", "parse_procedure_mapping", "KeySpec", "SCHEMA", "FAULT_KINDS"]
+
+# Fault kinds of the fake devices: the device core's (frame and data faults, FAULT_KINDS) plus
+# each transport's own; one source of truth in the device simulation modules.
+TRANSPORT_FAULT_KINDS = {"serial-loopback": (), "can-virtual": tuple(CAN_FAULT_KINDS), "modbus-loopback": tuple(MODBUS_FAULT_KINDS)}
+SEED_MAX = 2**63 - 1
+
+
+@dataclass(frozen=True)
+class KeySpec:
+    """One key of the procedure format.
+
+    ``kind``: ``number`` (finite float), ``integer``, ``bool``, ``string``, ``choice`` (one of
+    ``choices``), ``numbers`` (non-empty list of finite floats), ``strings``, ``table``
+    (sub-table with its own keys), ``free-table`` (passed through unchecked), ``tables``
+    (array of tables). Bounds ``gt``/``ge``/``le`` apply to numbers and integers.
+    """
+
+    table: str
+    key: str
+    kind: str
+    unit: str
+    default: Any
+    meaning: str
+    choices: tuple = ()
+    gt: float | None = None
+    ge: float | None = None
+    le: float | None = None
+
+
+_S, _SIM, _G, _ID = SafetyLimits(), SimulationSettings(), Goal(), InputDesignSettings()
+_W = THESIS_WEIGHTS
+_REQUIRED = "required"
+
+SCHEMA: tuple[KeySpec, ...] = (
+    # top level
+    KeySpec("", "name", "string", "", "file name stem", "Name of the procedure; used in the default output directory and stored in the journal."),
+    KeySpec("", "description", "string", "", "\"\"", "Free text shown in the report."),
+    KeySpec("", "seed", "integer", "", 1, "Random seed of the run (simulated noise, fault draws, random strategies); stored in the journal.", ge=0, le=SEED_MAX),
+    KeySpec("", "backend", "table", "", "", "Where the measurements come from."),
+    KeySpec("", "safety", "table", "", "", "Limits enforced by the drivers before any command is sent."),
+    KeySpec("", "mode", "tables", "", _REQUIRED, "The prior: one [[mode]] table per modelled mode, in ascending frequency (same keys as PRIOR.toml)."),
+    KeySpec("", "identification", "table", "", "", "Settings of the set-membership identification (section 3.2.3)."),
+    KeySpec("", "initial", "table", "", _REQUIRED, "The initial experiment design."),
+    KeySpec("", "goal", "table", "", "", "When the campaign stops."),
+    KeySpec("", "input_design", "table", "", "", "How the next frequency is chosen (chapter 5)."),
+    KeySpec("", "weights", "table", "", "", "Control-design weights W1 (unmodelled dynamics bound) and W2 (performance)."),
+    KeySpec("", "discrepancy", "table", "", "", "Model-discrepancy checks."),
+    # [backend]
+    KeySpec("backend", "kind", "choice", "", "sim", "Backend: the frequency-domain simulated beam or a fake device behind a loopback transport.", choices=BACKENDS),
+    KeySpec("backend", "simulation", "table", "", "", "The simulated structure (behind every backend, including the fake devices)."),
+    KeySpec("backend", "transport", "free-table", "", "{}", "Options passed unchanged to the transport (port URL, CAN channel, Modbus unit, timeouts...); see the drivers' documentation. Not allowed with kind = \"sim\"."),
+    KeySpec("backend", "faults", "table", "", "", "Fault injection of the fake devices (issue 8). Not allowed with kind = \"sim\"."),
+    KeySpec("backend.simulation", "noise_profile", "choice", "", _SIM.noise_profile, "Additive-noise bound R(omega) of section 6.2: fully damped model (6.3.2), SNR 10 (6.3.3), resonance noise (6.3.4) or none.", choices=NOISE_PROFILES),
+    KeySpec("backend.simulation", "noise_scale", "number", "", _SIM.noise_scale, "Multiplies the noise bound.", ge=0.0),
+    KeySpec("backend.simulation", "unmodelled_dynamics", "bool", "", _SIM.unmodelled_dynamics, "Keep modes 4-8 in the simulated truth and add |W1| to each point's bound."),
+    KeySpec("backend.faults", "rate", "number", "", 0.0, "Probability of each enabled fault per opportunity (per frame or per capture).", ge=0.0, le=1.0),
+    KeySpec("backend.faults", "kinds", "strings", "", "all", "Enabled fault kinds: " + ", ".join(FAULT_KINDS) + "; with can-virtual also " + ", ".join(CAN_FAULT_KINDS) + "; with modbus-loopback also " + ", ".join(MODBUS_FAULT_KINDS) + "."),
+    KeySpec("backend.faults", "seed", "integer", "", 0, "Seed of the fault draws.", ge=0, le=SEED_MAX),
+    KeySpec("backend.faults", "rates", "kind-rates", "", "{}", "Per-kind probabilities overriding rate, e.g. rates = { timeout = 0.1, corrupt = 0.02 }."),
+    # [safety]
+    KeySpec("safety", "max_amplitude_n", "number", "N", _S.max_amplitude_n, "Largest exciter amplitude ever commanded.", gt=0.0),
+    KeySpec("safety", "omega_min_rad_s", "number", "rad/s", _S.omega_min_rad_s, "Lowest excitation frequency allowed.", gt=0.0),
+    KeySpec("safety", "omega_max_rad_s", "number", "rad/s", _S.omega_max_rad_s, "Highest excitation frequency allowed (must exceed omega_min_rad_s).", gt=0.0),
+    KeySpec("safety", "max_dwell_s", "number", "s", _S.max_dwell_s, "Longest single sine dwell (settling plus averaging).", gt=0.0),
+    # [[mode]] (validated by setmem_hil.model.prior.parse_mode_table)
+    KeySpec("mode", "omega_min", "number", "rad/s", _REQUIRED, "Lower bound of the natural frequency.", gt=0.0),
+    KeySpec("mode", "omega_max", "number", "rad/s", _REQUIRED, "Upper bound of the natural frequency (>= omega_min)."),
+    KeySpec("mode", "zeta_max", "number", "", _REQUIRED, "Upper bound of the damping ratio, in (0, 10].", gt=0.0, le=10.0),
+    KeySpec("mode", "b1", "number", "", "free", "Fix b1 (b1 = 0 for a displacement sensor, section 6.2.2)."),
+    KeySpec("mode", "b1_min", "number", "", "-inf", "Lower bound of b1 (instead of b1)."),
+    KeySpec("mode", "b1_max", "number", "", "+inf", "Upper bound of b1 (instead of b1)."),
+    KeySpec("mode", "b0_min", "number", "", "-inf", "Lower bound of the residue b0."),
+    KeySpec("mode", "b0_max", "number", "", "+inf", "Upper bound of the residue b0."),
+    # [identification]
+    KeySpec("identification", "gamma", "number", "", 1.1, "Target embedding conservatism ratio of the partitioning (section 3.2.3); > 1.", gt=1.0),
+    KeySpec("identification", "max_partitions", "integer", "", 200, "Largest number of frequency partitions per mode.", ge=1),
+    # [initial]
+    KeySpec("initial", "omega_rad_s", "numbers", "rad/s", _REQUIRED, "Initial frequencies, measured in this order (give this or log_spaced).", gt=0.0),
+    KeySpec("initial", "log_spaced", "table", "", "", "Initial frequencies log-spaced: numpy.geomspace(min, max, n) (give this or omega_rad_s)."),
+    KeySpec("initial.log_spaced", "min", "number", "rad/s", _REQUIRED, "Lowest initial frequency.", gt=0.0),
+    KeySpec("initial.log_spaced", "max", "number", "rad/s", _REQUIRED, "Highest initial frequency (>= min).", gt=0.0),
+    KeySpec("initial.log_spaced", "n", "integer", "", _REQUIRED, "Number of points (>= 2 unless min = max).", ge=1, le=100000),
+    # [goal]
+    KeySpec("goal", "mu_target", "number", "", _G.mu_target, "Stop when the peak of mu-bar (robust performance, eq. 5.1) is at or below this.", gt=0.0),
+    KeySpec("goal", "max_experiments", "integer", "", _G.max_experiments, "Experiment budget: the campaign stops after this many experiments added by input design.", ge=0, le=100000),
+    # [input_design]
+    KeySpec("input_design", "strategy", "choice", "", _ID.strategy, "mu: the thesis's mu-sensitivity design (chapter 5); log-sweep, random, max-reduction: comparison strategies.", choices=STRATEGIES),
+    KeySpec("input_design", "candidates_base", "integer", "", _ID.candidates_base, "Number of candidate frequencies at the first iteration (section 6.3.2: 500).", ge=1, le=10**7),
+    KeySpec("input_design", "candidates_per_iteration", "integer", "", _ID.candidates_per_iteration, "Candidates added per iteration (section 6.3.2: 500 + 25 k).", ge=0, le=10**6),
+    KeySpec("input_design", "candidate_omega_min_rad_s", "number", "rad/s", _ID.candidate_omega_min_rad_s, "Lowest candidate frequency (inside the safety range).", gt=0.0),
+    KeySpec("input_design", "candidate_omega_max_rad_s", "number", "rad/s", _ID.candidate_omega_max_rad_s, "Highest candidate frequency (inside the safety range).", gt=0.0),
+    KeySpec("input_design", "exact_resolve_top", "integer", "", _ID.exact_resolve_top, "The best candidates re-identified exactly before choosing.", ge=0, le=10**6),
+    # [weights]
+    KeySpec("weights", "w1_num", "numbers", "", "thesis eq. 6.1", "W1 numerator coefficients, highest power of s first."),
+    KeySpec("weights", "w1_den", "numbers", "", "thesis eq. 6.1", "W1 denominator coefficients (stable, degree >= numerator's)."),
+    KeySpec("weights", "w2_num", "numbers", "", "thesis eq. 6.13", "W2 numerator coefficients, highest power of s first."),
+    KeySpec("weights", "w2_den", "numbers", "", "thesis eq. 6.13", "W2 denominator coefficients (stable, degree >= numerator's)."),
+    KeySpec("weights", "w2_extra_pole_rad_s", "number", "rad/s", _W.w2_extra_pole_rad_s, "Extra W2 pole for the H2 design (section 6.3.1); 0 for none.", ge=0.0),
+    # [discrepancy]
+    KeySpec("discrepancy", "check_each_iteration", "bool", "", False, "After every iteration, check where model and data disagree and name the missing effect (setmem_hil.discrepancy.workflow); results go to the journal and the report, the campaign's choices are unchanged."),
+)
+
+_BY_TABLE: dict[str, dict[str, KeySpec]] = {}
+for _spec in SCHEMA:
+    _BY_TABLE.setdefault(_spec.table, {})[_spec.key] = _spec
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:g}"
+    text = repr(v) if isinstance(v, str) else str(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _type_name(v: Any) -> str:
+    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "an array", dict: "a table"}.get(type(v), type(v).__name__)
+
+
+class _Table:
+    """A parsed TOML table plus where it is, for messages."""
+
+    def __init__(self, source: str, name: str, mapping: Any, location: str | None = None):
+        self.source, self.name = source, name
+        self.location = location or (f"[{name}]" if name else "top level")
+        if not isinstance(mapping, Mapping):
+            raise self.error(f"expected a table, found {_type_name(mapping)} {_fmt(mapping)}")
+        self.mapping = mapping
+        allowed = _BY_TABLE.get(name, {})
+        for key in mapping:
+            if key not in allowed:
+                close = difflib.get_close_matches(str(key), list(allowed), n=1)
+                hint = f"; did you mean {close[0]!r}?" if close else ""
+                raise self.error(f"unknown key {key!r}{hint} (allowed: {', '.join(allowed)})")
+
+    def error(self, problem: str) -> ProcedureError:
+        return ProcedureError(self.source, self.location, problem)
+
+    def has(self, key: str) -> bool:
+        return key in self.mapping
+
+    def sub(self, key: str) -> "_Table":
+        return _Table(self.source, f"{self.name}.{key}" if self.name else key, self.mapping.get(key, {}))
+
+    def get(self, key: str, default: Any = None) -> Any:
+        spec = _BY_TABLE[self.name][key]
+        if key not in self.mapping:
+            if default is None and spec.default == _REQUIRED:
+                raise self.error(f"missing key {key!r} ({spec.meaning})")
+            return default
+        v = self.mapping[key]
+        kind = spec.kind
+        if kind == "number":
+            return self._bounded(spec, self._number(key, v))
+        if kind == "integer":
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise self.error(f"{key}: expected an integer, found {_type_name(v)} {_fmt(v)}")
+            return int(self._bounded(spec, v))
+        if kind == "bool":
+            if not isinstance(v, bool):
+                raise self.error(f"{key}: expected true or false, found {_type_name(v)} {_fmt(v)}")
+            return v
+        if kind in ("string", "choice"):
+            if not isinstance(v, str):
+                raise self.error(f"{key}: expected a string, found {_type_name(v)} {_fmt(v)}")
+            if kind == "choice" and v not in spec.choices:
+                raise self.error(f"{key} {v!r} is not one of {', '.join(repr(c) for c in spec.choices)}")
+            return v
+        if kind == "numbers":
+            if not isinstance(v, list) or not v:
+                raise self.error(f"{key}: expected a non-empty array of numbers, found {_type_name(v)} {_fmt(v)}")
+            return tuple(self._bounded(spec, self._number(f"{key}[{i}]", x), f"{key}[{i}]") for i, x in enumerate(v))
+        if kind == "strings":
+            if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+                raise self.error(f"{key}: expected an array of strings, found {_type_name(v)} {_fmt(v)}")
+            return tuple(v)
+        raise AssertionError(f"schema kind {kind!r} read through get()")  # pragma: no cover (programming error)
+
+    def _number(self, key: str, v: Any) -> float:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self.error(f"{key}: expected a number, found {_type_name(v)} {_fmt(v)}")
+        x = float(v)
+        if not math.isfinite(x):
+            raise self.error(f"{key}: expected a finite number, found {_fmt(v)}")
+        return x
+
+    def _bounded(self, spec: KeySpec, x: float, label: str | None = None) -> float:
+        label = label or spec.key
+        if spec.gt is not None and not x > spec.gt:
+            raise self.error(f"{label} {_fmt(x)} must be > {_fmt(spec.gt)}")
+        if spec.ge is not None and not x >= spec.ge:
+            raise self.error(f"{label} {_fmt(x)} must be >= {_fmt(spec.ge)}")
+        if spec.le is not None and not x <= spec.le:
+            raise self.error(f"{label} {_fmt(x)} must be <= {_fmt(spec.le)}")
+        return x
+
+
+def _backend(top: _Table) -> BackendSettings:
+    t = top.sub("backend")
+    kind = t.get("kind", "sim")
+    s = t.sub("simulation")
+    sim = SimulationSettings(
+        noise_profile=s.get("noise_profile", _SIM.noise_profile),
+        noise_scale=s.get("noise_scale", _SIM.noise_scale),
+        unmodelled_dynamics=s.get("unmodelled_dynamics", _SIM.unmodelled_dynamics),
+    )
+    transport = t.mapping.get("transport", {})
+    if not isinstance(transport, Mapping):
+        raise ProcedureError(top.source, "[backend.transport]", f"expected a table, found {_type_name(transport)} {_fmt(transport)}")
+    faults: dict[str, Any] = {}
+    if t.has("faults"):
+        f = t.sub("faults")
+        known = tuple(FAULT_KINDS) + TRANSPORT_FAULT_KINDS.get(kind, ())
+        faults = {"rate": f.get("rate", 0.0), "seed": f.get("seed", 0)}
+        if f.has("kinds"):  # absent: every kind the backend knows (the drivers' default)
+            kinds = f.get("kinds")
+            bad = [k for k in kinds if k not in known]
+            if bad:
+                raise f.error(f"kinds: unknown fault kind {bad[0]!r} for backend {kind!r} (known: {', '.join(known)})")
+            faults["kinds"] = list(kinds)
+        if f.has("rates"):
+            rates = f.mapping["rates"]
+            where = "[backend.faults.rates]"
+            if not isinstance(rates, Mapping):
+                raise ProcedureError(top.source, where, f"expected a table of kind = probability, found {_type_name(rates)} {_fmt(rates)}")
+            for k, r in rates.items():
+                if k not in known:
+                    close = difflib.get_close_matches(str(k), list(known), n=1)
+                    hint = f"; did you mean {close[0]!r}?" if close else ""
+                    raise ProcedureError(top.source, where, f"unknown fault kind {k!r}{hint} (known: {', '.join(known)})")
+                if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 <= float(r) <= 1.0:
+                    raise ProcedureError(top.source, where, f"{k}: expected a probability in [0, 1], found {_fmt(r)}")
+            faults["rates"] = {str(k): float(r) for k, r in rates.items()}
+    if kind == "sim":
+        for key in ("transport", "faults"):
+            if t.has(key):
+                raise ProcedureError(top.source, f"[backend.{key}]", f"only used by transport backends ({', '.join(BACKENDS[1:])}); kind is 'sim'")
+    return BackendSettings(kind=kind, simulation=sim, transport=dict(transport), faults=faults)
+
+
+def _safety(top: _Table) -> SafetyLimits:
+    t = top.sub("safety")
+    limits = SafetyLimits(
+        max_amplitude_n=t.get("max_amplitude_n", _S.max_amplitude_n),
+        omega_min_rad_s=t.get("omega_min_rad_s", _S.omega_min_rad_s),
+        omega_max_rad_s=t.get("omega_max_rad_s", _S.omega_max_rad_s),
+        max_dwell_s=t.get("max_dwell_s", _S.max_dwell_s),
+    )
+    if limits.omega_min_rad_s >= limits.omega_max_rad_s:
+        raise t.error(f"omega_min_rad_s {_fmt(limits.omega_min_rad_s)} must be < omega_max_rad_s {_fmt(limits.omega_max_rad_s)}")
+    return limits
+
+
+def _prior(top: _Table) -> Prior:
+    source = top.source
+    if "mode" not in top.mapping:
+        raise ProcedureError(source, "[[mode]]", "missing: give one [[mode]] table per modelled mode (the prior)")
+    tables = top.mapping["mode"]
+    if isinstance(tables, Mapping):
+        raise ProcedureError(source, "[[mode]]", "found a single [mode] table; write [[mode]] (an array of tables, one per mode)")
+    if not isinstance(tables, list) or not tables:
+        raise ProcedureError(source, "[[mode]]", f"expected one or more [[mode]] tables, found {_type_name(tables)} {_fmt(tables)}")
+    modes: list[ModePrior] = []
+    for i, table in enumerate(tables):
+        try:
+            modes.append(parse_mode_table(table, source, i + 1))
+        except ProcedureError:
+            raise
+        except InputFormatError as exc:
+            raise ProcedureError(exc.source, exc.location, exc.problem) from None
+    for i in range(1, len(modes)):
+        if modes[i].omega_min < modes[i - 1].omega_min:
+            raise ProcedureError(
+                source, f"[[mode]] {i + 1}",
+                f"modes must be in ascending frequency: omega_min {_fmt(modes[i].omega_min)} < omega_min {_fmt(modes[i - 1].omega_min)} of [[mode]] {i}",
+            )
+    ident = top.sub("identification")
+    return Prior(tuple(modes), gamma=ident.get("gamma", 1.1), max_partitions=ident.get("max_partitions", 200))
+
+
+def _initial(top: _Table, safety: SafetyLimits) -> tuple[float, ...]:
+    if "initial" not in top.mapping:
+        raise ProcedureError(top.source, "[initial]", "missing: give omega_rad_s = [...] or log_spaced = {min = ..., max = ..., n = ...}")
+    t = top.sub("initial")
+    if t.has("omega_rad_s") == t.has("log_spaced"):
+        raise t.error("give exactly one of omega_rad_s and log_spaced")
+    if t.has("omega_rad_s"):
+        omegas = t.get("omega_rad_s")
+    else:
+        ls = t.sub("log_spaced")
+        w_lo, w_hi, n = ls.get("min"), ls.get("max"), ls.get("n")
+        if w_lo > w_hi:
+            raise ls.error(f"min {_fmt(w_lo)} > max {_fmt(w_hi)}")
+        if n < 2 and w_lo != w_hi:
+            raise ls.error(f"n {n} must be >= 2 when min < max")
+        omegas = tuple(float(w) for w in np.geomspace(w_lo, w_hi, n))
+    seen: dict[float, int] = {}
+    for i, w in enumerate(omegas):
+        if not safety.omega_min_rad_s <= w <= safety.omega_max_rad_s:
+            raise t.error(
+                f"initial frequency {i + 1} ({_fmt(w)} rad/s) is outside the [safety] range "
+                f"[{_fmt(safety.omega_min_rad_s)}, {_fmt(safety.omega_max_rad_s)}] rad/s"
+            )
+        if w in seen:
+            raise t.error(f"initial frequency {i + 1} ({_fmt(w)} rad/s) repeats frequency {seen[w] + 1}")
+        seen[w] = i
+    return tuple(omegas)
+
+
+def _goal(top: _Table) -> Goal:
+    t = top.sub("goal")
+    return Goal(mu_target=t.get("mu_target", _G.mu_target), max_experiments=t.get("max_experiments", _G.max_experiments))
+
+
+def _input_design(top: _Table, safety: SafetyLimits) -> InputDesignSettings:
+    t = top.sub("input_design")
+    s = InputDesignSettings(
+        strategy=t.get("strategy", _ID.strategy),
+        candidates_base=t.get("candidates_base", _ID.candidates_base),
+        candidates_per_iteration=t.get("candidates_per_iteration", _ID.candidates_per_iteration),
+        candidate_omega_min_rad_s=t.get("candidate_omega_min_rad_s", _ID.candidate_omega_min_rad_s),
+        candidate_omega_max_rad_s=t.get("candidate_omega_max_rad_s", _ID.candidate_omega_max_rad_s),
+        exact_resolve_top=t.get("exact_resolve_top", _ID.exact_resolve_top),
+    )
+    if s.candidate_omega_min_rad_s >= s.candidate_omega_max_rad_s:
+        raise t.error(f"candidate_omega_min_rad_s {_fmt(s.candidate_omega_min_rad_s)} must be < candidate_omega_max_rad_s {_fmt(s.candidate_omega_max_rad_s)}")
+    if s.candidate_omega_min_rad_s < safety.omega_min_rad_s:
+        raise t.error(f"candidate_omega_min_rad_s {_fmt(s.candidate_omega_min_rad_s)} is below [safety] omega_min_rad_s {_fmt(safety.omega_min_rad_s)}")
+    if s.candidate_omega_max_rad_s > safety.omega_max_rad_s:
+        raise t.error(f"candidate_omega_max_rad_s {_fmt(s.candidate_omega_max_rad_s)} exceeds [safety] omega_max_rad_s {_fmt(safety.omega_max_rad_s)}")
+    return s
+
+
+def _check_weight(t: _Table, name: str, num: tuple[float, ...], den: tuple[float, ...]) -> None:
+    if den[0] == 0.0:
+        raise t.error(f"{name}_den: leading coefficient must be non-zero")
+    if len(np.trim_zeros(np.asarray(num), "f")) == 0:
+        raise t.error(f"{name}_num: all coefficients are zero")
+    if len(num) > len(den):
+        raise t.error(f"{name}: numerator degree {len(num) - 1} exceeds denominator degree {len(den) - 1} (improper weight)")
+    if len(den) > 1:
+        with np.errstate(all="ignore"):
+            poles = np.roots(den)
+        if not np.all(np.isfinite(poles)):
+            raise t.error(f"{name}_den: cannot compute the poles")
+        bad = poles[poles.real >= 0]
+        if bad.size:
+            pole = complex(bad[0])
+            where = f"{pole.real:.4g}" if pole.imag == 0 else f"{pole.real:.4g} {'+-'[pole.imag < 0]} {abs(pole.imag):.4g}j"
+            raise t.error(f"{name}_den has a pole at s = {where} (the weight must be stable)")
+
+
+def _weights(top: _Table) -> Weights:
+    t = top.sub("weights")
+    w = Weights(
+        w1_num=t.get("w1_num", _W.w1_num),
+        w1_den=t.get("w1_den", _W.w1_den),
+        w2_num=t.get("w2_num", _W.w2_num),
+        w2_den=t.get("w2_den", _W.w2_den),
+        w2_extra_pole_rad_s=t.get("w2_extra_pole_rad_s", _W.w2_extra_pole_rad_s),
+    )
+    if w.w2_extra_pole_rad_s == 0.0:
+        w = Weights(w.w1_num, w.w1_den, w.w2_num, w.w2_den, None)
+    _check_weight(t, "w1", w.w1_num, w.w1_den)
+    _check_weight(t, "w2", w.w2_num, w.w2_den)
+    return w
+
+
+def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
+    """Validate a parsed procedure document.
+
+    Parameters
+    ----------
+    doc : mapping
+        The parsed TOML document.
+    source : str
+        File name for messages.
+    text : str
+        The file's text, kept in :attr:`Procedure.source_text` (stored in the journal).
+
+    Raises
+    ------
+    ProcedureError
+        Naming the file, the table and the key of the first problem found.
+    """
+    top = _Table(source, "", doc)
+    stem = Path(source).stem if source and not source.startswith("<") else ""
+    name = top.get("name", stem or "procedure")
+    if not name.strip():
+        raise top.error("name must not be empty")
+    if any(ord(c) < 32 for c in name):
+        raise top.error(f"name {name!r} contains control characters")
+    description = top.get("description", "")
+    seed = top.get("seed", 1)
+    backend = _backend(top)
+    safety = _safety(top)
+    prior = _prior(top)
+    initial = _initial(top, safety)
+    goal = _goal(top)
+    design = _input_design(top, safety)
+    weights = _weights(top)
+    discrepancy = top.sub("discrepancy").get("check_each_iteration", False)
+    return Procedure(
+        name=name,
+        prior=prior,
+        initial_omegas_rad_s=initial,
+        seed=seed,
+        backend=backend,
+        safety=safety,
+        goal=goal,
+        input_design=design,
+        weights=weights,
+        discrepancy_check=discrepancy,
+        description=description,
+        source_text=text,
+    )
+
+
+def parse_procedure_text(text: str, source: str = "<procedure>") -> Procedure:
+    """Parse and validate procedure TOML text (stored in :attr:`Procedure.source_text`).
+
+    Raises
+    ------
+    ProcedureError
+        For TOML syntax errors (with the line) and every validation problem.
+    """
+    if not isinstance(text, str):
+        raise ProcedureError(source, "", f"expected text, found {type(text).__name__}")
+    try:
+        doc = parse_toml_text(text, source)
+    except ProcedureError:
+        raise
+    except InputFormatError as exc:
+        raise ProcedureError(exc.source, exc.location, exc.problem) from None
+    except (ValueError, TypeError, RecursionError) as exc:  # tomllib edge cases (e.g. deep nesting)
+        raise ProcedureError(source, "", f"invalid TOML: {exc}") from None
+    return parse_procedure_mapping(doc, source, text)
+
+
+def load_procedure(path: str | os.PathLike) -> Procedure:
+    """Read and validate a procedure file; messages name ``path`` as given.
+
+    Raises
+    ------
+    ProcedureError
+        If the file cannot be read, is not valid TOML or does not validate.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProcedureError(str(path), "", f"cannot read: {exc}") from None
+    proc = parse_procedure_text(text, str(path))
+    return replace(proc, source_path=str(p))

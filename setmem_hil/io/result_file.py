@@ -1,0 +1,81 @@
+"""The identify result JSON (public contract, see README).
+
+``{"modes": [{"a1": [lo, hi], "a0": [lo, hi], "b1": [lo, hi], "b0": [lo, hi]}, ...],
+"conservatism": {"embedding_gamma": [...], "mismatch_ratio": [...]}, "iterations": N}``,
+modes in the prior's order. Readers need only ``modes`` (a simulation model may give
+zero-width intervals and omit the rest); extra keys are allowed and ignored.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from setmem_hil.errors import InputFormatError
+from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel
+
+
+def parse_result_mapping(doc: Any, source: str) -> IntervalModel:
+    """Validate a parsed result document and return its interval model."""
+    if not isinstance(doc, Mapping):
+        raise InputFormatError(source, "", f"expected a JSON object, found {type(doc).__name__}")
+    modes = doc.get("modes")
+    if not isinstance(modes, list) or not modes:
+        raise InputFormatError(source, "key 'modes'", "expected a non-empty list of modes")
+    lo = np.empty((len(modes), 4))
+    hi = np.empty((len(modes), 4))
+    for i, mode in enumerate(modes):
+        where = f"modes[{i}]"
+        if not isinstance(mode, Mapping):
+            raise InputFormatError(source, where, f"expected an object, found {type(mode).__name__}")
+        for j, name in enumerate(PARAM_NAMES):
+            pair = mode.get(name)
+            if not isinstance(pair, list) or len(pair) != 2:
+                raise InputFormatError(source, f"{where}.{name}", f"expected [lo, hi], found {pair!r}")
+            for k, v in enumerate(pair):
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+                    raise InputFormatError(source, f"{where}.{name}", f"expected finite numbers, found {pair!r}")
+            if pair[0] > pair[1]:
+                raise InputFormatError(source, f"{where}.{name}", f"lower bound {pair[0]} > upper bound {pair[1]}")
+            lo[i, j], hi[i, j] = float(pair[0]), float(pair[1])
+    return IntervalModel(lo, hi)
+
+
+def read_result(path: str | os.PathLike) -> IntervalModel:
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFormatError(str(path), "", f"cannot read: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise InputFormatError(str(path), f"line {exc.lineno}", f"invalid JSON: {exc.msg}") from None
+    return parse_result_mapping(doc, str(path))
+
+
+def result_document(model: IntervalModel, embedding_gamma, mismatch_ratio, iterations: int, **extra) -> dict[str, Any]:
+    def finite_or_null(values):  # JSON has no infinity: an unbounded ratio is written as null
+        return [float(v) if v is not None and math.isfinite(float(v)) else None for v in values]
+
+    doc: dict[str, Any] = {
+        "modes": model.named_intervals(),
+        "conservatism": {
+            "embedding_gamma": finite_or_null(embedding_gamma),
+            "mismatch_ratio": finite_or_null(mismatch_ratio),
+        },
+        "iterations": int(iterations),
+    }
+    doc.update(extra)
+    return doc
+
+
+def write_json(doc: Mapping[str, Any], path: str | os.PathLike) -> None:
+    """Write JSON atomically (temp file then rename) so a crash never leaves half a file."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    os.replace(tmp, path)

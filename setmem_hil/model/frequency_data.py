@@ -1,0 +1,60 @@
+"""Frequency-response data with per-point error bounds (eq. 3.7: ``|n(j omega)| <= R(omega)``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+from setmem_hil.campaign.experiment import Measurement
+
+
+@dataclass(frozen=True)
+class FrequencyData:
+    """Measured ``g(j omega_i)`` with absolute error bounds ``R_i``; arrays of equal length."""
+
+    omega_rad_s: np.ndarray
+    response: np.ndarray
+    bound: np.ndarray
+
+    def __post_init__(self):
+        w = np.atleast_1d(np.asarray(self.omega_rad_s, dtype=float))
+        g = np.atleast_1d(np.asarray(self.response, dtype=complex))
+        r = np.atleast_1d(np.asarray(self.bound, dtype=float))
+        if not (w.shape == g.shape == r.shape) or w.ndim != 1:
+            raise ValueError(f"omega, response, bound: expected equal 1-D shapes, found {w.shape}, {g.shape}, {r.shape}")
+        if np.any(~np.isfinite(w)) or np.any(w <= 0):
+            raise ValueError("omega_rad_s: expected finite positive frequencies")
+        if np.any(~np.isfinite(g)):
+            raise ValueError("response: expected finite values")
+        if np.any(~np.isfinite(r)) or np.any(r < 0):
+            raise ValueError("bound: expected finite non-negative bounds")
+        object.__setattr__(self, "omega_rad_s", w)
+        object.__setattr__(self, "response", g)
+        object.__setattr__(self, "bound", r)
+
+    def __len__(self) -> int:
+        return self.omega_rad_s.size
+
+    @classmethod
+    def from_measurements(cls, measurements: Iterable[Measurement]) -> "FrequencyData":
+        ms = list(measurements)
+        return cls(
+            np.array([m.omega_rad_s for m in ms], dtype=float),
+            np.array([m.response for m in ms], dtype=complex),
+            np.array([m.bound for m in ms], dtype=float),
+        )
+
+    def measurements(self) -> list[Measurement]:
+        return [Measurement(float(w), complex(g), float(r)) for w, g, r in zip(self.omega_rad_s, self.response, self.bound)]
+
+    def subset(self, index) -> "FrequencyData":
+        return FrequencyData(self.omega_rad_s[index], self.response[index], self.bound[index])
+
+    def appended(self, other: "FrequencyData") -> "FrequencyData":
+        return FrequencyData(
+            np.concatenate([self.omega_rad_s, other.omega_rad_s]),
+            np.concatenate([self.response, other.response]),
+            np.concatenate([self.bound, other.bound]),
+        )

@@ -1,0 +1,159 @@
+"""A priori knowledge for identification (thesis section 3.2.2, 6.1) and the prior TOML format.
+
+``PRIOR.toml`` (public contract, see README): one ``[[mode]]`` table per mode in ascending
+frequency with ``omega_min``, ``omega_max`` (rad/s) and ``zeta_max``; optional ``b1 = <value>``
+to fix ``b1`` (``b1 = 0`` for a displacement sensor), or ``b1_min``/``b1_max``; optional
+``b0_min``/``b0_max``. Top level: optional ``gamma = 1.1`` (target embedding conservatism ratio)
+and ``max_partitions = 200``.
+
+The prior gives ``a0 = omega_n^2`` in ``[omega_min^2, omega_max^2]`` and
+``a1 = 2 zeta omega_n`` in ``[0, 2 zeta_max omega_max]``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from setmem_hil.errors import InputFormatError
+from setmem_hil.model.modal_model import IntervalModel
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover
+    import tomli as tomllib  # type: ignore[no-redef]
+
+MODE_KEYS = ("omega_min", "omega_max", "zeta_max", "b1", "b1_min", "b1_max", "b0_min", "b0_max")
+PRIOR_TOP_KEYS = ("mode", "gamma", "max_partitions")
+
+
+@dataclass(frozen=True)
+class ModePrior:
+    """A priori bounds for one mode."""
+
+    omega_min: float
+    omega_max: float
+    zeta_max: float
+    b1_min: float = -math.inf
+    b1_max: float = math.inf
+    b0_min: float = -math.inf
+    b0_max: float = math.inf
+
+    @property
+    def b1_fixed(self) -> bool:
+        return self.b1_min == self.b1_max
+
+
+@dataclass(frozen=True)
+class Prior:
+    """Prior for all modes plus the partitioning settings of section 3.2.3."""
+
+    modes: tuple[ModePrior, ...]
+    gamma: float = 1.1
+    max_partitions: int = 200
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_modes(self) -> int:
+        return len(self.modes)
+
+    def initial_bounds(self) -> IntervalModel:
+        """Box of eq. (3.26)'s a priori bounds; unknown residues are +-inf."""
+        lo = np.array([[0.0, m.omega_min**2, m.b1_min, m.b0_min] for m in self.modes])
+        hi = np.array([[2 * m.zeta_max * m.omega_max, m.omega_max**2, m.b1_max, m.b0_max] for m in self.modes])
+        return IntervalModel(lo, hi)
+
+
+def _number(value: Any, source: str, where: str, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputFormatError(source, where, f"{key}: expected a number, found {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise InputFormatError(source, where, f"{key}: expected a finite number, found {value!r}")
+    return v
+
+
+def parse_mode_table(table: Any, source: str, index: int) -> ModePrior:
+    """Validate one ``[[mode]]`` table (1-based ``index`` for messages)."""
+    where = f"[[mode]] {index}"
+    if not isinstance(table, Mapping):
+        raise InputFormatError(source, where, f"expected a table, found {type(table).__name__}")
+    unknown = sorted(set(table) - set(MODE_KEYS))
+    if unknown:
+        raise InputFormatError(source, where, f"unknown key {unknown[0]!r}; allowed: {', '.join(MODE_KEYS)}")
+    for key in ("omega_min", "omega_max", "zeta_max"):
+        if key not in table:
+            raise InputFormatError(source, where, f"missing key {key!r}")
+    w_lo = _number(table["omega_min"], source, where, "omega_min")
+    w_hi = _number(table["omega_max"], source, where, "omega_max")
+    z_hi = _number(table["zeta_max"], source, where, "zeta_max")
+    if w_lo <= 0:
+        raise InputFormatError(source, where, f"omega_min {w_lo:g} must be > 0")
+    if w_lo > w_hi:
+        raise InputFormatError(source, where, f"omega_min {w_lo:g} > omega_max {w_hi:g}")
+    if not 0 < z_hi <= 10:
+        raise InputFormatError(source, where, f"zeta_max {z_hi:g} must be in (0, 10]")
+    kwargs: dict[str, float] = {}
+    if "b1" in table:
+        if "b1_min" in table or "b1_max" in table:
+            raise InputFormatError(source, where, "give either b1 (fixed) or b1_min/b1_max, not both")
+        b1 = _number(table["b1"], source, where, "b1")
+        kwargs.update(b1_min=b1, b1_max=b1)
+    for lo_key, hi_key in (("b1_min", "b1_max"), ("b0_min", "b0_max")):
+        for key in (lo_key, hi_key):
+            if key in table:
+                kwargs[key] = _number(table[key], source, where, key)
+        if lo_key in kwargs and hi_key in kwargs and kwargs[lo_key] > kwargs[hi_key]:
+            raise InputFormatError(source, where, f"{lo_key} {kwargs[lo_key]:g} > {hi_key} {kwargs[hi_key]:g}")
+    return ModePrior(w_lo, w_hi, z_hi, **kwargs)
+
+
+def parse_prior_mapping(doc: Mapping[str, Any], source: str, allow_extra: bool = False) -> Prior:
+    """Validate a parsed prior document (also used for the ``[[mode]]`` part of procedures)."""
+    if not allow_extra:
+        unknown = sorted(set(doc) - set(PRIOR_TOP_KEYS))
+        if unknown:
+            raise InputFormatError(source, f"key {unknown[0]!r}", f"unknown top-level key; allowed: {', '.join(PRIOR_TOP_KEYS)}")
+    tables = doc.get("mode")
+    if not isinstance(tables, list) or not tables:
+        raise InputFormatError(source, "[[mode]]", "expected at least one [[mode]] table")
+    modes = tuple(parse_mode_table(t, source, i + 1) for i, t in enumerate(tables))
+    for i in range(1, len(modes)):
+        if modes[i].omega_min < modes[i - 1].omega_min:
+            raise InputFormatError(
+                source, f"[[mode]] {i + 1}",
+                f"modes must be in ascending frequency: omega_min {modes[i].omega_min:g} < {modes[i - 1].omega_min:g} of [[mode]] {i}",
+            )
+    gamma = _number(doc.get("gamma", 1.1), source, "key 'gamma'", "gamma")
+    if gamma <= 1.0:
+        raise InputFormatError(source, "key 'gamma'", f"gamma {gamma:g} must be > 1")
+    max_partitions = doc.get("max_partitions", 200)
+    if isinstance(max_partitions, bool) or not isinstance(max_partitions, int) or max_partitions < 1:
+        raise InputFormatError(source, "key 'max_partitions'", f"expected a positive integer, found {max_partitions!r}")
+    return Prior(modes, gamma, max_partitions)
+
+
+def load_toml(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a TOML file; syntax errors become :class:`InputFormatError` with the line."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFormatError(str(path), "", f"cannot read: {exc}") from None
+    return parse_toml_text(text, str(path))
+
+
+def parse_toml_text(text: str, source: str) -> dict[str, Any]:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputFormatError(source, "", f"invalid TOML: {exc}") from None
+
+
+def read_prior(path: str | os.PathLike) -> Prior:
+    return parse_prior_mapping(load_toml(path), str(path))

@@ -1,0 +1,303 @@
+"""The run report: ``setmem-hil report DIR`` writes ``DIR/report.html`` with PNG figures.
+
+Plain HTML (no JavaScript, nothing fetched from the network); the PNGs sit next to it, so the
+directory can be zipped or copied as is. Contents, all read from the run's journal:
+
+* the run: procedure name and description, seed, software version, backend, strategy, state,
+  outcome (the summary);
+* figure 6-12: peak mu-bar per iteration labelled with the chosen frequency;
+* figure 6-13: mu-bar against frequency per iteration;
+* figure 6-14: estimated improvement against candidate frequency, per iteration;
+* the data with the model's uncertainty as the nine sample transfer functions of Table 6-6
+  and their pole-zero pattern (figures 6-9/6-10, 6-15/6-16, 6-18/6-19, 6-23/6-24), after the
+  initial data, the first two added points and at the end;
+* per iteration, the parameter intervals and mu-sensitivities (appendix B tables);
+* the discrepancy results, when a check was run; the events (faults, interruptions, resumes);
+* the measurements and the procedure text.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from setmem_hil.errors import SetmemError
+from setmem_hil.io.journal import IterationRecord, Journal, journal_path
+from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel
+
+__all__ = ["write_report", "REPORT_FILENAME", "FIGURE_FILES", "figure_iterations"]
+
+REPORT_FILENAME = "report.html"
+FIGURE_FILES = {
+    "mu_peak": "fig_mu_peak.png",
+    "mu_vs_omega": "fig_mu_vs_omega.png",
+    "improvement": "fig_improvement.png",
+}
+
+
+@dataclass(frozen=True)
+class _Run:
+    info: dict
+    measurements: list
+    rows: list
+    iterations: list[IterationRecord]
+    discrepancies: list
+    events: list
+
+
+def figure_iterations(iterations: Sequence[IterationRecord]) -> list[int]:
+    """Iterations that get sample-transfer-function and pole-zero figures.
+
+    As in the thesis: after the initial data (k = 1), after the first and second added points
+    (k = 2, 3) and the final model.
+    """
+    ks = [rec.k for rec in iterations]
+    chosen = [k for k in ks if k <= 3]
+    if ks and ks[-1] not in chosen:
+        chosen.append(ks[-1])
+    return chosen
+
+
+def _mu_target(procedure_text: str) -> float:
+    try:
+        from setmem_hil.io.procedure_file import parse_procedure_text
+
+        return float(parse_procedure_text(procedure_text, "<journal>").goal.mu_target)
+    except SetmemError:
+        return 1.0
+
+
+def _read(run_dir: Path) -> _Run:
+    j = Journal.open(run_dir)
+    try:
+        return _Run(j.run_info(), j.measurements(), j.measurement_rows(), j.iterations(), j.discrepancies(), j.events())
+    finally:
+        j.close()
+
+
+def _e(x: Any) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _num(x: Any, digits: int = 5) -> str:
+    if x is None:
+        return "-"
+    x = float(x)
+    if math.isnan(x):
+        return "nan"
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return f"{x:.{digits}g}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[Any]], table_id: str, caption: str = "") -> str:
+    out = [f'<table id="{_e(table_id)}">']
+    if caption:
+        out.append(f"<caption>{_e(caption)}</caption>")
+    out.append("<thead><tr>" + "".join(f"<th>{_e(h)}</th>" for h in header) + "</tr></thead><tbody>")
+    for row in rows:
+        out.append("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in row) + "</tr>")
+    out.append("</tbody></table>")
+    return "\n".join(out)
+
+
+def _figure(src: str, caption: str, fig_id: str) -> str:
+    return (f'<figure id="{_e(fig_id)}"><img src="{_e(src)}" alt="{_e(caption)}">'
+            f"<figcaption>{_e(caption)}</figcaption></figure>")
+
+
+def _after(iterations: Sequence[IterationRecord], k: int) -> str:
+    """Thesis caption wording: "after initial data points" / "after applying a sinusoid at ..."."""
+    if k == 1:
+        return "after the initial data points"
+    prev = next((r for r in iterations if r.k == k - 1), None)
+    if prev is not None and prev.next_omega is not None:
+        return f"after applying a sinusoid at {prev.next_omega:.4g} rad/s"
+    return f"at iteration {k}"
+
+
+def _interval_rows(rec: IterationRecord) -> list[list[str]]:
+    rows = []
+    for i in range(rec.lower.shape[0]):
+        for j, name in enumerate(PARAM_NAMES):
+            key = f"{name}_{i + 1}"
+            lo, hi = rec.lower[i, j], rec.upper[i, j]
+            sens = rec.sensitivities.get(key)
+            rows.append([f"{name}{i + 1}", _num(lo), _num(hi), "fixed" if lo == hi else _num(hi - lo), "-" if sens is None else _num(sens)])
+    return rows
+
+
+def write_report(run_dir: str | os.PathLike) -> Path:
+    """Write ``run_dir/report.html`` and its figures; returns the HTML path.
+
+    Works on finished and unfinished runs (it shows what the journal holds).
+
+    Raises
+    ------
+    InputFormatError
+        If ``run_dir`` holds no journal.
+    """
+    from setmem_hil.report import figures as figs
+
+    jp = journal_path(run_dir)
+    out_dir = jp.parent
+    run = _read(out_dir)
+    info, its = run.info, run.iterations
+    target = _mu_target(info["procedure_text"])
+    parts: list[str] = []
+    title = f"setmem-hil report: {info['procedure_name']}"
+
+    # -- run --------------------------------------------------------------------------------
+    summary = info.get("summary") or {}
+    state = "finished" if info["finished"] else "not finished (resume with setmem-hil run --resume)"
+    run_rows = [
+        ["procedure", info["procedure_name"]],
+        ["seed", info["seed"]],
+        ["software version", info["software_version"]],
+        ["backend", info["backend"]],
+        ["strategy", info["strategy"]],
+        ["started (UTC)", info["created_utc"]],
+        ["state", state],
+        ["measurements", len(run.measurements)],
+        ["iterations", len(its)],
+        ["goal", f"mu-bar < {target:g}"],
+    ]
+    if its:
+        run_rows.append(["last peak mu-bar", _num(its[-1].mu_peak)])
+    for key in ("reached_goal", "stop_reason", "experiments_added", "final_mu_peak", "wall_s"):
+        if key in summary:
+            run_rows.append([key.replace("_", " "), summary[key] if not isinstance(summary[key], float) else _num(summary[key])])
+    parts.append("<h2 id='run'>Run</h2>" + _table(["item", "value"], run_rows, "table-run"))
+
+    # -- summary figures ----------------------------------------------------------------------
+    parts.append("<h2 id='progress'>Progress of the campaign</h2>")
+    if its:
+        figs.mu_peak_figure(its, target, out_dir / FIGURE_FILES["mu_peak"])
+        parts.append(_figure(FIGURE_FILES["mu_peak"], "Peak mu-bar per iteration; each point is labelled with the frequency chosen for the next experiment (thesis figure 6-12).", "fig-mu-peak"))
+        figs.mu_vs_frequency_figure(its, target, out_dir / FIGURE_FILES["mu_vs_omega"])
+        parts.append(_figure(FIGURE_FILES["mu_vs_omega"], "mu-bar against frequency for each iteration (thesis figure 6-13).", "fig-mu-vs-omega"))
+        figs.improvement_figure(its, out_dir / FIGURE_FILES["improvement"])
+        parts.append(_figure(FIGURE_FILES["improvement"], "Estimated improvement of mu-bar for each candidate frequency; dashed: the chosen one (thesis figure 6-14).", "fig-improvement"))
+        rows = [[r.k, r.n_points, _num(r.mu_peak), _num(r.mu_peak_omega, 4), _num(r.mu_lower_peak), _num(r.next_omega, 6),
+                 r.safeguard, r.controller_order, f"{r.wall_s:.2f}"] for r in its]
+        parts.append(_table(["k", "points", "peak mu-bar", "at omega (rad/s)", "lower bound peak", "next omega (rad/s)",
+                             "eq. 5.12 branch", "controller order", "compute (s)"], rows, "table-iterations",
+                            "Iterations (the numbers behind figure 6-12)."))
+    else:
+        parts.append("<p>No iteration is stored yet.</p>")
+
+    # -- uncertainty ----------------------------------------------------------------------------
+    parts.append("<h2 id='uncertainty'>Data and model uncertainty</h2>")
+    parts.append("<p>Nine sample transfer functions from the parameter intervals (thesis Table 6-6: parameter value "
+                 "= midpoint + x (upper - midpoint)); they illustrate, but do not bound, the uncertainty. "
+                 "Points: the data used by the identification, with their error bounds.</p>")
+    for k in figure_iterations(its):
+        rec = next(r for r in its if r.k == k)
+        model = IntervalModel(rec.lower, rec.upper)
+        after = _after(its, k)
+        tf = f"fig_tf_k{k}.png"
+        pz = f"fig_pz_k{k}.png"
+        figs.sample_transfer_functions_figure(model, run.measurements[: rec.n_points], f"Sample transfer functions {after} (k = {k})", out_dir / tf)
+        figs.pole_zero_figure(model, f"Open-loop pole-zero pattern {after} (k = {k})", out_dir / pz)
+        parts.append(f"<h3>Iteration {k}: {_e(after)}</h3>")
+        parts.append(_figure(tf, f"Transfer functions {after} ({rec.n_points} points).", f"fig-tf-k{k}"))
+        parts.append(_figure(pz, f"Open-loop pole-zero pattern {after}.", f"fig-pz-k{k}"))
+
+    # -- appendix B tables ---------------------------------------------------------------------
+    parts.append("<h2 id='intervals'>Parameter intervals and mu-sensitivities</h2>")
+    parts.append("<p>Per iteration, as in the thesis's appendix B: the lower and upper bound of each parameter of "
+                 "G(s) = sum_i (b1_i s + b0_i) / (s^2 + a1_i s + a0_i) and its mu-sensitivity. Also the "
+                 "identification's conservatism (embedding gamma, mismatch ratio) per mode.</p>")
+    for n, rec in enumerate(its, start=1):
+        parts.append(_table(["parameter", "lower bound", "upper bound", "width", "mu-sensitivity"], _interval_rows(rec),
+                            f"table-intervals-k{rec.k}",
+                            f"Table {n}: the lower bounds, upper bounds and mu-sensitivities {_after(its, rec.k)} (k = {rec.k}, {rec.n_points} points)."))
+        cons = [[i + 1, _num(g), _num(m)] for i, (g, m) in enumerate(zip(np.atleast_1d(rec.embedding_gamma), np.atleast_1d(rec.mismatch_ratio)))]
+        if cons:
+            parts.append(_table(["mode", "embedding gamma", "mismatch ratio"], cons, f"table-conservatism-k{rec.k}"))
+
+    # -- discrepancy, events, measurements, procedure -------------------------------------------
+    parts.append("<h2 id='discrepancy'>Discrepancy checks</h2>")
+    if run.discrepancies:
+        for n, (k, report) in enumerate(run.discrepancies, start=1):
+            parts.append(_table(["item", "value"], _discrepancy_rows(report), f"table-discrepancy-{n}",
+                                f"Discrepancy check at iteration {k} ({_after(its, k)})."))
+    else:
+        parts.append("<p>No discrepancy check was run.</p>")
+    parts.append("<h2 id='events'>Events</h2>")
+    parts.append(_table(["time (UTC)", "kind", "message"], [[e["utc"], e["kind"], e["message"]] for e in run.events], "table-events")
+                 if run.events else "<p>None.</p>")
+    parts.append("<h2 id='measurements'>Measurements</h2>")
+    mrows = [[r["seq"], r["iteration"], r["role"], _num(r["omega_rad_s"], 6), _num(abs(complex(r["re"], r["im"]))),
+              _num(math.degrees(math.atan2(r["im"], r["re"])), 4), _num(r["bound"]), r["utc"]] for r in run.rows]
+    parts.append(_table(["#", "iteration", "role", "omega (rad/s)", "|G|", "phase (deg)", "bound", "time (UTC)"], mrows, "table-measurements"))
+    parts.append("<h2 id='procedure'>Procedure</h2><pre>" + _e(info["procedure_text"]) + "</pre>")
+
+    body = "\n".join(parts)
+    doc = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{_e(title)}</title>
+<style>
+body {{ font-family: sans-serif; max-width: 1000px; margin: 2em auto; color: #222; }}
+table {{ border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }}
+th, td {{ border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: right; }}
+th {{ background: #eee; }} caption {{ text-align: left; font-style: italic; padding: 0.3em 0; }}
+figure {{ margin: 1.5em 0; }} img {{ max-width: 100%; }} figcaption {{ font-style: italic; }}
+pre {{ background: #f6f6f6; padding: 1em; overflow-x: auto; }}
+</style></head>
+<body>
+<h1>{_e(title)}</h1>
+<p>{_e(_description(info["procedure_text"]))}</p>
+{body}
+</body></html>
+"""
+    path = out_dir / REPORT_FILENAME
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(doc, encoding="utf-8")
+    os.replace(tmp, path)
+    return path
+
+
+def _discrepancy_rows(report: dict) -> list[list[str]]:
+    """Key facts of a discrepancy report first (decision, effects, worst normalised residual
+    before and after, disagreement bands), then any other item, shortened."""
+    rows: list[list[str]] = []
+    shown = set()
+    if "decision" in report:
+        rows.append(["decision", str(report["decision"])])
+        shown.add("decision")
+    if isinstance(report.get("effects"), list):
+        names = [str(e.get("name", e)) if isinstance(e, dict) else str(e) for e in report["effects"]]
+        rows.append(["effects found", ", ".join(names) or "none"])
+        shown.add("effects")
+    for key in ("before", "after"):
+        part = report.get(key)
+        if isinstance(part, dict) and "max_normalized_residual" in part:
+            rows.append([f"worst normalised residual {key}", _num(part["max_normalized_residual"], 4)])
+            shown.add(key)
+    if "disagreement_bands" in report:
+        bands = report["disagreement_bands"] or []
+        text = ", ".join(f"{_num(b[0], 4)}-{_num(b[1], 4)} rad/s" if isinstance(b, (list, tuple)) and len(b) >= 2 else str(b) for b in bands)
+        rows.append(["disagreement bands", text or "none"])
+        shown.add("disagreement_bands")
+    for key, value in report.items():
+        if key in shown:
+            continue
+        text = value if isinstance(value, str) else json.dumps(value, default=str)
+        rows.append([key, text if len(text) <= 300 else text[:297] + "..."])
+    return rows
+
+
+def _description(procedure_text: str) -> str:
+    try:
+        from setmem_hil.io.procedure_file import parse_procedure_text
+
+        return parse_procedure_text(procedure_text, "<journal>").description
+    except SetmemError:
+        return ""
