@@ -35,14 +35,12 @@ attempt. ``KeyboardInterrupt`` stops the exciter and propagates.
 
 Example
 -------
->>> from setmem_hil.io.procedure import SafetyLimits, thesis_beam_prior
->>> from setmem_hil.sim_backends.core_rig import CoreRig
->>> from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
->>> with SineDwellExperiment(CoreRig(FakeDeviceCore(seed=1)), SafetyLimits(),
-...                          model=thesis_beam_prior().initial_bounds()) as exp:
+>>> from setmem_hil.experiment_factory import dwell_experiment
+>>> from setmem_hil.io.procedure import default_procedure
+>>> from setmem_hil.loopback.rigs import open_serial_loopback_rig
+>>> procedure = default_procedure()
+>>> with dwell_experiment(procedure, open_serial_loopback_rig(procedure, seed=1)) as exp:
 ...     m = exp.measure(3.0)
->>> bool(abs(m.response - FakeDeviceCore().true_response(3.0)[0]) <= m.bound)
-True
 """
 
 from __future__ import annotations
@@ -67,7 +65,7 @@ from setmem_hil.drivers.protocols import (
 )
 from setmem_hil.drivers.safety import SafeExciter, check_dwell, check_sine_command, output_guard, safe_stop
 from setmem_hil.errors import DataQualityError, DeviceError, SafetyLimitError
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 from setmem_hil.model.modal_model import IntervalModel, ModalParameters
 from setmem_hil.io.procedure import SafetyLimits
 from setmem_hil.estimation.sine_fit import (
@@ -244,7 +242,7 @@ def pole_bands(model: IntervalModel | ModalParameters | None, relative_band: flo
 
 
 class SineDwellExperiment:
-    """The :class:`setmem_hil.campaign.experiment.Experiment` protocol on a :class:`Rig`.
+    """The :class:`setmem_hil.model.experiment.Experiment` protocol on a :class:`Rig`.
 
     Parameters
     ----------
