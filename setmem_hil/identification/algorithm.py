@@ -69,6 +69,8 @@ class IdentificationResult:
     embedding_bound: np.ndarray
     optimizers: np.ndarray
     partitioned: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    verified: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    unverified_reason: tuple[str, ...] = ()
 
     def to_document(self) -> dict:
         """The identify RESULT.json dict (public contract)."""
@@ -103,9 +105,9 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
     """
     usable = np.isfinite(E)
     if not usable.any():
-        return lo, hi, np.full((4, 4), np.nan), np.full((4, 4), np.nan), np.inf, PartitionPlan(1, 1)
+        return lo, hi, np.full((4, 4), np.nan), np.full((4, 4), np.nan), np.inf, PartitionPlan(1, 1), ()
     omega, E_used = omega_all[usable], E[usable]
-    problem = OneModeProblem(omega, g_mode[usable], lo != hi, lo)
+    problem = OneModeProblem(omega, g_mode[usable], lo, hi)
     argmin = np.full((4, 4), np.nan)
     argmax = np.full((4, 4), np.nan)
     gamma, plan = np.inf, PartitionPlan(1, 1)
@@ -120,6 +122,7 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
         new_hi = np.full(4, -np.inf)
         gamma = 1.0
         certificates = []
+        unverified: list[str] = []
         for a0_lo, a0_hi, a1_lo, a1_hi in boxes:
             box_lo, box_hi = lo.copy(), hi.copy()
             box_lo[A0], box_hi[A0], box_lo[A1], box_hi[A1] = a0_lo, a0_hi, a1_lo, a1_hi
@@ -128,6 +131,7 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
             if not sol.feasible:
                 certificates.append(sol.certificate)
                 continue
+            unverified.extend(sol.unverified)
             gamma = max(gamma, conservatism_ratio(omega, a0_lo, a0_hi, a1_lo, a1_hi))
             for p in range(4):
                 if sol.lower[p] < new_lo[p]:
@@ -144,7 +148,7 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
         if not improved:
             break
     counter.n_solves += problem.n_solves
-    return lo, hi, argmin, argmax, gamma, plan
+    return lo, hi, argmin, argmax, gamma, plan, tuple(unverified)
 
 
 def _effective_bound(R: np.ndarray, mismatch: np.ndarray, mode: int) -> np.ndarray:
@@ -169,7 +173,7 @@ def _raise_inconsistent(omega, g, E, lo, hi, certificates: list, mode_index: int
     C = embedding_bound(omega, E, lo[A0], hi[A0], hi[A1])
     for j in involved:  # leave-one-out over the certificate's points (a handful of solves)
         keep = np.arange(omega.size) != j
-        if keep.any() and OneModeProblem(omega[keep], g[keep], lo != hi, lo).is_feasible(C[keep], lo, hi):
+        if keep.any() and OneModeProblem(omega[keep], g[keep], lo, hi).is_feasible(C[keep], lo, hi):
             suspects.append(omega[j])
     freqs = ", ".join(f"{w:.6g}" for w in np.sort(omega[involved]))
     hint = ""
@@ -233,6 +237,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
     optimizers = np.full((n, 4, 2, 4), np.nan)
     gammas = np.full(n, np.inf)
     plans = [PartitionPlan(1, 1)] * n
+    last_unverified: list[tuple[str, ...]] = [()] * n
     R = data.bound
 
     iterations = 0
@@ -245,7 +250,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
             E = _effective_bound(R, mode_mismatch_bounds(current, data.omega_rad_s), i)
             estimates = current.midpoint.mode_responses(data.omega_rad_s)
             g_mode = data.response - (estimates.sum(axis=0) - estimates[i])  # eq. (3.11)
-            new_lo, new_hi, amin, amax, gamma, plan = _one_mode_pass(
+            new_lo, new_hi, amin, amax, gamma, plan, unverified = _one_mode_pass(
                 data.omega_rad_s, g_mode, E, lo[i], hi[i], prior, allow_partition and settings.partition,
                 settings, i, counter,
             )
@@ -253,6 +258,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
             lo[i], hi[i] = new_lo, new_hi
             optimizers[i, :, 0, :], optimizers[i, :, 1, :] = amin, amax
             gammas[i], plans[i] = gamma, plan
+            last_unverified[i] = unverified
         if not any_improved:
             if allow_partition or not settings.partition:
                 break
@@ -281,4 +287,6 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         embedding_bound=C_all,
         optimizers=optimizers,
         partitioned=np.array([p.count > 1 for p in plans]),
+        verified=np.array([not u for u in last_unverified], dtype=bool),
+        unverified_reason=tuple("; ".join(u) for u in last_unverified),
     )
