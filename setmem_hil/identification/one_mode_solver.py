@@ -137,6 +137,13 @@ class OneModeProblem:
         b_soc[1::3] = r_c.real / self.sigma
         b_soc[2::3] = r_c.imag / self.sigma
         self._A_soc, self._b_soc = A_soc, b_soc
+        # absolute rounding error of the formed data: r_c carries the cancellation of
+        # (a0 - w^2) near resonance, bounded by a few ulps of its largest term
+        ag = np.abs(g)
+        err_rc = 8 * _EPS * (ag * (np.abs(c[1]) + w * w + w * np.abs(c[0])) + w * np.abs(c[2]) + np.abs(c[3])) / self.sigma
+        self._err_b = np.zeros(3 * n)
+        self._err_b[1::3] = err_rc
+        self._err_b[2::3] = err_rc
         self._abs_A_soc = np.abs(A_soc)
         A = np.vstack([A_soc, np.eye(p), -np.eye(p)])  # s = b - A y: cones, y <= hi, -y <= -lo
         self._A = sp.csc_matrix(A)
@@ -144,6 +151,9 @@ class OneModeProblem:
         self._cones = [clarabel.SecondOrderConeT(3) for _ in range(n)] + [clarabel.NonnegativeConeT(2 * p)]
         self._solvers: dict[str, object] = {}
         self.n_solves = 0
+        # (parameter index, +1 lower / -1 upper) -> (projected dual z, y-bound) of the last box,
+        # kept so tests can re-check every certificate independently
+        self.last_certificates: dict[tuple[int, int], tuple[np.ndarray, float]] = {}
 
     # -- coordinates -----------------------------------------------------------------------
     def _to_y(self, box_lo, box_hi):
@@ -183,7 +193,8 @@ class OneModeProblem:
         """Outward allowance for the rounding in ``b^T z`` and ``A^T z`` (a few ulps per term)."""
         k = (3 * self.n_points + self.n_free + 4) * _EPS * 2.0
         ymax = np.maximum(np.abs(ylo), np.abs(yhi))
-        return k * (np.abs(b_soc) @ np.abs(z) + ((self._abs_A_soc.T @ np.abs(z) + np.abs(q)) @ ymax))
+        return (k * (np.abs(b_soc) @ np.abs(z) + ((self._abs_A_soc.T @ np.abs(z) + np.abs(q)) @ ymax))
+                + self._err_b @ np.abs(z))
 
     def certified_lower(self, res, q, b, ylo, yhi) -> float:
         """Rigorous lower bound of ``q^T y`` over the feasible set, from the dual of ``res``."""
@@ -220,6 +231,7 @@ class OneModeProblem:
         Returns ``(bound, y_at, status, result)``; ``bound`` is ``-inf`` when no certificate.
         """
         best, y_at, status, res = -np.inf, None, "", None
+        self._best_z = None
         for mode in ("default", "tight"):
             res = self._solve(q, b, mode)
             status = str(res.status)
@@ -230,6 +242,7 @@ class OneModeProblem:
             bound = self.certified_lower(res, q, b, ylo, yhi)
             if bound > best:
                 best = bound
+                self._best_z = self._dual_soc(res)
                 y = np.asarray(res.x, dtype=float)
                 y_at = y if np.all(np.isfinite(y)) else None
             if status == SOLVED and y_at is not None:
@@ -253,12 +266,15 @@ class OneModeProblem:
         argmax = np.full((4, 4), np.nan)
         unverified: list[str] = []
         solves_before = self.n_solves
+        self.last_certificates = {}
         free_idx = np.flatnonzero(self.free)
         for k, p in enumerate(free_idx):
             for sign in (1.0, -1.0):
                 q = np.zeros(self.n_free)
                 q[k] = sign
                 bound, y_at, status, res = self._bound_objective(q, b, ylo, yhi)
+                if bound is not None and np.isfinite(bound):
+                    self.last_certificates[(int(p), int(sign))] = (self._best_z, float(bound))
                 if bound is None:
                     return BoxSolution(False, lower, upper, argmin, argmax, self.n_solves - solves_before,
                                        self._certificate(res))
