@@ -16,7 +16,7 @@ from collections import Counter
 
 import numpy as np
 
-from setmem_hil.drivers.retry import RetryPolicy
+from setmem_hil.drivers.transport import RetryPolicy
 from setmem_hil.drivers.serial_rig import SerialRig
 from setmem_hil.drivers.sine_dwell import SineDwellExperiment
 from setmem_hil.errors import DataQualityError, DeviceError

@@ -19,14 +19,10 @@ import can
 import numpy as np
 
 from setmem_hil.drivers import can_protocol as cp
-from setmem_hil.drivers.fieldbus_common import RetryPolicy, TransportStats, sleep_s
-from setmem_hil.errors import DeviceError, DeviceTimeoutError, FrameError
+from setmem_hil.drivers.transport import RetryPolicy, TransportStats, sleep_s
+from setmem_hil.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError, FrameError
 
 HOST_HEARTBEAT_PERIOD_S = 0.5
-
-
-class _BusDown(DeviceError):
-    """The host's bus went bus-off or raised CanOperationError (handled by reopening the bus)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -162,7 +158,7 @@ class CanLink:
         try:
             self._bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False))
         except can.CanError as exc:
-            raise _BusDown(str(exc)) from exc
+            raise DeviceDisconnectedError(str(exc)) from exc
 
     def _recv(self, timeout_s: float):
         """One decoded frame or None on timeout; bad frames are counted and skipped.
@@ -181,7 +177,7 @@ class CanLink:
             msg = self._bus.recv(timeout=max(timeout_s, 0.0))
         except can.CanError as exc:  # CanOperationError: controller fault, bus-off
             self.stats.add("bus_errors")
-            raise _BusDown(str(exc)) from exc
+            raise DeviceDisconnectedError(str(exc)) from exc
         if msg is None:
             return None
         try:
@@ -195,7 +191,7 @@ class CanLink:
         if isinstance(frame, cp.ErrorFrame):
             if frame.bus_off:
                 self.stats.add("bus_off")
-                raise _BusDown("bus-off error frame")
+                raise DeviceDisconnectedError("bus-off error frame")
             self.stats.add("error_frames")
             return False
         if isinstance(frame, cp.Heartbeat):
@@ -235,7 +231,7 @@ class CanLink:
             try:
                 self._send(arb, data)
                 reply = self._wait_reply(command, policy.reply_timeout_s)
-            except _BusDown:
+            except DeviceDisconnectedError:
                 reconnects += 1
                 if reconnects > self.settings.max_reconnects:
                     raise DeviceError(f"{self.where}: bus down {reconnects} times during {what}; giving up") from None
@@ -290,7 +286,7 @@ class CanLink:
             left = last_progress + gap - time.monotonic()
             try:
                 frame = self._recv(left) if left > 0 else None
-            except _BusDown:
+            except DeviceDisconnectedError:
                 self._reconnect_bounded("collecting samples")
                 return  # what is missing is requested again
             if frame is None:  # silence (heartbeats do not count as progress)

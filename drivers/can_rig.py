@@ -2,11 +2,11 @@
 
 The link (commands, retries, sample assembly, resend, bus-off recovery) is
 :class:`setmem_hil.drivers.can_link.CanLink`. :class:`CanRig` adds the exciter (limits checked
-before sending, via :func:`~setmem_hil.drivers.fieldbus_common.check_sine_command`) and the
+before sending, via :func:`~setmem_hil.drivers.safety.check_sine_command`) and the
 sensor, commands zero on every abort path and at exit, and implements the optional rig
 capabilities of :mod:`setmem_hil.drivers.protocols` (sample rate, wait, measurement index,
-reconnect). :func:`open_can_virtual_rig` starts the fake device on a uniquely named
-python-can ``virtual`` channel and returns a rig that owns it.
+reconnect). The loopback rig on a python-can ``virtual`` channel with the fake device is built
+by :func:`setmem_hil.loopback.rigs.open_can_virtual_rig` (drivers never import simulation code).
 
 The measured samples feed the sine-dwell estimate of one frequency-response point (thesis
 eq. 3.7: ``g = g_0 + n``, ``|n| <= R``); nothing here depends on the identification.
@@ -14,6 +14,7 @@ eq. 3.7: ``g = g_0 + n``, ``|n| <= R``); nothing here depends on the identificat
 Example
 -------
 >>> from setmem_hil.io.procedure import default_procedure
+>>> from setmem_hil.loopback.rigs import open_can_virtual_rig
 >>> with open_can_virtual_rig(default_procedure(), seed=1) as rig:
 ...     rig.sensor.set_sample_rate(20.0)
 ...     rig.exciter.set_sine(5.0, 0.5)
@@ -25,26 +26,18 @@ Example
 
 from __future__ import annotations
 
-import uuid
-from typing import Callable
+from typing import Sequence
 
-import can
 import numpy as np
 
 from setmem_hil.drivers import can_protocol as cp
 from setmem_hil.drivers.can_link import CanLink, CanSettings
-from setmem_hil.drivers.fieldbus_common import (
-    FieldbusRigLifecycle,
-    RetryPolicy,
-    SafeShutdown,
-    check_duration,
-    check_sine_command,
-    transport_option,
-)
+from setmem_hil.drivers.safety import check_dwell, check_sine_command
+from setmem_hil.drivers.transport import Closeable, RigLifecycle, SafeShutdown
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.errors import DeviceError
 
-__all__ = ["CanExciter", "CanLink", "CanRig", "CanSensor", "CanSettings", "open_can_virtual_rig"]
+__all__ = ["CanExciter", "CanLink", "CanRig", "CanSensor", "CanSettings"]
 
 
 class CanExciter:
@@ -88,13 +81,13 @@ class CanSensor:
         rig = self._rig
         if duration_s == 0:
             return
-        check_duration(rig.limits, duration_s, rig.link.where)
+        check_dwell(rig.limits, duration_s, rig.link.where)
         with rig.guard.armed():
             rig.link.request(cp.Opcode.WAIT, cp.scale_unsigned(duration_s, cp.WAIT_LSB_S, "duration_s"), what="WAIT")
 
     def acquire(self, duration_s: float) -> SampleBlock:
         rig = self._rig
-        check_duration(rig.limits, duration_s, rig.link.where)
+        check_dwell(rig.limits, duration_s, rig.link.where)
         with rig.guard.armed():
             rig.check_output()
             md = rig.metadata
@@ -119,7 +112,7 @@ def _to_units(counts: np.ndarray, full_range: float) -> np.ndarray:
     return values
 
 
-class CanRig(FieldbusRigLifecycle):
+class CanRig(RigLifecycle):
     """A rig on a CAN link (see the module docstring).
 
     Parameters
@@ -127,15 +120,15 @@ class CanRig(FieldbusRigLifecycle):
     link : CanLink
     limits : SafetyLimits
         The procedure's limits, checked before any command is sent.
-    on_close : callable, optional
-        Called last by :meth:`close` (stops an owned fake device).
+    owned : sequence of closeables, optional
+        Closed last by :meth:`close` (e.g. a loopback fake device the rig owns).
     """
 
-    def __init__(self, link: CanLink, limits, on_close: Callable[[], None] | None = None, name: str = "can"):
+    def __init__(self, link: CanLink, limits, owned: Sequence[Closeable] = (), name: str = "can"):
         self.link = link
         self.limits = limits
         self.output_on = False
-        self._on_close = on_close
+        self.owned = tuple(owned)
         self._closed = False
         self.guard = SafeShutdown(self._stop_output)
         self.exciter = CanExciter(self)
@@ -180,65 +173,3 @@ class CanRig(FieldbusRigLifecycle):
         """Reopen the bus and command zero output (the dwell is then re-run)."""
         self.link._reconnect()
         self.exciter.stop()
-
-
-def open_can_virtual_rig(procedure, seed: int) -> CanRig:
-    """Start a fake CAN device on a unique ``virtual`` channel and return a rig that owns it.
-
-    Parameters
-    ----------
-    procedure : setmem_hil.io.procedure.Procedure
-        ``backend.simulation`` configures the simulated beam, ``backend.faults`` the fault
-        injection (core kinds plus ``error_frame``, ``bus_off``), ``backend.transport`` may set
-        ``channel``, ``node``, ``reply_timeout_s``, ``max_attempts``, ``backoff_s``,
-        ``backoff_max_s``, ``gap_timeout_s`` (other keys are ignored).
-        ``safety`` limits every command.
-    seed : int
-        Seed of the sensor noise.
-
-    Returns
-    -------
-    CanRig
-        ``close()`` commands zero, shuts the host bus down and stops the fake device.
-
-    Raises
-    ------
-    ProcedureError
-        A transport option or fault setting that does not validate (names the key).
-    """
-    from setmem_hil.sim_backends.fake_can_device import FakeCanDevice
-    from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
-    from setmem_hil.sim_backends.transport_faults import CAN_FAULT_KINDS, split_faults
-
-    core_procedure, transport_faults = split_faults(procedure, CAN_FAULT_KINDS)
-    channel = transport_option(procedure, "channel", str, f"setmem-can-{uuid.uuid4().hex[:12]}")
-    node = transport_option(procedure, "node", int, 0x21, lo=1, hi=cp.MAX_NODE)
-    settings = CanSettings(
-        node=node,
-        retry=RetryPolicy(
-            reply_timeout_s=transport_option(procedure, "reply_timeout_s", float, 0.1, lo=1e-3, hi=60.0),
-            max_attempts=transport_option(procedure, "max_attempts", int, 7, lo=1, hi=100),
-            backoff_s=transport_option(procedure, "backoff_s", float, 0.01, lo=0.0, hi=10.0),
-            backoff_max_s=transport_option(procedure, "backoff_max_s", float, 0.32, lo=0.0, hi=60.0),
-        ),
-        gap_timeout_s=transport_option(procedure, "gap_timeout_s", float, 0.2, lo=1e-3, hi=60.0),
-    )
-    core = FakeDeviceCore.from_procedure(core_procedure, seed)
-    device = FakeCanDevice(core, channel, node, transport_faults).start()
-
-    def factory() -> can.BusABC:
-        return can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-
-    try:
-        link = CanLink(factory, settings, where=f"CAN channel {channel!r} node 0x{node:02X}")
-    except BaseException:
-        device.stop()
-        raise
-    try:
-        rig = CanRig(link, procedure.safety, on_close=device.stop, name=f"can-virtual:{channel}")
-    except BaseException:
-        link.close()
-        device.stop()
-        raise
-    rig.fake_device = device
-    return rig

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from setmem_hil.errors import DeviceError, FrameError
+from setmem_hil.errors import FrameError, ModbusExceptionError
 
 MAGIC = 0x5348  # "SH"
 VERSION = 1
@@ -317,21 +317,6 @@ def decode_page(regs, expected_acq_id: int, expected_page: int) -> Page:
 
 
 # --- whole ADUs of function 3 (RTU and socket framing) -------------------------------------------------
-
-class ModbusExceptionError(DeviceError):
-    """The device answered with a Modbus exception response (``code`` as in the spec)."""
-
-    RETRYABLE = (0x05, 0x06)  # ACKNOWLEDGE (processing), SERVER DEVICE BUSY
-
-    def __init__(self, function_code: int, code: int, where: str = "Modbus"):
-        self.function_code = function_code
-        self.code = code
-        super().__init__(f"{where}: exception response to function {function_code} with code {code}")
-
-    @property
-    def retryable(self) -> bool:
-        return self.code in self.RETRYABLE
-
 
 def encode_read_request_pdu(address: int, count: int) -> bytes:
     if not 0 <= address <= 0xFFFF or not 1 <= count <= 125:

@@ -2,7 +2,7 @@
 ``drivers/modbus_wire_format.md`` (pymodbus client, Modbus TCP or RTU framing over TCP).
 
 :class:`ModbusLink` wraps pymodbus's synchronous client with the retry policy of
-:mod:`setmem_hil.drivers.fieldbus_common`: every request is safe to repeat (register writes are
+:mod:`setmem_hil.drivers.transport`: every request is safe to repeat (register writes are
 absolute; the one-shot commands WAIT and ACQUIRE carry a request id the device executes once),
 so a timeout, a dropped connection, a BUSY/ACKNOWLEDGE exception or a reply that fails to
 decode (wrong length, page CRC, stale page) is retried with backoff. After a timeout or a
@@ -13,13 +13,14 @@ exception codes (illegal address/value, device failure) are device errors, not r
 :class:`ModbusRig` checks the procedure's limits before any write, commands zero on every
 abort path and at exit, and implements the optional rig capabilities of
 :mod:`setmem_hil.drivers.protocols` (sample rate, wait, measurement index, reconnect).
-:func:`open_modbus_loopback_rig` starts the fake device (a pymodbus server on 127.0.0.1 at a
-free port) and returns a rig that owns it. The samples feed the sine-dwell estimate of one
+The loopback rig with the fake device (a pymodbus server on 127.0.0.1 at a free port) is built
+by :func:`setmem_hil.loopback.rigs.open_modbus_loopback_rig` (drivers never import simulation code). The samples feed the sine-dwell estimate of one
 frequency-response point (thesis eq. 3.7: ``g = g_0 + n``, ``|n| <= R``).
 
 Example
 -------
 >>> from setmem_hil.io.procedure import default_procedure
+>>> from setmem_hil.loopback.rigs import open_modbus_loopback_rig
 >>> with open_modbus_loopback_rig(default_procedure(), seed=1) as rig:
 ...     rig.sensor.set_sample_rate(20.0)
 ...     rig.exciter.set_sine(5.0, 0.5)
@@ -32,7 +33,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 from pymodbus.client import ModbusTcpClient
@@ -40,16 +41,8 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.framer import FramerType
 
 from setmem_hil.drivers import modbus_registers as mr
-from setmem_hil.drivers.fieldbus_common import (
-    FieldbusRigLifecycle,
-    RetryPolicy,
-    SafeShutdown,
-    TransportStats,
-    check_duration,
-    check_sine_command,
-    sleep_s,
-    transport_option,
-)
+from setmem_hil.drivers.safety import check_dwell, check_sine_command
+from setmem_hil.drivers.transport import Closeable, RetryPolicy, RigLifecycle, SafeShutdown, TransportStats, sleep_s
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.errors import DeviceError, DeviceTimeoutError, FrameError
 
@@ -206,7 +199,7 @@ class ModbusSensor:
         rig = self._rig
         if duration_s == 0:
             return
-        check_duration(rig.limits, duration_s, rig.link.where)
+        check_dwell(rig.limits, duration_s, rig.link.where)
         with rig.guard.armed():
             rig.next_request_id()
             counts = mr.scale_unsigned(duration_s, mr.WAIT_LSB_S, "duration_s")
@@ -214,7 +207,7 @@ class ModbusSensor:
 
     def acquire(self, duration_s: float) -> SampleBlock:
         rig = self._rig
-        check_duration(rig.limits, duration_s, rig.link.where)
+        check_dwell(rig.limits, duration_s, rig.link.where)
         with rig.guard.armed():
             n_total = max(1, int(round(duration_s * rig.metadata.sample_rate_hz)))
             parts = []
@@ -226,27 +219,27 @@ class ModbusSensor:
             return SampleBlock(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("t_s", "force", "response")))
 
 
-class ModbusRig(FieldbusRigLifecycle):
+class ModbusRig(RigLifecycle):
     """A rig on a :class:`ModbusLink` (see the module docstring).
 
     Parameters
     ----------
     link : ModbusLink
     limits : SafetyLimits
-    on_close : callable, optional
-        Called last by :meth:`close` (stops an owned fake device).
+    owned : sequence of closeables, optional
+        Closed last by :meth:`close` (e.g. a loopback fake device the rig owns).
     max_block_samples : int
         Samples per capture (longer acquisitions are split; the device clock runs on).
     """
 
-    def __init__(self, link: ModbusLink, limits, on_close: Callable[[], None] | None = None, name: str = "modbus",
+    def __init__(self, link: ModbusLink, limits, owned: Sequence[Closeable] = (), name: str = "modbus",
                  max_block_samples: int = 4000):
         self.link = link
         self.limits = limits
         self.output_on = False
         self.max_block_samples = min(int(max_block_samples), mr.MAX_SAMPLES)
         self.request_id = int(time.monotonic_ns() & 0x7FFF) or 1  # differs from the device's last id after a host restart
-        self._on_close = on_close
+        self.owned = tuple(owned)
         self._closed = False
         self._name = name
         self.guard = SafeShutdown(self._stop_output)
@@ -319,54 +312,3 @@ class ModbusRig(FieldbusRigLifecycle):
         """Reopen the connection and command zero output (the dwell is then re-run)."""
         self.link.reconnect()
         self.exciter.stop()
-
-
-def open_modbus_loopback_rig(procedure, seed: int) -> ModbusRig:
-    """Start a fake Modbus device (pymodbus server on 127.0.0.1, free port) and return a rig owning it.
-
-    Parameters
-    ----------
-    procedure : setmem_hil.io.procedure.Procedure
-        ``backend.simulation`` configures the simulated beam, ``backend.faults`` the faults
-        (core kinds plus ``exception``), ``backend.transport`` may set ``framer``
-        (``"socket"`` default, or ``"rtu"``), ``unit``, ``reply_timeout_s``, ``max_attempts``,
-        ``backoff_s``, ``backoff_max_s``; ``safety`` limits every command.
-    seed : int
-        Seed of the sensor noise.
-
-    Returns
-    -------
-    ModbusRig
-        ``close()`` commands zero, closes the client and stops the server.
-
-    Raises
-    ------
-    ProcedureError
-        A transport option or fault setting that does not validate (names the key).
-    """
-    from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
-    from setmem_hil.sim_backends.fake_modbus_device import FakeModbusDevice
-    from setmem_hil.sim_backends.transport_faults import MODBUS_FAULT_KINDS, split_faults
-
-    framer = transport_option(procedure, "framer", str, "socket", choices=("socket", "rtu"))
-    unit = transport_option(procedure, "unit", int, 1, lo=1, hi=247)
-    retry = RetryPolicy(
-        reply_timeout_s=transport_option(procedure, "reply_timeout_s", float, 0.1, lo=1e-3, hi=60.0),
-        max_attempts=transport_option(procedure, "max_attempts", int, 7, lo=1, hi=100),
-        backoff_s=transport_option(procedure, "backoff_s", float, 0.01, lo=0.0, hi=10.0),
-        backoff_max_s=transport_option(procedure, "backoff_max_s", float, 0.32, lo=0.0, hi=60.0),
-    )
-    core_procedure, transport_faults = split_faults(procedure, MODBUS_FAULT_KINDS)
-    core = FakeDeviceCore.from_procedure(core_procedure, seed)
-    device = FakeModbusDevice(core, framer, transport_faults).start()
-    link = None
-    try:
-        link = ModbusLink("127.0.0.1", device.port, framer, unit, retry)
-        rig = ModbusRig(link, procedure.safety, on_close=device.stop, name=f"modbus-loopback:{framer}:{device.port}")
-    except BaseException:
-        if link is not None:
-            link.close()
-        device.stop()
-        raise
-    rig.fake_device = device
-    return rig

@@ -3,7 +3,7 @@
 An :class:`Exciter` drives the shaker with a sinusoid; a :class:`Sensor` acquires sampled force
 and response channels with timestamps; a :class:`Rig` combines them with metadata. The
 sine-dwell measurement (``setmem_hil.drivers.sine_dwell``) runs on any Rig and implements the
-loop's :class:`setmem_hil.campaign.experiment.Experiment` protocol.
+loop's :class:`setmem_hil.model.experiment.Experiment` protocol.
 """
 
 from __future__ import annotations

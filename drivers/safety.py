@@ -22,8 +22,15 @@ from setmem_hil.io.procedure import SafetyLimits
 log = logging.getLogger(__name__)
 
 
-def check_sine_command(limits: SafetyLimits, omega_rad_s: float, amplitude_n: float) -> None:
+def _prefix(where: str) -> str:
+    return f"{where}: " if where else ""
+
+
+def check_sine_command(limits: SafetyLimits, omega_rad_s: float, amplitude_n: float, where: str = "") -> None:
     """Raise SafetyLimitError unless ``omega`` and ``amplitude`` are inside the limits.
+
+    One rule for every transport and instrument; ``where`` (e.g. the transport) prefixes the
+    message.
 
     Parameters
     ----------
@@ -32,25 +39,33 @@ def check_sine_command(limits: SafetyLimits, omega_rad_s: float, amplitude_n: fl
         Must be finite and in ``[omega_min_rad_s, omega_max_rad_s]``.
     amplitude_n : float
         Must be finite and in ``[0, max_amplitude_n]``.
+    where : str, optional
+        Names the device or transport in the message.
     """
     w, a = float(omega_rad_s), float(amplitude_n)
     if not math.isfinite(w) or not limits.omega_min_rad_s <= w <= limits.omega_max_rad_s:
         raise SafetyLimitError(
-            f"sine command: omega {w!r} rad/s outside the procedure's safety limits "
+            f"{_prefix(where)}sine command: omega {w!r} rad/s outside the procedure's safety limits "
             f"[{limits.omega_min_rad_s:g}, {limits.omega_max_rad_s:g}] rad/s; nothing was sent"
         )
     if not math.isfinite(a) or not 0.0 <= a <= limits.max_amplitude_n:
         raise SafetyLimitError(
-            f"sine command: amplitude {a!r} N outside the procedure's safety limit "
+            f"{_prefix(where)}sine command: amplitude {a!r} N outside the procedure's safety limit "
             f"[0, {limits.max_amplitude_n:g}] N; nothing was sent"
         )
 
 
-def check_dwell(limits: SafetyLimits, dwell_s: float) -> None:
-    """Raise SafetyLimitError if a planned dwell exceeds ``max_dwell_s``."""
+def check_dwell(limits: SafetyLimits, dwell_s: float, where: str = "") -> None:
+    """Raise SafetyLimitError unless ``0 < dwell_s <= max_dwell_s`` (the one duration rule).
+
+    Used for planned dwells and for every acquisition a transport is asked for, before anything
+    is sent; ``where`` names the device or transport in the message.
+    """
     d = float(dwell_s)
-    if not math.isfinite(d) or d < 0 or d > limits.max_dwell_s:
-        raise SafetyLimitError(f"dwell of {d!r} s exceeds the procedure's max_dwell_s {limits.max_dwell_s:g} s")
+    if not math.isfinite(d) or d <= 0 or d > limits.max_dwell_s:
+        raise SafetyLimitError(
+            f"{_prefix(where)}dwell of {d!r} s outside (0, {limits.max_dwell_s:g}] s (the procedure's max_dwell_s); nothing sent"
+        )
 
 
 def safe_stop(exciter: Exciter) -> BaseException | None:

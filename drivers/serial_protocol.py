@@ -25,7 +25,7 @@ import math
 import numbers
 from dataclasses import dataclass
 
-from setmem_hil.errors import DeviceError, FrameError
+from setmem_hil.errors import DeviceRejectedError, FrameError
 
 MAX_LINE_BYTES = 16384
 MAX_READ_SAMPLES = 64
@@ -54,15 +54,6 @@ class ChecksumError(FrameError):
 
 class MalformedFrameError(FrameError):
     """A frame with a valid checksum but unparsable content (unknown command, bad fields)."""
-
-
-class DeviceRejectedError(DeviceError):
-    """The device answered ``ERR <code> <message>``."""
-
-    def __init__(self, code: str, message: str, seq: int | None = None):
-        self.code = code
-        self.seq = seq
-        super().__init__(f"device rejected the request ({code}): {message}")
 
 
 @dataclass(frozen=True)
@@ -206,7 +197,7 @@ def decode_response(line: bytes) -> Response:
 def raise_for_error(response: Response) -> Response:
     """Return an OK response; raise DeviceRejectedError for an ERR response."""
     if not response.ok:
-        raise DeviceRejectedError(response.code, response.message, response.seq)
+        raise DeviceRejectedError(response.code, f"device rejected the request ({response.code}): {response.message}", seq=response.seq)
     return response
 
 

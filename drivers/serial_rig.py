@@ -4,7 +4,7 @@
 responses with another ``seq`` (duplicates, stale or reordered frames) are discarded; a
 garbled frame (:class:`~setmem_hil.errors.FrameError`) or a missing answer
 (:class:`~setmem_hil.errors.DeviceTimeoutError`) is retried with the *same* ``seq`` and bytes
-under a bounded :class:`~setmem_hil.drivers.retry.RetryPolicy`; the device answers a repeated
+under a bounded :class:`~setmem_hil.drivers.transport.RetryPolicy`; the device answers a repeated
 request from its cache without executing it again, so retrying is safe for every command.
 A closed connection raises :class:`DeviceDisconnectedError` at once (not retried on the same
 link); :meth:`SerialRig.reconnect` opens a new one.
@@ -17,9 +17,9 @@ commands zero output (best effort) and releases the port.
 
 Example
 -------
->>> from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
->>> from setmem_hil.sim_backends.fake_serial_device import FakeSerialDevice
->>> with FakeSerialDevice(FakeDeviceCore(seed=1)) as dev, SerialRig(dev.url) as rig:
+>>> from setmem_hil.io.procedure import default_procedure
+>>> from setmem_hil.loopback.rigs import open_serial_loopback_rig
+>>> with open_serial_loopback_rig(default_procedure(), seed=1) as rig:
 ...     rig.exciter.set_sine(2.0, 0.5)
 ...     rig.exciter.stop()
 """
@@ -28,21 +28,17 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import Counter
+from typing import Sequence
 
 import numpy as np
 import serial
 
 from setmem_hil.drivers import serial_protocol as sp
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
-from setmem_hil.drivers.retry import RetryPolicy, call_with_retries
-from setmem_hil.errors import DeviceError, DeviceTimeoutError, FrameError
+from setmem_hil.drivers.transport import SERIAL_RETRY, Closeable, RetryPolicy, RigLifecycle, SafeShutdown, TransportStats, call_with_retries
+from setmem_hil.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError, FrameError
 
 log = logging.getLogger(__name__)
-
-
-class DeviceDisconnectedError(DeviceError):
-    """The connection to the device was closed (the device's watchdog zeroes its output)."""
 
 
 class SerialLink:
@@ -58,15 +54,15 @@ class SerialLink:
 
     Attributes
     ----------
-    stats : collections.Counter
+    stats : TransportStats
         ``requests``, ``retries``, ``timeouts``, ``frame_errors``, ``stale_discarded``.
     """
 
     def __init__(self, url: str, policy: RetryPolicy | None = None, baudrate: int = 115200):
         self.url = url
-        self.policy = policy or RetryPolicy()
+        self.policy = policy or SERIAL_RETRY
         self.baudrate = baudrate
-        self.stats: Counter = Counter()
+        self.stats = TransportStats()
         self._seq = 0
         self._buf = b""
         self._port = None
@@ -144,7 +140,7 @@ class SerialLink:
         self._seq = (self._seq + 1) & 0xFF
         seq = self._seq
         frame = sp.encode_request(seq, command, *args)
-        self.stats["requests"] += 1
+        self.stats.add("requests")
 
         def attempt(k: int) -> sp.Response:
             try:
@@ -156,19 +152,19 @@ class SerialLink:
                 line = self._readline(deadline)
                 if not line.startswith(b"!"):
                     # the tail of a frame cut short earlier, or line noise: resynchronise
-                    self.stats["garbage_discarded"] += 1
+                    self.stats.add("garbage_discarded")
                     continue
                 resp = sp.decode_response(line)
                 if resp.seq != seq:
-                    self.stats["stale_discarded"] += 1
+                    self.stats.add("stale_discarded")
                     continue
                 if not resp.ok and resp.code == "frame":
                     raise sp.MalformedFrameError(f"device could not parse request {seq:02x} {command}: {resp.message}")
                 return sp.raise_for_error(resp)
 
         def on_retry(k: int, exc: BaseException) -> None:
-            self.stats["retries"] += 1
-            self.stats["timeouts" if isinstance(exc, DeviceTimeoutError) else "frame_errors"] += 1
+            self.stats.add("retries")
+            self.stats.add("timeouts" if isinstance(exc, DeviceTimeoutError) else "frame_errors")
             log.debug("serial %s: retry %d of %s after %r", self.url, k, command, exc)
 
         try:
@@ -177,10 +173,10 @@ class SerialLink:
             self.close()  # the link is dead: later requests fail at once until open()
             raise
         except DeviceTimeoutError as exc:
-            self.stats["timeouts"] += 1
+            self.stats.add("timeouts")
             raise DeviceTimeoutError(f"{exc} (request {command}, {self.policy.max_attempts} attempts)") from exc
         except FrameError as exc:
-            self.stats["frame_errors"] += 1
+            self.stats.add("frame_errors")
             raise
 
 
@@ -225,7 +221,7 @@ class _SerialSensor:
         return SampleBlock(np.array(t), np.array(f), np.array(y))
 
 
-class SerialRig:
+class SerialRig(RigLifecycle):
     """A :class:`~setmem_hil.drivers.protocols.Rig` over the serial line protocol.
 
     Parameters
@@ -233,15 +229,25 @@ class SerialRig:
     url : str
         pyserial URL or device path.
     policy : RetryPolicy, optional
+        Default :data:`~setmem_hil.drivers.transport.SERIAL_RETRY`.
+    owned : sequence of closeables, optional
+        Closed last by :meth:`close` (e.g. a loopback fake device the rig owns).
     """
 
-    def __init__(self, url: str, policy: RetryPolicy | None = None):
+    def __init__(self, url: str, policy: RetryPolicy | None = None, owned: Sequence[Closeable] = ()):
         self.link = SerialLink(url, policy)
+        self.owned = tuple(owned)
         self.exciter = _SerialExciter(self)
         self.sensor = _SerialSensor(self)
         self.reconnects = 0
         self._closed = False
+        self.guard = SafeShutdown(self._stop_output)
         self._read_metadata()
+        self.guard.register_exit(self.close)
+
+    def _stop_output(self) -> None:
+        if self.link.is_open:
+            self.link.request("STOP")
 
     def _read_metadata(self) -> None:
         meta = self.link.request("META?").values
@@ -272,21 +278,3 @@ class SerialRig:
         self.reconnects += 1
         self.link.request("STOP")
 
-    def close(self) -> None:
-        """Command zero output (best effort) and release the port (idempotent)."""
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            if self.link.is_open:
-                self.link.request("STOP")
-        except DeviceError as exc:
-            log.error("serial rig %s: STOP on close failed: %s", self.link.url, exc)
-        finally:
-            self.link.close()
-
-    def __enter__(self) -> "SerialRig":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

@@ -3,7 +3,8 @@
 Every error subclasses a built-in (``ValueError``, ``RuntimeError``, ``TimeoutError``) so callers
 may catch either. Messages say what was wrong and where (file, line or key, frequency).
 The CLI maps them to exit codes (see ``setmem_hil.cli.main``): 2 for malformed input,
-3 for data inconsistent with the prior, 4 for device faults, 1 for anything else.
+3 for data inconsistent with the prior, 4 for device faults, 130 for an interrupted or aborted
+campaign, 1 for anything else. Every error class of the package lives in this module.
 """
 
 from __future__ import annotations
@@ -69,6 +70,50 @@ class DeviceError(SetmemError, RuntimeError):
     """A device or transport fault (the exciter has been commanded to zero)."""
 
 
+class DeviceDisconnectedError(DeviceError):
+    """The connection to a device or bus was lost (the device's watchdog zeroes its output).
+
+    Transports do not retry on the same connection; the rig's ``reconnect()`` opens a new one.
+    """
+
+
+class DeviceRejectedError(DeviceError):
+    """A device refused a request: outside its limits, wrong state, or a protocol exception.
+
+    Parameters
+    ----------
+    code : str or int
+        Machine-readable reason as the device gave it (``"range"``, a Modbus exception code).
+    message : str
+        The full human-readable message.
+    retryable : bool
+        Whether repeating the same request may succeed (e.g. Modbus SERVER DEVICE BUSY).
+    seq : int, optional
+        Sequence number of the rejected request, where the wire format has one.
+    """
+
+    def __init__(self, code, message: str, *, retryable: bool = False, seq: int | None = None):
+        self.code = code
+        self.retryable = retryable
+        self.seq = seq
+        super().__init__(message)
+
+
+class ModbusExceptionError(DeviceRejectedError):
+    """A Modbus exception response (``code`` as in the Modbus application protocol spec)."""
+
+    RETRYABLE = (0x05, 0x06)  # ACKNOWLEDGE (processing), SERVER DEVICE BUSY
+
+    def __init__(self, function_code: int, code: int, where: str = "Modbus"):
+        self.function_code = function_code
+        super().__init__(code, f"{where}: exception response to function {function_code} with code {code}",
+                         retryable=code in self.RETRYABLE)
+
+
+class DeviceIdentityError(DeviceError):
+    """An instrument answered its identity query with something other than what the profile expects."""
+
+
 class DeviceTimeoutError(DeviceError, TimeoutError):
     """A device stopped answering within its timeout."""
 
@@ -83,3 +128,23 @@ class SafetyLimitError(SetmemError, ValueError):
 
 class DataQualityError(SetmemError, RuntimeError):
     """A dwell whose samples are unusable (clipped, NaN, timestamp jumps); it is discarded."""
+
+
+class JournalError(SetmemError, RuntimeError):
+    """The journal cannot be opened, is locked by another run, or holds inconsistent records."""
+
+
+class CampaignReplayError(SetmemError, RuntimeError):
+    """A journal whose stored measurements do not match what the procedure would measure now.
+
+    Not malformed input: the stored run and the procedure (or software) disagree. Exit 1; the
+    message names the journal and the measurement.
+    """
+
+    def __init__(self, source: str, location: str, problem: str):
+        self.source, self.location, self.problem = source, location, problem
+        super().__init__(f"{source}: {location}: {problem}")
+
+
+class CampaignAborted(SetmemError, RuntimeError):
+    """A campaign stopped on request (live-view Abort): exciter off, journal closed, exit 130."""

@@ -34,7 +34,8 @@ import can
 
 from setmem_hil.drivers import can_protocol as cp
 from setmem_hil.errors import FrameError
-from setmem_hil.sim_backends.fake_device_core import DeviceCommandError, FakeDeviceCore
+from setmem_hil.errors import DeviceRejectedError
+from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 from setmem_hil.sim_backends.transport_faults import TransportFaults, injected_counts
 
 FLAG_WATCHDOG_TRIPPED = 0x01
@@ -100,6 +101,10 @@ class FakeCanDevice:
         self._thread = threading.Thread(target=self._run, name=f"fake-can-{self.channel}", daemon=True)
         self._thread.start()
         return self
+
+    def close(self) -> None:
+        """Stop the device (the rig's owned-resource interface)."""
+        self.stop()
 
     def stop(self) -> None:
         """Zero the output, stop the thread and shut the bus down (idempotent)."""
@@ -215,7 +220,7 @@ class FakeCanDevice:
             return
         try:
             self._execute(c)
-        except DeviceCommandError:
+        except DeviceRejectedError:
             self._reply(c, cp.ReplyStatus.OUT_OF_RANGE)
         except (ValueError, ArithmeticError) as exc:  # never let the device thread die
             self.internal_errors.append(repr(exc))
@@ -232,7 +237,7 @@ class FakeCanDevice:
         elif op == cp.Opcode.SET_AMPLITUDE:
             self._amplitude_n = c.arg * cp.AMPLITUDE_LSB_N
             if self._amplitude_n > self.core.metadata.force_range_n:
-                raise DeviceCommandError("range", "amplitude above the shaker's range")
+                raise DeviceRejectedError("range", "amplitude above the shaker's range")
             if self._enabled:
                 self.core.set_sine(self._omega_rad_s, self._amplitude_n)
             self._reply(c, cp.ReplyStatus.OK, c.arg)
@@ -298,7 +303,7 @@ class FakeCanDevice:
         if item == cp.InfoItem.STATUS:
             state = cp.DeviceState.EXCITING if self._enabled else cp.DeviceState.IDLE
             return int(state) | self._flags << 8
-        raise DeviceCommandError("range", f"unknown info item {item}")
+        raise DeviceRejectedError("range", f"unknown info item {item}")
 
     def _stream(self, first: int, count: int) -> None:
         block = self.core.read_buffer(first, count)

@@ -9,7 +9,7 @@ dwell costs milliseconds) and seeded fault injection (issue 8).
 API (what a transport wrapper calls)
 ------------------------------------
 ``core.set_sine(omega_rad_s, amplitude_n)``
-    Start/change the sinusoid; raises :class:`DeviceCommandError` outside the device's own
+    Start/change the sinusoid; raises :class:`DeviceRejectedError` outside the device's own
     hard limits (``omega`` in ``(0, max_omega_rad_s]``, amplitude in ``[0, force_range_n]``).
 ``core.stop()``
     Output to zero (idempotent). ``core.host_lost()`` does the same (watchdog on disconnect).
@@ -70,25 +70,12 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
-from setmem_hil.errors import DeviceError, ProcedureError
+from setmem_hil.errors import DeviceRejectedError, ProcedureError
+from setmem_hil.io.fault_kinds import DATA_FAULT_KINDS, FAULT_KINDS, FRAME_FAULT_KINDS  # noqa: F401 (re-exported)
 from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.time_domain_beam import TimeDomainBeam
 
-FRAME_FAULT_KINDS = ("timeout", "truncate", "corrupt", "duplicate", "reorder", "disconnect")
-DATA_FAULT_KINDS = ("saturation", "nan", "inf", "timestamp_jump")
-FAULT_KINDS = FRAME_FAULT_KINDS + DATA_FAULT_KINDS
-
-
-class DeviceCommandError(DeviceError):
-    """The (fake) device rejected a command (outside its hard limits or in the wrong state).
-
-    ``code`` is a short machine-readable reason that transports put on the wire.
-    """
-
-    def __init__(self, code: str, message: str):
-        self.code = code
-        super().__init__(message)
 
 
 @dataclass(frozen=True)
@@ -290,9 +277,9 @@ class FakeDeviceCore:
         omega = float(omega_rad_s)
         amp = float(amplitude_n)
         if not (np.isfinite(omega) and 0.0 < omega <= self.max_omega_rad_s):
-            raise DeviceCommandError("range", f"fake device: omega {omega!r} rad/s outside (0, {self.max_omega_rad_s:g}]")
+            raise DeviceRejectedError("range", f"fake device: omega {omega!r} rad/s outside (0, {self.max_omega_rad_s:g}]")
         if not (np.isfinite(amp) and 0.0 <= amp <= self.metadata.force_range_n):
-            raise DeviceCommandError("range", f"fake device: amplitude {amp!r} N outside [0, {self.metadata.force_range_n:g}]")
+            raise DeviceRejectedError("range", f"fake device: amplitude {amp!r} N outside [0, {self.metadata.force_range_n:g}]")
         if omega == self.beam.omega_rad_s and amp == self.beam.amplitude_n:
             return  # idempotent: repeating the command does not restart the sine
         self.beam.set_sine(omega, amp)
@@ -307,12 +294,12 @@ class FakeDeviceCore:
     def set_sample_rate(self, rate_hz: float) -> None:
         rate = float(rate_hz)
         if not (np.isfinite(rate) and self.min_rate_hz <= rate <= self.max_rate_hz):
-            raise DeviceCommandError("range", f"fake device: sample rate {rate!r} Hz outside [{self.min_rate_hz:g}, {self.max_rate_hz:g}]")
+            raise DeviceRejectedError("range", f"fake device: sample rate {rate!r} Hz outside [{self.min_rate_hz:g}, {self.max_rate_hz:g}]")
         self.sample_rate_hz = rate
 
     def begin_measurement(self, index: int, attempt: int = 0) -> None:
         if int(index) < 0 or int(attempt) < 0:
-            raise DeviceCommandError("range", f"fake device: measurement index {index} / attempt {attempt} must be >= 0")
+            raise DeviceRejectedError("range", f"fake device: measurement index {index} / attempt {attempt} must be >= 0")
         self.measurement_index, self.attempt = int(index), int(attempt)
         self._noise_rng = np.random.default_rng((self.seed, self.measurement_index, self.attempt))
         self.faults.reseed(self.measurement_index, self.attempt)
@@ -329,7 +316,7 @@ class FakeDeviceCore:
     def capture(self, n_samples: int, request_id: object = None) -> int:
         n = int(n_samples)
         if not 1 <= n <= self.max_samples:
-            raise DeviceCommandError("range", f"fake device: capture of {n} samples outside [1, {self.max_samples}]")
+            raise DeviceRejectedError("range", f"fake device: capture of {n} samples outside [1, {self.max_samples}]")
         if request_id is not None and request_id == self._last_request_id:
             return self.buffer_length
         dt = 1.0 / self.sample_rate_hz
@@ -368,7 +355,7 @@ class FakeDeviceCore:
         """Advance the virtual clock by ``duration_s`` without sampling (exact, in <= 1000 steps)."""
         d = float(duration_s)
         if not (np.isfinite(d) and d >= 0):
-            raise DeviceCommandError("range", f"fake device: wait of {d!r} s must be finite and >= 0")
+            raise DeviceRejectedError("range", f"fake device: wait of {d!r} s must be finite and >= 0")
         if d == 0:
             return
         steps = int(min(1000, max(1, np.ceil(d * self.sample_rate_hz))))
@@ -382,7 +369,7 @@ class FakeDeviceCore:
     def read_buffer(self, offset: int, count: int) -> SampleBlock:
         off, cnt = int(offset), int(count)
         if off < 0 or cnt < 0 or off + cnt > self.buffer_length:
-            raise DeviceCommandError("range", f"fake device: read of [{off}, {off + cnt}) outside buffer of {self.buffer_length}")
+            raise DeviceRejectedError("range", f"fake device: read of [{off}, {off + cnt}) outside buffer of {self.buffer_length}")
         b = self._buffer
         return SampleBlock(b.t_s[off : off + cnt].copy(), b.force[off : off + cnt].copy(), b.response[off : off + cnt].copy())
 

@@ -47,7 +47,8 @@ from pymodbus.simulator import SimData, SimDevice
 from pymodbus.simulator.simdata import DataType
 
 from setmem_hil.drivers import modbus_registers as mr
-from setmem_hil.sim_backends.fake_device_core import DeviceCommandError, FakeDeviceCore
+from setmem_hil.errors import DeviceRejectedError
+from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 from setmem_hil.sim_backends.transport_faults import TransportFaults, injected_counts
 
 N_REGISTERS = mr.BUFFER_BASE + mr.n_pages(mr.MAX_SAMPLES) * mr.PAGE_REGISTERS
@@ -327,7 +328,7 @@ class FakeModbusDevice:
                     t0 = float(self.core.read_buffer(0, 1).t_s[0])
                     self._acq = {"id": acq_id, "count": n, "t0": int(round(t0 / mr.T0_LSB_S)), "rate": self.core.sample_rate_hz}
                     self._last_acq_id = acq_id
-        except DeviceCommandError:
+        except DeviceRejectedError:
             return ExcCodes.ILLEGAL_VALUE
         return None
 

@@ -32,7 +32,8 @@ import threading
 
 from setmem_hil.drivers import serial_protocol as sp
 from setmem_hil.errors import DeviceError, FrameError
-from setmem_hil.sim_backends.fake_device_core import DeviceCommandError, FakeDeviceCore
+from setmem_hil.errors import DeviceRejectedError
+from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 from setmem_hil.sim_backends.transport_faults import injected_counts
 
 log = logging.getLogger(__name__)
@@ -142,9 +143,9 @@ class FakeSerialDevice:
             return sp.encode_error(seq, "frame", str(exc))
         try:
             values = self._dispatch(req)
-        except DeviceCommandError as exc:
+        except DeviceRejectedError as exc:
             return sp.encode_error(req.seq, exc.code, str(exc))
-        except DeviceError as exc:  # pragma: no cover - the core raises DeviceCommandError only
+        except DeviceError as exc:  # pragma: no cover - the core raises DeviceRejectedError only
             return sp.encode_error(req.seq, "device", str(exc))
         return sp.encode_response(req.seq, *values)
 
@@ -179,13 +180,13 @@ class FakeSerialDevice:
         if cmd == "READ":
             off, cnt = a
             if cnt > sp.MAX_READ_SAMPLES:
-                raise DeviceCommandError("range", f"READ of {cnt} samples exceeds {sp.MAX_READ_SAMPLES}")
+                raise DeviceRejectedError("range", f"READ of {cnt} samples exceeds {sp.MAX_READ_SAMPLES}")
             block = core.read_buffer(off, cnt)
             out: list = [off, cnt]
             for t, f, y in zip(block.t_s.tolist(), block.force.tolist(), block.response.tolist()):
                 out += [t, f, y]
             return tuple(out)
-        raise DeviceCommandError("command", f"unsupported command {cmd}")  # pragma: no cover
+        raise DeviceRejectedError("command", f"unsupported command {cmd}")  # pragma: no cover
 
     def _send_with_faults(self, conn: socket.socket, frame: bytes) -> bool:
         faults = self.core.faults

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from setmem_hil.discrepancy.effect_models import EFFECT_MODELS, ExtraMode
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import PRIOR_OMEGA_BOUNDS, PRIOR_ZETA_MAX, beam_parameters, fully_damped_magnitude
@@ -106,15 +107,11 @@ def apply_effect(effect: str, params: dict, g_modal: np.ndarray, omega_rad_s: np
     s = 1j * np.asarray(omega_rad_s, dtype=float)
     if effect == "none":
         return g_modal.copy()
-    if effect == "time_delay":
-        return g_modal * np.exp(-s * params["tau"])
-    if effect == "first_order_lag":
-        return g_modal / (params["tau"] * s + 1.0)
-    if effect == "feedthrough":
-        return g_modal + params["d"]
-    if effect == "extra_mode":
-        w, z = params["omega_n"], params["zeta"]
-        return g_modal + (params["b1"] * s + params["b0"]) / (s * s + 2 * z * w * s + w * w)
+    if effect in EFFECT_MODELS:
+        model = EFFECT_MODELS[effect]
+        return model.apply(g_modal, s, params[model.param_names[0]])
+    if effect == ExtraMode.name:
+        return ExtraMode.apply(g_modal, s, params["omega_n"], params["zeta"], params["b0"], params["b1"])
     raise ValueError(f"effect: expected one of {HIDDEN_EFFECTS}, found {effect!r}")
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import W1_DEN, W1_NUM, beam_parameters, polynomial_magnitude
 from setmem_hil.sim_backends.noise import bounded_complex_noise, noise_bound_function
@@ -20,7 +20,7 @@ from setmem_hil.sim_backends.noise import bounded_complex_noise, noise_bound_fun
 
 @dataclass
 class SimulatedBeamExperiment:
-    """The simulated beam behind the :class:`setmem_hil.campaign.experiment.Experiment` protocol.
+    """The simulated beam behind the :class:`setmem_hil.model.experiment.Experiment` protocol.
 
     Parameters
     ----------

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import expm
 
-from setmem_hil.sweep.blas_threads import blas_one_thread
+from setmem_hil.numerics.blas_threads import blas_one_thread
 from setmem_hil.model.modal_model import ModalParameters
 
 

@@ -15,10 +15,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from setmem_hil.errors import ProcedureError
-from setmem_hil.sim_backends.fake_device_core import FAULT_KINDS
-
-CAN_FAULT_KINDS = ("error_frame", "bus_off")
-MODBUS_FAULT_KINDS = ("exception",)
+from setmem_hil.io.fault_kinds import CAN_FAULT_KINDS, FAULT_KINDS, MODBUS_FAULT_KINDS  # noqa: F401 (re-exported)
 
 
 @dataclasses.dataclass

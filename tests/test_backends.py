@@ -6,7 +6,7 @@ import socket
 import numpy as np
 import pytest
 
-from setmem_hil.drivers.backends import open_experiment
+from setmem_hil.experiment_factory import open_experiment
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import BackendSettings, default_procedure
 from setmem_hil.sim_backends.beam import beam_parameters
@@ -29,7 +29,7 @@ def test_sim_backend_is_the_simulated_beam_with_the_procedure_settings():
 
 
 def test_serial_loopback_measures_the_model_within_bound_including_w1():
-    from setmem_hil.campaign.experiment import Experiment
+    from setmem_hil.model.experiment import Experiment
 
     proc = _procedure("serial-loopback")
     with open_experiment(proc, seed=3) as exp:

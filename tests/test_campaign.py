@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from setmem_hil.campaign.runner import CampaignReplayError, candidate_noise_bound, run_campaign
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure import Goal, default_procedure
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from setmem_hil.campaign.runner import run_campaign
-from setmem_hil.drivers.backends import dwell_experiment
+from setmem_hil.experiment_factory import dwell_experiment
 from setmem_hil.io.journal import Journal
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.io.procedure_file import load_procedure

@@ -3,7 +3,7 @@
 import can.interfaces.virtual
 import pytest
 
-from setmem_hil.sim_backends.fault_survey import CAN_KINDS, survey
+from setmem_hil.loopback.fault_survey import CAN_KINDS, survey
 
 
 @pytest.fixture(autouse=True)

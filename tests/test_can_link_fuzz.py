@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 
 from setmem_hil.drivers import can_protocol as cp
 from setmem_hil.drivers.can_rig import CanLink, CanSettings
-from setmem_hil.drivers.fieldbus_common import RetryPolicy
+from setmem_hil.drivers.transport import RetryPolicy
 from setmem_hil.errors import DeviceError
 
 NODE = 0x21

@@ -2,7 +2,8 @@
 
 import pytest
 
-from setmem_hil.drivers.fieldbus_common import RetryPolicy, SafeShutdown, check_duration, check_sine_command
+from setmem_hil.drivers.safety import check_dwell as check_duration, check_sine_command
+from setmem_hil.drivers.transport import RetryPolicy, SafeShutdown
 from setmem_hil.errors import DeviceError, SafetyLimitError
 from setmem_hil.io.procedure import SafetyLimits
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from setmem_hil.drivers import can_protocol as cp
-from setmem_hil.drivers.can_rig import CanLink, CanRig, CanSettings, open_can_virtual_rig
-from setmem_hil.drivers.fieldbus_common import RetryPolicy
+from setmem_hil.drivers.can_rig import CanLink, CanRig, CanSettings
+from setmem_hil.loopback.rigs import open_can_virtual_rig
+from setmem_hil.drivers.transport import RetryPolicy
 from setmem_hil.errors import DeviceError, DeviceTimeoutError, SafetyLimitError
 from setmem_hil.io.procedure import SafetyLimits, SimulationSettings, default_procedure
 from setmem_hil.sim_backends.beam import beam_parameters
@@ -107,7 +108,7 @@ def test_samples_through_can_equal_the_device_model_driven_directly_to_one_lsb()
 def test_limits_are_enforced_before_anything_is_sent():
     limits = SafetyLimits(max_amplitude_n=0.5, omega_min_rad_s=1.0, omega_max_rad_s=50.0, max_dwell_s=100.0)
     with open_can_virtual_rig(_procedure(limits=limits), seed=1) as rig:
-        spy = _Spy(rig.fake_device.channel)
+        spy = _Spy(rig.owned[0].channel)
         try:
             with pytest.raises(SafetyLimitError, match="amplitude 0.6 N outside"):
                 rig.exciter.set_sine(5.0, 0.6)
@@ -116,22 +117,22 @@ def test_limits_are_enforced_before_anything_is_sent():
             with pytest.raises(SafetyLimitError, match="max_dwell_s"):
                 rig.sensor.acquire(101.0)
             assert spy.commands() == []
-            assert rig.fake_device.core.status().output_on is False
+            assert rig.owned[0].core.status().output_on is False
         finally:
             spy.close()
 
 
 def test_close_commands_zero_releases_the_bus_and_is_idempotent():
     rig = open_can_virtual_rig(_procedure(), seed=1)
-    spy = _Spy(rig.fake_device.channel)
+    spy = _Spy(rig.owned[0].channel)
     try:
         rig.exciter.set_sine(5.0, 0.3)
-        assert rig.fake_device.core.status().output_on
+        assert rig.owned[0].core.status().output_on
         rig.close()
         rig.close()
         ops = [c.opcode for c in spy.commands()]
         assert ops[-1] == cp.Opcode.STOP
-        assert rig.fake_device.core.status().output_on is False
+        assert rig.owned[0].core.status().output_on is False
     finally:
         spy.close()
 
@@ -142,13 +143,13 @@ def test_device_rejection_is_a_typed_error_and_the_output_is_zeroed():
         rig.exciter.set_sine(5.0, 0.2)
         with pytest.raises(DeviceError, match="SET_AMPLITUDE.*OUT_OF_RANGE"):
             rig.exciter.set_sine(5.0, 20.0)
-        assert rig.fake_device.core.status().output_on is False
+        assert rig.owned[0].core.status().output_on is False
         assert rig.output_on is False
 
 
 def test_silent_device_gives_device_timeout_error_and_close_still_works():
     with open_can_virtual_rig(_procedure(), seed=1) as rig:
-        rig.fake_device.stop()  # the device disappears: nobody answers
+        rig.owned[0].stop()  # the device disappears: nobody answers
         rig.link.settings = dataclasses.replace(rig.link.settings, retry=RetryPolicy(0.02, 3, 0.005, 0.01))
         with pytest.raises(DeviceTimeoutError, match="no valid reply to SET_FREQUENCY after 3 attempts"):
             rig.exciter.set_sine(5.0, 0.1)
@@ -237,7 +238,7 @@ def test_injected_faults_are_survived_and_corrupted_data_never_used():
     with open_can_virtual_rig(_procedure(faults, noise="fully_damped"), seed=5) as rig:
         for i, omega in enumerate([3.0, 9.0]):
             faulty_blocks.append(_dwell(rig, i, omega, settle=256, n=512))
-        injected = rig.fake_device.injected
+        injected = rig.owned[0].injected
         stats = rig.transport_statistics()
     for clean, faulty in zip(clean_blocks, faulty_blocks):
         np.testing.assert_array_equal(clean.t_s, faulty.t_s)
@@ -254,7 +255,7 @@ def test_disconnect_and_bus_off_every_time_are_recovered_then_reported():
     faults = {"rate": 0.15, "kinds": ["disconnect", "bus_off", "error_frame"], "seed": 3}
     with open_can_virtual_rig(_procedure(faults), seed=5) as rig:
         block = _dwell(rig, 0, 6.0, settle=64, n=128)
-        injected = rig.fake_device.injected
+        injected = rig.owned[0].injected
         stats = rig.transport_statistics()
     assert block.t_s.size == 128
     assert injected.get("disconnect", 0) > 0 and injected.get("bus_off", 0) > 0

@@ -10,7 +10,7 @@ import pytest
 
 from setmem_hil.cli.main import main
 from setmem_hil.io.data_file import read_data_csv
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 from setmem_hil.io.export import EXPORT_FILES, export_csv
 from setmem_hil.io.journal import IterationRecord, Journal
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from setmem_hil.errors import DeviceError, ProcedureError
+from setmem_hil.errors import DeviceRejectedError as DeviceCommandError
 from setmem_hil.sim_backends.fake_device_core import (
     FAULT_KINDS,
-    DeviceCommandError,
     FakeDeviceCore,
     FaultSettings,
 )

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from setmem_hil.errors import InputFormatError
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 from setmem_hil.io.journal import IterationRecord, Journal, JournalError
 
 

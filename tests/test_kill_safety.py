@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from setmem_hil.errors import InputFormatError
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 from setmem_hil.io.journal import Journal
 
 N_TOTAL = 120
@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 import numpy as np
 from pathlib import Path
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 from setmem_hil.io.journal import IterationRecord, Journal
 
 path, n_total, per = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])

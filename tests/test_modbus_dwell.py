@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from setmem_hil.drivers.backends import open_experiment
+from setmem_hil.experiment_factory import open_experiment
 from setmem_hil.io.procedure import default_procedure
 from setmem_hil.sim_backends.beam import beam_parameters
 
@@ -27,7 +27,7 @@ def test_dwell_sweep_through_modbus_bounds_the_truth(faults, framer):
     truth = beam_parameters()  # the 8-mode beam the fake device simulates (independent of the dwell)
     with open_experiment(_procedure(faults, framer), seed=3) as exp:
         measurements = [exp.measure(w) for w in OMEGAS]
-        injected = exp.rig.fake_device.injected
+        injected = exp.rig.owned[0].injected
     for m in measurements:
         g = truth.frequency_response(np.array([m.omega_rad_s]))[0]
         assert abs(m.response - g) <= m.bound, (m, g)

@@ -5,7 +5,7 @@ import threading
 
 import pytest
 
-from setmem_hil.sim_backends.fault_survey import MODBUS_KINDS, RTU_KINDS, survey
+from setmem_hil.loopback.fault_survey import MODBUS_KINDS, RTU_KINDS, survey
 
 
 @pytest.fixture(autouse=True)

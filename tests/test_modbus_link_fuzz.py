@@ -5,7 +5,7 @@ from hypothesis import strategies as st
 from pymodbus.exceptions import ConnectionException, ModbusIOException
 
 from setmem_hil.drivers import modbus_registers as mr
-from setmem_hil.drivers.fieldbus_common import RetryPolicy
+from setmem_hil.drivers.transport import RetryPolicy
 from setmem_hil.drivers.modbus_rig import ModbusLink
 from setmem_hil.errors import DeviceError
 
@@ -61,7 +61,7 @@ def _link(script):
     link.host, link.port, link.framer, link.unit = "127.0.0.1", 0, "socket", 1
     link.retry = RetryPolicy(0.001, 3, 0.0, 0.0)
     link.where = "Modbus fuzz"
-    from setmem_hil.drivers.fieldbus_common import TransportStats
+    from setmem_hil.drivers.transport import TransportStats
 
     link.stats = TransportStats()
     shared = list(script)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from setmem_hil.drivers import modbus_registers as mr
-from setmem_hil.drivers.fieldbus_common import RetryPolicy
-from setmem_hil.drivers.modbus_rig import open_modbus_loopback_rig
+from setmem_hil.drivers.transport import RetryPolicy
+from setmem_hil.loopback.rigs import open_modbus_loopback_rig
 from setmem_hil.errors import DeviceError, DeviceTimeoutError, SafetyLimitError
 from setmem_hil.io.procedure import SafetyLimits, SimulationSettings, default_procedure
 from setmem_hil.sim_backends.beam import beam_parameters
@@ -87,25 +87,25 @@ def test_samples_equal_the_device_model_driven_directly_to_one_lsb(framer):
 def test_limits_are_enforced_before_anything_is_sent():
     limits = SafetyLimits(max_amplitude_n=0.5, omega_min_rad_s=1.0, omega_max_rad_s=50.0, max_dwell_s=100.0)
     with open_modbus_loopback_rig(_procedure(limits=limits), seed=1) as rig:
-        before = rig.fake_device.requests
+        before = rig.owned[0].requests
         with pytest.raises(SafetyLimitError, match="amplitude 0.6 N outside"):
             rig.exciter.set_sine(5.0, 0.6)
         with pytest.raises(SafetyLimitError, match="omega 0.5 rad/s outside"):
             rig.exciter.set_sine(0.5, 0.1)
         with pytest.raises(SafetyLimitError, match="max_dwell_s"):
             rig.sensor.wait(150.0)
-        assert rig.fake_device.requests == before
-        assert rig.fake_device.core.status().output_on is False
+        assert rig.owned[0].requests == before
+        assert rig.owned[0].core.status().output_on is False
 
 
 def test_close_commands_zero_stops_the_server_and_is_idempotent():
     rig = open_modbus_loopback_rig(_procedure(), seed=1)
-    port = rig.fake_device.port
+    port = rig.owned[0].port
     rig.exciter.set_sine(5.0, 0.3)
-    assert rig.fake_device.core.status().output_on
+    assert rig.owned[0].core.status().output_on
     rig.close()
     rig.close()
-    assert rig.fake_device.core.status().output_on is False
+    assert rig.owned[0].core.status().output_on is False
     with socket.socket() as s:
         assert s.connect_ex(("127.0.0.1", port)) != 0  # nobody listens any more
 
@@ -116,14 +116,14 @@ def test_device_exception_is_a_typed_error_and_the_output_is_zeroed():
         with pytest.raises(mr.ModbusExceptionError, match="exception response to function 16 with code 3") as info:
             rig.exciter.set_sine(5.0, 20.0)  # above the fake shaker's 10 N range
         assert isinstance(info.value, DeviceError)
-        assert rig.fake_device.core.status().output_on is False
+        assert rig.owned[0].core.status().output_on is False
         with pytest.raises(mr.ModbusExceptionError, match="code 2"):
             rig.link.write(mr.REG_STATUS, [1], "write to a read-only register")
 
 
 def test_vanished_server_gives_device_timeout_error():
     with open_modbus_loopback_rig(_procedure(), seed=1) as rig:
-        rig.fake_device.stop()
+        rig.owned[0].stop()
         rig.link.retry = RetryPolicy(0.05, 3, 0.005, 0.01)
         with pytest.raises(DeviceTimeoutError, match="failed after 3 attempts"):
             rig.exciter.set_sine(5.0, 0.1)
@@ -140,7 +140,7 @@ def test_injected_faults_are_survived_and_corrupted_data_never_used(framer, kind
         with open_modbus_loopback_rig(_procedure(faults, noise="fully_damped", framer=framer), seed=5) as rig:
             blocks[label] = [_dwell(rig, i, w, settle_s=20.0, n=400) for i, w in enumerate([3.0, 9.0])]
             if label == "faulty":
-                injected, stats = rig.fake_device.injected, rig.transport_statistics()
+                injected, stats = rig.owned[0].injected, rig.transport_statistics()
     for clean, faulty in zip(blocks["clean"], blocks["faulty"]):
         np.testing.assert_array_equal(clean.t_s, faulty.t_s)
         np.testing.assert_array_equal(clean.force, faulty.force)
@@ -171,10 +171,10 @@ def test_device_watchdog_zeroes_the_output_and_the_host_aborts_the_dwell():
     import time
 
     with open_modbus_loopback_rig(_procedure(), seed=1) as rig:
-        rig.fake_device.watchdog_s = 0.15
+        rig.owned[0].watchdog_s = 0.15
         rig.sensor.set_sample_rate(50.0)
         rig.exciter.set_sine(5.0, 0.2)
         time.sleep(0.6)
-        assert rig.fake_device.core.status().output_on is False
+        assert rig.owned[0].core.status().output_on is False
         with pytest.raises(DeviceError, match="exciter output dropped by the device"):
             rig.sensor.acquire(1.0)

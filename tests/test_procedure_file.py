@@ -139,10 +139,10 @@ def test_broken_fault_settings(insert, message):
 
 def test_fault_settings_and_transport_options_pass_through():
     text = FAULTY_LOOPBACK.replace(
-        "[safety]", "baudrate = 115200\n\n[backend.faults]\nrate = 0.05\nkinds = ['timeout', 'corrupt']\nseed = 9\n\n[safety]", 1
+        "[safety]", "reply_timeout_s = 0.5\n\n[backend.faults]\nrate = 0.05\nkinds = ['timeout', 'corrupt']\nseed = 9\n\n[safety]", 1
     )
     p = parse_procedure_text(text, SRC)
-    assert dict(p.backend.transport) == {"baudrate": 115200}
+    assert dict(p.backend.transport) == {"reply_timeout_s": 0.5}
     assert dict(p.backend.faults) == {"rate": 0.05, "kinds": ["timeout", "corrupt"], "seed": 9}
     can = (PROCEDURES / "can_virtual.toml").read_text().replace(
         "[safety]", "[backend.faults]\nkinds = ['bus_off', 'timeout']\nrates = { bus_off = 0.01 }\n\n[safety]", 1)
@@ -212,7 +212,56 @@ def test_format_procedure_round_trips(path):
 def test_format_procedure_round_trips_free_form_options():
     from setmem_hil.io.procedure_file import format_procedure
 
-    text = FAULTY_LOOPBACK.replace("[safety]", 'url = "loop://"\nnested = { a = [1, 2.5], "odd key" = "x\\"y" }\n\n[backend.faults]\nrate = 0.1\n\n[safety]', 1)
+    text = FAULTY_LOOPBACK.replace("[safety]", 'max_attempts = 3\nlearn_poles = true\nbackoff_s = 0.0\n\n[backend.faults]\nrate = 0.1\n\n[safety]', 1)
     p = dataclasses.replace(parse_procedure_text(text, SRC), source_text="")
     q = dataclasses.replace(parse_procedure_text(format_procedure(p), SRC), source_text="")
-    assert q == p and q.backend.transport["nested"]["odd key"] == 'x"y'
+    assert q == p and q.backend.transport == {"max_attempts": 3, "learn_poles": True, "backoff_s": 0.0}
+
+
+# --- issue 12: every key of every table is known; a typo names the key (and the likely one) ---
+TYPO_CASES = [
+    ("serial_loopback.toml", "[backend.transport]", "reply_timout_s = 0.5", "reply_timout_s", "reply_timeout_s"),
+    ("can_virtual.toml", "[backend.transport]", "gap_timout_s = 0.5", "gap_timout_s", "gap_timeout_s"),
+    ("modbus_loopback.toml", "[backend.transport]", "framr = 'rtu'", "framr", "framer"),
+    ("serial_loopback.toml", "[backend.transport]", "framer = 'rtu'", "framer", None),  # Modbus only
+    ("beam_6_3_2.toml", "[safety]", "max_amplitud_n = 1.0", "max_amplitud_n", "max_amplitude_n"),
+    ("beam_6_3_2.toml", "[goal]", "mu_targt = 1.0", "mu_targt", "mu_target"),
+    ("beam_6_3_2.toml", "[input_design]", "stratgy = 'mu'", "stratgy", "strategy"),
+    ("beam_6_3_2.toml", "[backend.simulation]", "noise_scal = 1.0", "noise_scal", "noise_scale"),
+    ("beam_6_3_2.toml", "[discrepancy]", "check_each_iteraton = true", "check_each_iteraton", "check_each_iteration"),
+    ("beam_6_3_2.toml", "[[mode]]", "zeta_mx = 0.5", "zeta_mx", "zeta_max"),
+]
+
+
+@pytest.mark.parametrize("name, table, line, key, hint", TYPO_CASES)
+def test_misspelt_key_anywhere_fails_run_check_naming_it(tmp_path, capsys, name, table, line, key, hint):
+    from setmem_hil.cli.main import main
+
+    text = (PROCEDURES / name).read_text()
+    if table not in text:
+        text += f"\n{table}\n"
+    text = text.replace(table, f"{table}\n{line}", 1)
+    path = tmp_path / name
+    path.write_text(text)
+    assert main(["run", "--check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"unknown key '{key}'" in err and str(path) in err and len(err.strip().splitlines()) == 1
+    if hint:
+        assert f"did you mean '{hint}'" in err
+
+
+@pytest.mark.parametrize("line, problem", [
+    ("reply_timeout_s = -5", "reply_timeout_s -5 must be >= 0.001"),
+    ("max_attempts = 0", "max_attempts 0 must be >= 1"),
+    ("backoff_s = 'fast'", "backoff_s: expected a number"),
+    ("learn_poles = 1", "learn_poles: expected true or false"),
+])
+def test_transport_values_are_checked_by_run_check(tmp_path, capsys, line, problem):
+    from setmem_hil.cli.main import main
+
+    for name in ("serial_loopback.toml", "can_virtual.toml", "modbus_loopback.toml"):  # the same rule everywhere
+        text = (PROCEDURES / name).read_text().replace("[backend.transport]", f"[backend.transport]\n{line}", 1)
+        path = tmp_path / name
+        path.write_text(text)
+        assert main(["run", "--check", str(path)]) == 2
+        assert problem in capsys.readouterr().err

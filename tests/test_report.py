@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from setmem_hil.cli.main import main
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 from setmem_hil.io.journal import IterationRecord, Journal
 from setmem_hil.model.modal_model import IntervalModel, ModalParameters
 from setmem_hil.io.procedure import default_procedure

@@ -151,7 +151,7 @@ def test_programmatic_procedure_is_stored_as_text_and_resumable(tmp_path, monkey
     assert outcome.summary["experiments_added"] == 0 and len(outcome.summary["iterations"]) == 1
 
 
-@pytest.mark.skipif(importlib.util.find_spec("setmem_hil.drivers.backends") is None, reason="transport backends not yet available")
+@pytest.mark.skipif(importlib.util.find_spec("setmem_hil.experiment_factory") is None, reason="transport backends not yet available")
 @pytest.mark.parametrize("name", ["serial_loopback.toml", "can_virtual.toml", "modbus_loopback.toml"])
 def test_loopback_procedures_run(tmp_path, monkeypatch, name):
     H.install_fast_analysis(monkeypatch)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from setmem_hil.drivers import serial_protocol as sp
-from setmem_hil.drivers.retry import RetryPolicy
+from setmem_hil.drivers.transport import RetryPolicy
 from setmem_hil.drivers.serial_rig import SerialLink, SerialRig
 from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
 from setmem_hil.errors import DeviceTimeoutError, SafetyLimitError

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from setmem_hil.drivers.protocols import SampleBlock
-from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment, check_block
+from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
+from setmem_hil.estimation.dwell_estimate import check_block
 from setmem_hil.errors import DataQualityError, DeviceError, SafetyLimitError
 from setmem_hil.io.procedure import SafetyLimits, default_procedure, thesis_beam_prior
 from setmem_hil.sim_backends.beam import beam_parameters
@@ -236,7 +237,7 @@ def test_learned_poles_converge_to_the_true_pole_and_shrink_the_bound():
 
 
 def test_update_model_uses_the_new_poles():
-    from setmem_hil.drivers.sine_dwell import pole_bands
+    from setmem_hil.estimation.dwell_estimate import pole_bands
     from setmem_hil.model.modal_model import IntervalModel
 
     _, exp = _experiment(seed=13)

@@ -341,3 +341,39 @@ def test_progress_counts_done_total_and_failures(tmp_path):
     assert again.skipped == ("mu-seed1", "mu-seed3") and again.failed == ("mu-seed2",)
     assert again.summary["mu"] == {"median_experiments": 2.0, "reached": 2, "runs": 3, "failed": 1,  # (1 + 3) / 2
                                    "median_experiments_reached": 2.0}
+
+
+def test_sweep_stores_the_discrepancy_check_of_every_iteration_as_run_does(tmp_path, monkeypatch):
+    """[discrepancy] check_each_iteration means the same in a sweep as in `setmem-hil run` (one runner)."""
+    from setmem_hil.campaign.session import start_run
+    from setmem_hil.experiment_factory import open_experiment
+    from setmem_hil.io.journal import Journal
+
+    proc = dataclasses.replace(fast_procedure(1), discrepancy_check=True)
+    result = run_sweep(proc, [3], ["mu"], tmp_path / "sweep", serial=True, plot=False)
+    assert result.failed == ()
+    swept = Journal.open(tmp_path / "sweep" / "runs" / "mu-seed3")
+    try:
+        checked = dict(swept.discrepancies())
+        iterations = [rec.k for rec in swept.iterations()]
+    finally:
+        swept.close()
+    assert iterations and sorted(checked) == iterations
+    # the same procedure and seed through `run`'s path stores the same checks
+    run = start_run(dataclasses.replace(proc, seed=3), tmp_path / "run", opener=open_experiment)
+    ran = Journal.open(run.run_dir)
+    try:
+        # equal up to BLAS rounding (a sweep task pins BLAS to one thread for the whole campaign)
+        assert _rounded(dict(ran.discrepancies())) == _rounded(checked)
+    finally:
+        ran.close()
+
+
+def _rounded(obj, digits: int = 9):
+    if isinstance(obj, float):
+        return float(f"{obj:.{digits}g}")
+    if isinstance(obj, dict):
+        return {k: _rounded(v, digits) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_rounded(v, digits) for v in obj]
+    return obj

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from setmem_hil.campaign.runner import run_campaign
-from setmem_hil.drivers.backends import open_experiment
+from setmem_hil.experiment_factory import open_experiment
 from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure import BackendSettings, Goal
 from setmem_hil.io.procedure_file import load_procedure
@@ -23,14 +23,9 @@ DATA_KINDS = ("saturation", "nan", "inf", "timestamp_jump")
 
 
 def fake_devices(experiment) -> list:
-    """The fake devices behind an experiment's rig: the serial backend lists them in
-    ``rig.owned``; the CAN and Modbus rigs stop theirs through their close hook."""
+    """The fake devices behind an experiment's rig: every loopback rig lists them in ``rig.owned``."""
     rig = getattr(experiment, "rig", None)
-    devices = [res for res in getattr(rig, "owned", ()) if hasattr(res, "core")]
-    hook = getattr(rig, "_on_close", None)
-    if hasattr(getattr(hook, "__self__", None), "core"):
-        devices.append(hook.__self__)
-    return devices
+    return [res for res in getattr(rig, "owned", ()) if hasattr(res, "core")]
 
 
 def fake_device_cores(experiment):

@@ -29,7 +29,7 @@ is in the same state at the first new dwell as in an uninterrupted run.
 
 **Single-threaded BLAS.** The numerics of every iteration (identification, H2 design, mu
 analysis, input choice) run with BLAS pinned to one thread in the calling thread
-(:func:`setmem_hil.sweep.blas_threads.blas_one_thread`): the matrices are small, so this is about
+(:func:`setmem_hil.numerics.blas_threads.blas_one_thread`): the matrices are small, so this is about
 twice as fast in CPU time on the 2-core target, and results do not depend on how many BLAS
 threads a machine or Dask worker would otherwise use.
 
@@ -49,9 +49,15 @@ from typing import Any, Callable
 
 import numpy as np
 
-from setmem_hil.sweep.blas_threads import blas_one_thread
-from setmem_hil.errors import InputFormatError
-from setmem_hil.campaign.experiment import Experiment, Measurement
+from setmem_hil.numerics.blas_threads import blas_one_thread
+from setmem_hil.errors import CampaignReplayError
+from setmem_hil.model.experiment import (
+    BoundPredictingExperiment,
+    Experiment,
+    Measurement,
+    ModelAwareExperiment,
+    ResumableExperiment,
+)
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.design.input_design import InputChoice, candidate_frequencies, choose_input, sensitivity_matrix, uniform_weights
 from setmem_hil.io.procedure import Procedure
@@ -62,10 +68,6 @@ ProgressFn = Callable[..., None]
 
 EXACT_RESOLVE_OUTER_ITERATIONS = 1
 """Algorithm 3.1 passes of the exact re-solves of the top candidates (speed; see the report)."""
-
-
-class CampaignReplayError(InputFormatError):
-    """A journal whose stored measurements do not match what the procedure would measure."""
 
 
 @dataclass(frozen=True)
@@ -142,9 +144,8 @@ class CampaignSummary:
 def candidate_noise_bound(experiment: Any, omega_rad_s: np.ndarray, measured: list[Measurement]) -> np.ndarray:
     """``R(omega)`` expected at the candidates (see the module docstring)."""
     w = np.asarray(omega_rad_s, dtype=float)
-    total_bound = getattr(experiment, "total_bound", None)
-    if callable(total_bound):
-        return np.broadcast_to(np.asarray(total_bound(w), dtype=float), w.shape).copy()
+    if isinstance(experiment, BoundPredictingExperiment):
+        return np.broadcast_to(np.asarray(experiment.total_bound(w), dtype=float), w.shape).copy()
     if not measured:
         raise ValueError("candidate_noise_bound: no measurements to interpolate the error bound from")
     mw = np.array([m.omega_rad_s for m in measured], dtype=float)
@@ -184,7 +185,7 @@ class _Replay:
             self.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=True)
             return m
         if not self._synced:
-            if self.stored and hasattr(self.experiment, "n_measured"):
+            if self.stored and isinstance(self.experiment, ResumableExperiment):
                 self.experiment.n_measured = len(self.stored)
             self._synced = True
         self.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=False)
@@ -331,9 +332,8 @@ def run_campaign(
                 journal.add_event("inconsistent-data", f"iteration {k}: {exc}")
             raise
         model = result.model if previous_model is None else result.model.intersect(previous_model)
-        update_model = getattr(experiment, "update_model", None)
-        if callable(update_model):  # later dwells model their transients with these poles
-            update_model(model)
+        if isinstance(experiment, ModelAwareExperiment):  # later dwells model their transients with these poles
+            experiment.update_model(model)
         with blas_one_thread():
             outcome = safeguarded_design(model, previous_outcome, analyze)
         analysis = outcome.analysis

@@ -1,10 +1,12 @@
-"""Command-line entry point ``setmem-hil``.
+"""Command-line entry point of setmem-hil.
 
 Subcommands live one per module in :mod:`setmem_hil.cli.commands` and are discovered here.
+
 Exit codes (public contract): 0 success; 2 malformed input (the message names file, line or
 key); 3 data inconsistent with the prior (the message names the frequencies); 4 device fault
-(the exciter was commanded to zero); 130 interrupted (Ctrl-C; commands that drive a device zero the exciter and close the journal);
-1 any other failure.
+(the exciter was commanded to zero); 130 interrupted or aborted (the exciter is at zero and
+the journal closed); 1 any other failure. Every failure is reported as one line
+``setmem-hil: ...`` on stderr; ``--debug`` adds the Python traceback.
 """
 
 from __future__ import annotations
@@ -13,9 +15,20 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import traceback
 
 from setmem_hil import __version__
-from setmem_hil.errors import DeviceError, InconsistentDataError, InputFormatError, SafetyLimitError
+from setmem_hil.errors import (
+    CampaignAborted,
+    CampaignReplayError,
+    DeviceError,
+    InconsistentDataError,
+    InputFormatError,
+    JournalError,
+    SafetyLimitError,
+    SetmemError,
+    SolverError,
+)
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -24,10 +37,57 @@ EXIT_INCONSISTENT = 3
 EXIT_DEVICE = 4
 EXIT_INTERRUPTED = 130
 
+DESCRIPTION = (
+    "setmem-hil: drive a flexible structure with sinusoids, identify a modal model with guaranteed "
+    "parameter intervals, design an H2 compensator, measure robust performance with mixed mu, and choose "
+    "the next excitation frequency until mu-bar < 1."
+)
+
+
+SAFE_STOP = "interrupted; exciter at zero, journal closed"
+"""What commands that drive an exciter and write a journal say on Ctrl-C, SIGTERM or Abort."""
+
+
+def exit_code_and_message(exc: BaseException, interrupted: str = "interrupted") -> tuple[int, str]:
+    """The exit code and the one-line message for an exception reaching the CLI.
+
+    ``interrupted`` is the command's own account of what it left safe (``SAFE_STOP`` for the
+    commands that drive an exciter; commands register it with ``set_defaults(interrupted=...)``).
+    """
+    if isinstance(exc, InconsistentDataError):
+        return EXIT_INCONSISTENT, f"data inconsistent with the prior: {exc}"
+    if isinstance(exc, (InputFormatError, SafetyLimitError)):
+        return EXIT_BAD_INPUT, str(exc)
+    if isinstance(exc, DeviceError):
+        return EXIT_DEVICE, f"device fault: {exc} (exciter commanded to zero)"
+    if isinstance(exc, (KeyboardInterrupt, CampaignAborted)):
+        return EXIT_INTERRUPTED, interrupted
+    if isinstance(exc, CampaignReplayError):
+        return EXIT_FAILURE, f"cannot replay the stored run: {exc}"
+    if isinstance(exc, SolverError):
+        return EXIT_FAILURE, f"numerical failure: {exc}"
+    if isinstance(exc, JournalError):
+        return EXIT_FAILURE, f"journal: {exc}"
+    if isinstance(exc, SetmemError):
+        return EXIT_FAILURE, str(exc)
+    if isinstance(exc, OSError):
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        return EXIT_FAILURE, f"cannot access{where}: {exc.strerror or exc}"
+    return EXIT_FAILURE, f"internal error ({type(exc).__name__}: {exc}); rerun with --debug for the traceback"
+
+
+def one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="setmem-hil", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="setmem-hil", description=DESCRIPTION,
+        epilog="run 'setmem-hil COMMAND --help' for a command's options; exit codes: 0 ok, 2 malformed input, "
+        "3 data inconsistent with the prior, 4 device fault, 130 interrupted, 1 other",
+    )
     parser.add_argument("--version", action="version", version=f"setmem-hil {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show the Python traceback of a failure")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     import setmem_hil.cli.commands as commands
 
@@ -40,6 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv  # also honoured after the command name
+    if debug:
+        argv = [a for a in argv if a != "--debug"]
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
@@ -47,19 +111,12 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     try:
         return int(args.func(args) or 0)
-    except InconsistentDataError as exc:
-        print(f"setmem-hil: data inconsistent with the prior: {exc}", file=sys.stderr)
-        return EXIT_INCONSISTENT
-    except (InputFormatError, SafetyLimitError) as exc:
-        print(f"setmem-hil: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except DeviceError as exc:
-        print(f"setmem-hil: device fault: {exc} (exciter commanded to zero)", file=sys.stderr)
-        return EXIT_DEVICE
-    except KeyboardInterrupt:
-        # commands that drive a device or write a journal say themselves what they left safe
-        print("setmem-hil: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - every failure becomes one line and an exit code
+        code, message = exit_code_and_message(exc, getattr(args, "interrupted", "interrupted"))
+        if debug:
+            traceback.print_exc()
+        print(f"setmem-hil: {one_line(message)}", file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":  # pragma: no cover

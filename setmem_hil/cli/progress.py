@@ -23,7 +23,7 @@ from typing import Any, Callable
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-__all__ = ["CampaignProgress", "format_mu"]
+__all__ = ["CampaignProgress", "format_mu", "terminal_display"]
 
 
 def format_mu(mu: float) -> str:
@@ -195,3 +195,19 @@ class CampaignProgress:
             return float(self.planned_dwell_s(omega_rad_s))
         except Exception:  # a display nicety must never stop a campaign
             return None
+
+
+def terminal_display(console: Console):
+    """``display(experiment)`` for :mod:`setmem_hil.campaign.session`: a :class:`CampaignProgress`
+    on ``console`` that shows each dwell's planned duration when the experiment can plan it."""
+    from setmem_hil.model.experiment import PlanningExperiment
+
+    def display(experiment) -> CampaignProgress:
+        planned = None
+        if isinstance(experiment, PlanningExperiment):
+            def planned(omega_rad_s: float) -> float:
+                plan = experiment.plan(omega_rad_s)
+                return float(plan.skip_s + plan.window_s)
+        return CampaignProgress(console, planned_dwell_s=planned)
+
+    return display

@@ -37,11 +37,8 @@ import numpy as np
 
 from setmem_hil.model.modal_model import A0, A1, IntervalModel, modal_response
 
-try:  # the public home of the helpers (issue 2)
-    from setmem_hil.identification.algorithm import embedding_bound, mode_mismatch_bounds
-except ImportError:  # pragma: no cover - identification still being written
-    from setmem_hil.identification.embedding import embedding_bound
-    from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
+from setmem_hil.identification.embedding import embedding_bound
+from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 
 _TINY = 1e-300
 

@@ -313,15 +313,3 @@ def fit_candidate(name: str, data: FrequencyData, box: ModalBox, none: Candidate
     if name == "extra_mode":
         return fit_extra_mode(data, box, modal0, residual, polish)
     raise ValueError(f"effect: expected one of {CANDIDATE_EFFECTS}, found {name!r}")
-
-
-def fit_all_candidates(data: FrequencyData, box: ModalBox, polish: bool = True) -> dict[str, CandidateFit]:
-    """Fit every candidate of :data:`CANDIDATE_EFFECTS` inside ``box`` (the prior's box).
-
-    Returns
-    -------
-    dict
-        ``name -> CandidateFit``.
-    """
-    none = fit_none(data, box, polish)
-    return {name: fit_candidate(name, data, box, none, polish) for name in CANDIDATE_EFFECTS}

@@ -29,12 +29,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares, minimize
 
+from setmem_hil.discrepancy.effect_models import EFFECT_MODELS, ExtraMode
+
 EFFECT_PARAM_NAMES: dict[str, tuple[str, ...]] = {
     "none": (),
-    "time_delay": ("tau",),
-    "first_order_lag": ("tau",),
-    "feedthrough": ("d",),
-    "extra_mode": ("a1", "a0", "b1", "b0"),
+    **{name: model.param_names for name, model in EFFECT_MODELS.items()},
+    ExtraMode.name: ExtraMode.param_names,
 }
 
 
@@ -80,19 +80,11 @@ def model_response(effect: str, theta: np.ndarray, n_modes: int, omega_rad_s: np
     g_modal = gk.sum(axis=0)
     if effect in ("none", "extra_mode"):
         return g_modal, jac
-    p = theta[n_modal]
-    if effect == "time_delay":
-        e = np.exp(-s * p)
-        jac[:, :n_modal] *= e[:, None]
-        jac[:, n_modal] = -s * g_modal * e
-        return g_modal * e, jac
-    if effect == "first_order_lag":
-        lag = 1.0 / (p * s + 1.0)
-        jac[:, :n_modal] *= lag[:, None]
-        jac[:, n_modal] = -s * g_modal * lag**2
-        return g_modal * lag, jac
-    jac[:, n_modal] = 1.0  # feedthrough
-    return g_modal + p, jac
+    g, d_dg, d_dp = EFFECT_MODELS[effect].response_and_jacobian(g_modal, s, theta[n_modal])
+    if d_dg is not None:
+        jac[:, :n_modal] *= d_dg[:, None]
+    jac[:, n_modal] = d_dp
+    return g, jac
 
 
 def normalized_residual(effect: str, theta: np.ndarray, n_modes: int, omega_rad_s, response, bound) -> np.ndarray:

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from setmem_hil.discrepancy.effect_models import EFFECT_MODELS
+from setmem_hil.io.result_file import result_document
 from setmem_hil.discrepancy.effects import CandidateFit
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
@@ -70,18 +72,9 @@ class Reidentification:
 
 def transform_data(effect: str, value: float, data: FrequencyData, delta: float = 0.0) -> FrequencyData:
     """Data with the effect removed at ``value`` and the bound covering ``|p' - value| <= delta``."""
-    w = data.omega_rad_s
-    g = data.response
-    R = data.bound
-    if effect == "time_delay":
-        phase = np.minimum(w * delta / 2.0, np.pi / 2.0)
-        return FrequencyData(w, g * np.exp(1j * w * value), R + (np.abs(g) + R) * 2.0 * np.sin(phase))
-    if effect == "first_order_lag":
-        factor = 1.0 + 1j * w * value
-        return FrequencyData(w, g * factor, R * np.abs(factor) + (np.abs(g) + R) * w * delta)
-    if effect == "feedthrough":
-        return FrequencyData(w, g - value, R + delta)
-    raise ValueError(f"effect: expected time_delay, first_order_lag or feedthrough, found {effect!r}")
+    if effect not in EFFECT_MODELS:
+        raise ValueError(f"effect: expected one of {', '.join(EFFECT_MODELS)}, found {effect!r}")
+    return EFFECT_MODELS[effect].remove(data, value, delta)
 
 
 def _feasible(data: FrequencyData, prior: Prior, cheap: bool = True):
@@ -105,9 +98,7 @@ def effect_interval(effect: str, value: float, data: FrequencyData, prior: Prior
 
     if not ok(value):
         return value, value
-    top = float(np.max(data.omega_rad_s))
-    typical = 0.01 / top if effect != "feedthrough" else 0.1 * float(np.median(data.bound))
-    step0 = 0.05 * abs(value) + typical
+    step0 = 0.05 * abs(value) + EFFECT_MODELS[effect].typical_step(data)
     ends = []
     for sign in (-1.0, 1.0):
         inside, step = value, step0
@@ -157,22 +148,8 @@ def extra_mode_prior(prior: Prior, omega_n: float, margin: float = 0.1) -> tuple
 
 
 def _result_document(result) -> dict:
-    """The identify result format; non-finite conservatism figures become null.
-
-    (``IdentificationResult.to_document`` currently fails when a mode's embedding ratio is
-    infinite, so the document is built here from the model and the figures.)
-    """
-    def num(v):
-        return float(v) if np.isfinite(v) else None
-
-    return {
-        "modes": result.model.named_intervals(),
-        "conservatism": {
-            "embedding_gamma": [num(g) for g in result.embedding_gamma],
-            "mismatch_ratio": [num(r) for r in result.mismatch_ratio],
-        },
-        "iterations": int(result.iterations),
-    }
+    """The identify result format (modes, conservatism, iterations); non-finite figures become null."""
+    return result_document(result.model, result.embedding_gamma, result.mismatch_ratio, result.iterations)
 
 
 def _with_fitted_residues(prior: Prior, fit: CandidateFit, k: int) -> Prior:
@@ -227,9 +204,10 @@ def reidentify_with_effect(data: FrequencyData, prior: Prior, fit: CandidateFit,
         return Reidentification(True, "", doc, intervals, 1.0)
 
     name = fit.name
-    pname = "tau" if name != "feedthrough" else "d"
+    model = EFFECT_MODELS[name]
+    pname = model.param_names[0]
     value = float(fit.params[pname])
-    limit = 0.0 if name != "feedthrough" else -np.inf
+    limit = model.lower_limit
     intervals = {}
     if settings.interval_steps > 0:
         p_lo, p_hi = effect_interval(name, value, data, prior, settings.interval_steps, limit)

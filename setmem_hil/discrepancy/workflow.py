@@ -60,6 +60,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from setmem_hil.io.atomic_file import json_safe
 from setmem_hil.discrepancy.effects import (
     CandidateFit, ModalBox, fit_candidate, fit_none, initial_modal_estimate,
 )
@@ -161,21 +162,7 @@ RULE_TEXT = (
 )
 
 
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    return obj
+_jsonable = json_safe  # the one sanitiser: non-finite floats become null, numpy values plain Python
 
 
 def disagreement_bands(omega_rad_s: np.ndarray, normalized_residual: np.ndarray, level: float = 1.0) -> tuple:

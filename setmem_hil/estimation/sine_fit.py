@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from setmem_hil.sweep.blas_threads import single_thread_blas as _blas1
+from setmem_hil.numerics.blas_threads import single_thread_blas as _blas1
 from setmem_hil.errors import DataQualityError
 
 

@@ -34,6 +34,7 @@ import os
 from pathlib import Path
 from typing import Iterable, Sequence
 
+from setmem_hil.io.atomic_file import write_text_atomic
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.io.journal import Journal
 from setmem_hil.model.modal_model import PARAM_NAMES
@@ -70,9 +71,7 @@ def _csv_text(header: Sequence[str], rows: Iterable[Sequence]) -> str:
 
 
 def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
+    write_text_atomic(path, text)
 
 
 def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[Path]:

@@ -30,7 +30,7 @@ Resume (REPLAY design)
 Example
 -------
 >>> import tempfile, pathlib
->>> from setmem_hil.campaign.experiment import Measurement
+>>> from setmem_hil.model.experiment import Measurement
 >>> d = pathlib.Path(tempfile.mkdtemp())
 >>> j = Journal.create(d / "journal.sqlite", procedure_text="name = 'x'", procedure_name="x",
 ...                    seed=1, software_version="0.1.0", backend="sim", strategy="mu")
@@ -55,8 +55,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from setmem_hil.errors import InputFormatError, SetmemError
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.errors import InputFormatError, JournalError
+from setmem_hil.model.experiment import Measurement
 
 __all__ = ["Journal", "IterationRecord", "JournalError", "JOURNAL_FILENAME", "journal_path", "ROLES"]
 
@@ -64,10 +64,6 @@ JOURNAL_FILENAME = "journal.sqlite"
 APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
 SCHEMA_VERSION = 1
 ROLES = ("initial", "added")
-
-
-class JournalError(SetmemError, RuntimeError):
-    """A write that would break the journal's invariants (duplicate iteration, closed journal)."""
 
 
 @dataclass(frozen=True)

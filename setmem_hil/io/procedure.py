@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-import numpy as np
 
 from setmem_hil.model.prior import ModePrior, Prior
 from setmem_hil.model.weights import THESIS_WEIGHTS, Weights
@@ -106,11 +105,6 @@ def thesis_6_3_2_initial_omegas() -> tuple[float, ...]:
     ratios = (0.80, 0.90, 0.95, 1.06, 1.15)
     centres = (1.0, 6.267, 17.547)  # the true natural frequencies the prior bands surround
     return tuple(float(round(c * r, 4)) for c in centres for r in ratios)
-
-
-def thesis_6_3_4_initial_omegas() -> tuple[float, ...]:
-    """Section 6.3.4: 15 points log-spaced between 0.3 and 30 rad/s."""
-    return tuple(float(w) for w in np.geomspace(0.3, 30.0, 15))
 
 
 def default_procedure() -> Procedure:

@@ -54,15 +54,12 @@ from setmem_hil.io.procedure import (
     SimulationSettings,
 )
 from setmem_hil.io.procedure_writer import format_procedure  # noqa: F401  (re-exported: load and write side by side)
-from setmem_hil.sim_backends.fake_device_core import FAULT_KINDS
-from setmem_hil.sim_backends.transport_faults import CAN_FAULT_KINDS, MODBUS_FAULT_KINDS
+from setmem_hil.io.fault_kinds import CAN_FAULT_KINDS, FAULT_KINDS, MODBUS_FAULT_KINDS, TRANSPORT_FAULT_KINDS
 from setmem_hil.model.weights import THESIS_WEIGHTS, Weights
 
 __all__ = ["load_procedure", "parse_procedure_text", "format_procedure", "parse_procedure_mapping", "KeySpec", "SCHEMA", "FAULT_KINDS"]
 
-# Fault kinds of the fake devices: the device core's (frame and data faults, FAULT_KINDS) plus
-# each transport's own; one source of truth in the device simulation modules.
-TRANSPORT_FAULT_KINDS = {"serial-loopback": (), "can-virtual": tuple(CAN_FAULT_KINDS), "modbus-loopback": tuple(MODBUS_FAULT_KINDS)}
+# Fault kinds of the fake devices: setmem_hil.io.fault_kinds (one source of truth, part of the schema).
 SEED_MAX = 2**63 - 1
 
 
@@ -109,11 +106,26 @@ SCHEMA: tuple[KeySpec, ...] = (
     # [backend]
     KeySpec("backend", "kind", "choice", "", "sim", "Backend: the frequency-domain simulated beam or a fake device behind a loopback transport.", choices=BACKENDS),
     KeySpec("backend", "simulation", "table", "", "", "The simulated structure (behind every backend, including the fake devices)."),
-    KeySpec("backend", "transport", "free-table", "", "{}", "Options passed unchanged to the transport (port URL, CAN channel, Modbus unit, timeouts...); see the drivers' documentation. Not allowed with kind = \"sim\"."),
+    KeySpec("backend", "transport", "table", "", "{}", "Options of the loopback transport (timeouts, retries, CAN channel, Modbus framing...); the keys depend on kind, see below. Not allowed with kind = \"sim\"."),
     KeySpec("backend", "faults", "table", "", "", "Fault injection of the fake devices (issue 8). Not allowed with kind = \"sim\"."),
     KeySpec("backend.simulation", "noise_profile", "choice", "", _SIM.noise_profile, "Additive-noise bound R(omega) of section 6.2: fully damped model (6.3.2), SNR 10 (6.3.3), resonance noise (6.3.4) or none.", choices=NOISE_PROFILES),
     KeySpec("backend.simulation", "noise_scale", "number", "", _SIM.noise_scale, "Multiplies the noise bound.", ge=0.0),
     KeySpec("backend.simulation", "unmodelled_dynamics", "bool", "", _SIM.unmodelled_dynamics, "Keep modes 4-8 in the simulated truth and add |W1| to each point's bound."),
+    # [backend.transport]: one schema per backend kind, the same limits for every transport
+    *(spec for kind in BACKENDS[1:] for spec in (
+        KeySpec(f"transport:{kind}", "reply_timeout_s", "number", "s", "per transport", "Wait for one device reply before retrying (serial 0.2, CAN/Modbus 0.1).", ge=1e-3, le=60.0),
+        KeySpec(f"transport:{kind}", "max_attempts", "integer", "", "per transport", "Tries per command before a device fault is declared (serial 6, CAN/Modbus 7).", ge=1, le=100),
+        KeySpec(f"transport:{kind}", "backoff_s", "number", "s", "per transport", "First wait between retries, doubling (0 = retry at once; serial 0.002, CAN/Modbus 0.01).", ge=0.0, le=10.0),
+        KeySpec(f"transport:{kind}", "backoff_max_s", "number", "s", "per transport", "Largest wait between retries (serial 0.05, CAN/Modbus 0.32).", ge=0.0, le=60.0),
+        KeySpec(f"transport:{kind}", "response_noise_per_bound", "number", "", 1.0, "The fake device's sensor noise relative to the error bound.", gt=0.0, le=1e6),
+        KeySpec(f"transport:{kind}", "learn_poles", "bool", "", False, "Carry the transient poles from dwell to dwell (shorter dwells near modes; a resumed run no longer repeats an uninterrupted one bit for bit)."),
+        KeySpec(f"transport:{kind}", "max_window_s", "number", "s", 120.0, "Longest acquisition window of one dwell.", gt=0.0),
+    )),
+    KeySpec("transport:can-virtual", "channel", "string", "", "a unique name", "python-can virtual channel of the fake device."),
+    KeySpec("transport:can-virtual", "node", "integer", "", 0x21, "CAN node id of the device.", ge=1, le=0x7F),
+    KeySpec("transport:can-virtual", "gap_timeout_s", "number", "s", 0.2, "Wait for missing sample frames before asking for a resend.", ge=1e-3, le=60.0),
+    KeySpec("transport:modbus-loopback", "framer", "choice", "", "socket", "Modbus framing over the TCP connection.", choices=("socket", "rtu")),
+    KeySpec("transport:modbus-loopback", "unit", "integer", "", 1, "Modbus unit (device) id.", ge=1, le=247),
     KeySpec("backend.faults", "rate", "number", "", 0.0, "Probability of each enabled fault per opportunity (per frame or per capture).", ge=0.0, le=1.0),
     KeySpec("backend.faults", "kinds", "strings", "", "all", "Enabled fault kinds: " + ", ".join(FAULT_KINDS) + "; with can-virtual also " + ", ".join(CAN_FAULT_KINDS) + "; with modbus-loopback also " + ", ".join(MODBUS_FAULT_KINDS) + "."),
     KeySpec("backend.faults", "seed", "integer", "", 0, "Seed of the fault draws.", ge=0, le=SEED_MAX),
@@ -264,9 +276,7 @@ def _backend(top: _Table) -> BackendSettings:
         noise_scale=s.get("noise_scale", _SIM.noise_scale),
         unmodelled_dynamics=s.get("unmodelled_dynamics", _SIM.unmodelled_dynamics),
     )
-    transport = t.mapping.get("transport", {})
-    if not isinstance(transport, Mapping):
-        raise ProcedureError(top.source, "[backend.transport]", f"expected a table, found {_type_name(transport)} {_fmt(transport)}")
+    transport = _transport_options(top, t, kind)
     faults: dict[str, Any] = {}
     if t.has("faults"):
         f = t.sub("faults")
@@ -295,7 +305,20 @@ def _backend(top: _Table) -> BackendSettings:
         for key in ("transport", "faults"):
             if t.has(key):
                 raise ProcedureError(top.source, f"[backend.{key}]", f"only used by transport backends ({', '.join(BACKENDS[1:])}); kind is 'sim'")
-    return BackendSettings(kind=kind, simulation=sim, transport=dict(transport), faults=faults)
+    return BackendSettings(kind=kind, simulation=sim, transport=transport, faults=faults)
+
+
+def _transport_options(top: _Table, backend: _Table, kind: str) -> dict[str, Any]:
+    """``[backend.transport]`` checked against the schema of ``kind``: unknown keys (with a
+    did-you-mean), wrong types and out-of-range values are errors naming the key. Only the keys
+    given are returned (the drivers own the defaults)."""
+    raw = backend.mapping.get("transport", {})
+    if kind not in BACKENDS[1:]:
+        if not isinstance(raw, Mapping):
+            raise ProcedureError(top.source, "[backend.transport]", f"expected a table, found {_type_name(raw)} {_fmt(raw)}")
+        return dict(raw)  # kind 'sim' refuses the table below; an unknown kind is refused by kind
+    table = _Table(top.source, f"transport:{kind}", raw, location="[backend.transport]")
+    return {key: table.get(key) for key in raw}
 
 
 def _safety(top: _Table) -> SafetyLimits:

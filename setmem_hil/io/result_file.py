@@ -17,6 +17,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from setmem_hil.errors import InputFormatError
+from setmem_hil.io.atomic_file import json_safe, write_json_atomic
 from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel
 
 
@@ -58,14 +59,12 @@ def read_result(path: str | os.PathLike) -> IntervalModel:
 
 
 def result_document(model: IntervalModel, embedding_gamma, mismatch_ratio, iterations: int, **extra) -> dict[str, Any]:
-    def finite_or_null(values):  # JSON has no infinity: an unbounded ratio is written as null
-        return [float(v) if v is not None and math.isfinite(float(v)) else None for v in values]
-
+    # JSON has no infinity: an unbounded ratio is written as null (json_safe)
     doc: dict[str, Any] = {
         "modes": model.named_intervals(),
         "conservatism": {
-            "embedding_gamma": finite_or_null(embedding_gamma),
-            "mismatch_ratio": finite_or_null(mismatch_ratio),
+            "embedding_gamma": json_safe([float(v) for v in embedding_gamma]),
+            "mismatch_ratio": json_safe([float(v) for v in mismatch_ratio]),
         },
         "iterations": int(iterations),
     }
@@ -74,8 +73,5 @@ def result_document(model: IntervalModel, embedding_gamma, mismatch_ratio, itera
 
 
 def write_json(doc: Mapping[str, Any], path: str | os.PathLike) -> None:
-    """Write JSON atomically (temp file then rename) so a crash never leaves half a file."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    """Write JSON atomically (:func:`setmem_hil.io.atomic_file.write_json_atomic`)."""
+    write_json_atomic(doc, path)

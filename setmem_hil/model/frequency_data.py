@@ -7,7 +7,7 @@ from typing import Iterable
 
 import numpy as np
 
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 
 
 @dataclass(frozen=True)

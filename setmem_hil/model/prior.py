@@ -12,6 +12,8 @@ The prior gives ``a0 = omega_n^2`` in ``[omega_min^2, omega_max^2]`` and
 
 from __future__ import annotations
 
+import difflib
+
 import math
 import os
 from dataclasses import dataclass, field
@@ -85,7 +87,9 @@ def parse_mode_table(table: Any, source: str, index: int) -> ModePrior:
         raise InputFormatError(source, where, f"expected a table, found {type(table).__name__}")
     unknown = sorted(set(table) - set(MODE_KEYS))
     if unknown:
-        raise InputFormatError(source, where, f"unknown key {unknown[0]!r}; allowed: {', '.join(MODE_KEYS)}")
+        close = difflib.get_close_matches(str(unknown[0]), list(MODE_KEYS), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise InputFormatError(source, where, f"unknown key {unknown[0]!r}{hint} (allowed: {', '.join(MODE_KEYS)})")
     for key in ("omega_min", "omega_max", "zeta_max"):
         if key not in table:
             raise InputFormatError(source, where, f"missing key {key!r}")

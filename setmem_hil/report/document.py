@@ -29,6 +29,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from setmem_hil.errors import SetmemError
+from setmem_hil.io.atomic_file import write_text_atomic
 from setmem_hil.io.journal import IterationRecord, Journal, journal_path
 from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel
 
@@ -258,10 +259,7 @@ pre {{ background: #f6f6f6; padding: 1em; overflow-x: auto; }}
 </body></html>
 """
     path = out_dir / REPORT_FILENAME
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(doc, encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    return write_text_atomic(path, doc)
 
 
 def _discrepancy_rows(report: dict) -> list[list[str]]:

@@ -23,7 +23,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from setmem_hil.campaign.experiment import Measurement
+from setmem_hil.model.experiment import Measurement
 from setmem_hil.io.journal import IterationRecord
 from setmem_hil.model.modal_model import IntervalModel, ModalParameters
 

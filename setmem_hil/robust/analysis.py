@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from setmem_hil.io.atomic_file import json_safe
 from setmem_hil.robust.augmented_plant import augmented_plant
 from setmem_hil.robust.h2_design import design_h2_controller, h2_controller_for_plant
 from setmem_hil.robust.mixed_mu import MixedMuBound, MuStructure, mixed_mu_upper
@@ -102,15 +103,12 @@ class RobustAnalysis:
     def to_document(self) -> dict[str, Any]:
         """The ANALYSIS.json dict; non-finite values (unstable nominal loop) become ``null``."""
 
-        def num(x: float):
-            return float(x) if math.isfinite(float(x)) else None
-
         return {
-            "mu_peak": num(self.mu_peak),
+            "mu_peak": json_safe(float(self.mu_peak)),
             "mu_peak_omega": float(self.mu_peak_omega),
-            "mu_lower_peak": num(self.mu_lower_peak),
+            "mu_lower_peak": json_safe(float(self.mu_lower_peak)),
             "omega": [float(w) for w in self.omega],
-            "mu": [num(m) for m in self.mu],
+            "mu": json_safe([float(m) for m in self.mu]),
             "sensitivities": {k: float(v) for k, v in self.sensitivities.items()},
             "controller_order": int(self.controller_order),
         }

@@ -249,34 +249,6 @@ def mixed_mu_upper(
     return MixedMuBound(beta=beta, d=d, g=g, eigenvalues=lam, eigenvectors=U)
 
 
-def _expand_steps(prob, xa, dirn, idx, ta, xn, fn, topn, accepted, factors=(2.0, 4.0, 8.0, 16.0, 32.0)):
-    """Try longer steps where the full step was accepted: the infimum of eq. (2.15) is often
-    approached along a ray (``d_k -> 0``, ``|g_k| -> inf`` for a real block), where plain Newton
-    steps creep. Keeps the best value found (in place)."""
-    a = np.flatnonzero(accepted)
-    if a.size == 0:
-        return
-    for fac in factors:
-        xt = xa[a] + fac * dirn[a]
-        if prob.ny:
-            ok = np.abs(xt[:, : prob.ny]).max(axis=1) < Y_LIMIT
-            if not np.any(ok):
-                break
-        else:
-            ok = np.ones(a.size, dtype=bool)
-        with np.errstate(all="ignore"):
-            try:
-                ft, tt = prob.value(xt, idx[a], ta[a])
-            except np.linalg.LinAlgError:
-                break
-        better = ok & np.isfinite(ft) & (ft < fn[a])
-        if not np.any(better):
-            break
-        b = a[better]
-        xn[b], fn[b], topn[b] = xt[better], ft[better], tt[better]
-        a = b
-
-
 def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: np.ndarray, hessian: bool = True):
     """Value, gradient and exact Hessian of ``f_tau = tau log sum exp(lambda_i / tau)``.
 
@@ -421,7 +393,7 @@ def _newton(prob: _Problem, x: np.ndarray, tol: float, max_iter: int, tau0_rel: 
         dirn *= np.minimum(1.0, 4.0 / np.maximum(ymax, 1e-300))[:, None]  # keep exp(y) finite
         slope = (dirn * gr).sum(axis=1)
         # one batched evaluation of several step lengths: the Newton step, its extrapolations
-        # (rays, see _expand_steps) and two backtracks; Armijo decides
+        # along the ray and two backtracks; Armijo decides
         steps = _TRIAL_STEPS
         S = steps.size
         xt = xa[:, None, :] + steps[None, :, None] * dirn[:, None, :]
@@ -446,8 +418,6 @@ def _newton(prob: _Problem, x: np.ndarray, tol: float, max_iter: int, tau0_rel: 
             xn[tq] = xa[tq] + step[tq, None] * dirn[tq]
             fn[tq], topn[tq] = prob.value(xn[tq], idx[tq], ta[tq])
             todo[tq] = ~(fn[tq] <= f[tq] + 1e-4 * step[tq] * slope[tq])
-        if np.any(step >= 32.0):
-            _expand_steps(prob, xa, dirn, idx, ta, xn, fn, topn, step >= 32.0, factors=(64.0, 128.0, 256.0))
         failed = todo  # no decrease found: treat the stage as converged
         xn[failed] = xa[failed]
         topn[failed] = top[failed]

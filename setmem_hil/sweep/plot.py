@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from setmem_hil.io.atomic_file import atomic_path
+
 
 def plot_experiments_to_goal(document: dict, path: str | os.PathLike) -> Path:
     """Draw the ``sweep.json`` ``document`` into ``path`` (PNG) and return the path.
@@ -74,9 +76,8 @@ def plot_experiments_to_goal(document: dict, path: str | os.PathLike) -> Path:
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     out = Path(path)
-    tmp = out.with_name(f".{out.name}.tmp")
-    fig.savefig(tmp, dpi=110, format=(out.suffix.lstrip(".") or "png"))
-    os.replace(tmp, out)  # never a half-written figure under the final name
+    with atomic_path(out) as tmp:  # never a half-written figure under the final name
+        fig.savefig(tmp, dpi=110, format=(out.suffix.lstrip(".") or "png"))
     return out
 
 

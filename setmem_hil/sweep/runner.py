@@ -26,7 +26,7 @@ Storage (``DIR/runs/<strategy>-seed<N>/``)
 Determinism
     Nothing in a campaign depends on a global RNG or the wall clock (the simulated noise of the
     n-th measurement derives from (seed, n), the random baseline from (seed, k)), and every task
-    runs with single-threaded BLAS (:func:`setmem_hil.sweep.blas_threads.blas_one_thread`): multithreaded
+    runs with single-threaded BLAS (:func:`setmem_hil.numerics.blas_threads.blas_one_thread`): multithreaded
     BLAS changes reduction orders and hence the last digits of mu-bar (we measured 2e-5 on the 6.3.2
     campaign), which could flip a close input choice. So a (seed, strategy) campaign takes the
     same measurements and choices serially, on the local cluster and on remote workers.
@@ -52,6 +52,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from setmem_hil.campaign.session import directory_lock
 from setmem_hil.errors import InputFormatError
 from setmem_hil.io.procedure import STRATEGIES, Procedure
 from setmem_hil.sweep.storage import (
@@ -158,23 +159,9 @@ class SweepResult:
     document: dict
 
 
-@contextlib.contextmanager
 def _sweep_lock(out_dir: Path):
     """One sweep per directory at a time (``flock``; released by the OS when the process dies)."""
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX
-        yield
-        return
-    fh = open(out_dir / LOCK_NAME, "a+")
-    try:
-        try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise InputFormatError(str(out_dir), "", "another sweep is writing this directory") from None
-        yield
-    finally:
-        fh.close()
+    return directory_lock(out_dir, LOCK_NAME, "another sweep is writing this directory")
 
 
 class _RichProgress:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import os
 import shutil
 import tempfile
@@ -20,9 +19,10 @@ import time
 import traceback
 import uuid
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Sequence
 
 from setmem_hil.errors import InputFormatError
+from setmem_hil.io.atomic_file import write_json_atomic
 from setmem_hil.io.procedure import Procedure
 
 RUNS_DIRNAME = "runs"
@@ -46,27 +46,6 @@ def procedure_fingerprint(procedure: Procedure) -> str:
     """
     core = dataclasses.replace(procedure, seed=0, source_text="", source_path="", description="")
     return hashlib.sha256(repr(core).encode("utf-8")).hexdigest()
-
-
-def _finite_or_none(x: Any) -> Any:
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _finite_or_none(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite_or_none(v) for v in x]
-    return x
-
-
-def write_json_atomic(doc: Any, path: str | os.PathLike) -> None:
-    """Write JSON via a temporary file and ``os.replace``; non-finite floats become ``null``."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(json.dumps(_finite_or_none(doc), indent=1, allow_nan=False) + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def new_partial_dir(runs_dir: Path, name: str) -> Path:

@@ -52,11 +52,11 @@ def check_sweep_procedure(procedure: Procedure) -> None:
 def open_sim_experiment(procedure: Procedure, seed: int):
     """The simulated experiment of ``procedure`` with noise seed ``seed``.
 
-    :func:`setmem_hil.drivers.backends.open_experiment`, so a sweep campaign equals
+    :func:`setmem_hil.experiment_factory.open_experiment`, so a sweep campaign equals
     ``setmem-hil run`` with the same procedure and seed.
     """
     check_sweep_procedure(procedure)
-    from setmem_hil.drivers.backends import open_experiment
+    from setmem_hil.experiment_factory import open_experiment  # noqa: F811
 
     return open_experiment(procedure, int(seed))
 
@@ -64,7 +64,8 @@ def open_sim_experiment(procedure: Procedure, seed: int):
 def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str) -> dict:
     """Run one campaign of a sweep and store it in ``out_dir/runs/<strategy>-seed<N>`` (the Dask task).
 
-    Algorithm 5.1 (:func:`setmem_hil.campaign.runner.run_campaign`) on the simulated experiment with
+    Algorithm 5.1 (:func:`setmem_hil.campaign.session.run_journaled_campaign`: the runner with the
+    same subscribers as ``setmem-hil run``) on the simulated experiment with
     noise seed ``seed``, input choice ``strategy`` (eq. 5.3 for ``"mu"``) and single-threaded
     BLAS. Skips a run whose ``summary.json`` exists. Writes into a temporary directory that is
     renamed into place when done (:mod:`setmem_hil.sweep.storage`).
@@ -89,9 +90,9 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str)
         partial directory is then removed).
     """
     from setmem_hil import __version__
-    from setmem_hil.sweep.blas_threads import blas_one_thread
-    from setmem_hil.campaign.runner import run_campaign
+    from setmem_hil.campaign.session import run_journaled_campaign
     from setmem_hil.io.journal import Journal
+    from setmem_hil.numerics.blas_threads import blas_one_thread
 
     seed = int(seed)
     runs_dir = Path(out_dir) / RUNS_DIRNAME
@@ -113,11 +114,10 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str)
         with blas_one_thread():
             experiment = open_sim_experiment(proc, seed)
             try:
-                result = run_campaign(proc, experiment, journal, seed=seed, strategy=strategy)
+                # the same runner and subscribers as `setmem-hil run` (e.g. [discrepancy] checks)
+                result = run_journaled_campaign(proc, experiment, journal, seed=seed, strategy=strategy)
             finally:
-                close = getattr(experiment, "close", None)
-                if callable(close):
-                    close()
+                experiment.close()
         journal.close()
         doc = result.to_document()
         doc["sweep"] = {"procedure_fingerprint": procedure_fingerprint(proc), "procedure_name": proc.name,

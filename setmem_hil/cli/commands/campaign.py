@@ -21,8 +21,8 @@ from pathlib import Path
 
 from rich.console import Console
 
-from setmem_hil.errors import InputFormatError
 from setmem_hil.io.procedure import BACKENDS, STRATEGIES
+from setmem_hil.cli.main import SAFE_STOP
 
 __all__ = ["register", "campaign", "print_iteration_table"]
 
@@ -39,19 +39,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, help="override the procedure's seed")
     p.add_argument("--strategy", choices=STRATEGIES, help="override the procedure's input-design strategy")
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=campaign)
+    p.set_defaults(func=campaign, interrupted=SAFE_STOP)
 
 
 def campaign(args: argparse.Namespace) -> int:
     from setmem_hil.cli.commands.run import start_run
-    from setmem_hil.io.journal import JOURNAL_FILENAME
     from setmem_hil.io.procedure_file import load_procedure
 
-    out = Path(args.out)
-    if (out / JOURNAL_FILENAME).exists():
-        raise InputFormatError(str(out), "--out", f"already holds a journal; continue that run with `setmem-hil run --resume {out}` or choose another directory")
-    if out.exists() and not out.is_dir():
-        raise InputFormatError(str(out), "--out", "exists and is not a directory")
+    out = Path(args.out)  # start_run refuses a file, or a directory holding a journal
     procedure = load_procedure(args.procedure)
     if args.backend and args.backend != procedure.backend.kind:
         # the stored text must describe the backend actually used (resume re-reads it)

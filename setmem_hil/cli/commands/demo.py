@@ -15,8 +15,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from rich.console import Console
+from setmem_hil.cli.main import SAFE_STOP
 
-from setmem_hil.errors import InputFormatError
 
 __all__ = ["register", "demo", "default_demo_dir"]
 
@@ -30,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="DIR", help="output directory (default ./setmem-hil-demo-<UTC time>)")
     p.add_argument("--seed", type=int, help="seed of the simulated noise (default: the procedure's)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=demo)
+    p.set_defaults(func=demo, interrupted=SAFE_STOP)
 
 
 def default_demo_dir(now: datetime | None = None) -> Path:
@@ -41,12 +41,9 @@ def default_demo_dir(now: datetime | None = None) -> Path:
 def demo(args: argparse.Namespace) -> int:
     from setmem_hil.cli.commands.campaign import print_iteration_table
     from setmem_hil.cli.commands.run import start_run
-    from setmem_hil.io.journal import JOURNAL_FILENAME
     from setmem_hil.io.procedure import default_procedure
 
-    out = Path(args.out) if args.out else default_demo_dir()
-    if (out / JOURNAL_FILENAME).exists():
-        raise InputFormatError(str(out), "--out", f"already holds a journal; continue that run with `setmem-hil run --resume {out}` or choose another directory")
+    out = Path(args.out) if args.out else default_demo_dir()  # start_run refuses one holding a journal
     console = Console(quiet=bool(args.quiet))
     procedure = default_procedure()
     if args.seed is not None:

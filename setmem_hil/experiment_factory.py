@@ -1,4 +1,4 @@
-"""The backends factory: a procedure's ``[backend] kind`` to an Experiment (context manager).
+"""The experiment factory: a procedure's ``[backend] kind`` to an Experiment (context manager).
 
 ``open_experiment(procedure, seed)`` returns, for ``procedure.backend.kind``:
 
@@ -11,9 +11,12 @@
     :class:`~setmem_hil.drivers.serial_rig.SerialRig` and a
     :class:`~setmem_hil.drivers.sine_dwell.SineDwellExperiment` on it.
 ``can-virtual`` / ``modbus-loopback``
-    ``setmem_hil.drivers.can_rig.open_can_virtual_rig(procedure, seed)`` /
-    ``setmem_hil.drivers.modbus_rig.open_modbus_loopback_rig(procedure, seed)`` (imported
-    lazily) and a SineDwellExperiment on the rig.
+    :func:`setmem_hil.loopback.rigs.open_can_virtual_rig` /
+    :func:`setmem_hil.loopback.rigs.open_modbus_loopback_rig` and a SineDwellExperiment on the rig.
+
+This composition module is the only place (with :mod:`setmem_hil.loopback`) that knows both the
+hardware drivers and the simulation; the campaign sees only the
+:class:`~setmem_hil.model.experiment.Experiment` protocol.
 
 Every dwell experiment gets the procedure's safety limits, the prior's interval model for its
 transient poles, and, when the simulated structure keeps its unmodelled modes
@@ -36,15 +39,22 @@ Example
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping
 
-from setmem_hil.drivers.retry import RetryPolicy
+from setmem_hil.model.experiment import Experiment
 from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
 from setmem_hil.errors import ProcedureError
-from setmem_hil.campaign.experiment import Experiment
 from setmem_hil.io.procedure import BACKENDS, Procedure
+from setmem_hil.loopback.rigs import open_can_virtual_rig, open_modbus_loopback_rig, open_serial_loopback_rig
 from setmem_hil.sim_backends.beam import BEAM_N_MODES
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
+
+__all__ = ["open_experiment", "dwell_settings", "dwell_experiment", "ManagedSimulatedBeam"]
+
+LOOPBACK_RIGS = {
+    "serial-loopback": open_serial_loopback_rig,
+    "can-virtual": open_can_virtual_rig,
+    "modbus-loopback": open_modbus_loopback_rig,
+}
 
 
 @dataclass
@@ -56,48 +66,6 @@ class ManagedSimulatedBeam(SimulatedBeamExperiment):
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-class OwningRig:
-    """A rig that also closes the resources behind it (the fake device) when closed.
-
-    Attribute access is delegated to the wrapped rig, so its optional capabilities
-    (``begin_measurement``, ``reconnect``, ...) stay visible.
-    """
-
-    def __init__(self, rig, *owned):
-        self._rig = rig
-        self._owned = owned
-
-    @property
-    def owned(self) -> tuple:
-        """The resources closed with the rig (e.g. the fake device)."""
-        return self._owned
-
-    def __getattr__(self, name: str):
-        if name.startswith("_"):
-            raise AttributeError(name)
-        return getattr(self._rig, name)
-
-    def close(self) -> None:
-        try:
-            self._rig.close()
-        finally:
-            for res in self._owned:
-                res.close()
-
-
-def retry_policy(transport: Mapping[str, Any], source: str = "procedure") -> RetryPolicy:
-    """RetryPolicy from ``[backend.transport]`` (keys ``reply_timeout_s``, ``max_attempts``,
-    ``backoff_s``, ``backoff_max_s``; other keys belong to other transports and are ignored)."""
-    kw = {}
-    for key, kind in (("reply_timeout_s", float), ("max_attempts", int), ("backoff_s", float), ("backoff_max_s", float)):
-        if key in transport:
-            value = transport[key]
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0 or (kind is int and value != int(value)):
-                raise ProcedureError(source, f"[backend.transport] key '{key}'", f"expected a positive {kind.__name__}, found {value!r}")
-            kw[key] = kind(value)
-    return RetryPolicy(**kw)
 
 
 def dwell_settings(procedure: Procedure) -> DwellSettings:
@@ -151,34 +119,12 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
             w1_num=tuple(procedure.weights.w1_num),
             w1_den=tuple(procedure.weights.w1_den),
         )
-    if kind not in BACKENDS:
+    if kind not in LOOPBACK_RIGS:
         raise ProcedureError(source, "[backend] key 'kind'", f"expected one of {list(BACKENDS)}, found {kind!r}")
     settings = dwell_settings(procedure)  # validated before any device is started
-    if kind == "serial-loopback":
-        from setmem_hil.drivers.serial_rig import SerialRig
-        from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
-        from setmem_hil.sim_backends.fake_serial_device import FakeSerialDevice
-
-        policy = retry_policy(procedure.backend.transport, source)
-        core = FakeDeviceCore.from_procedure(procedure, seed)
-        device = FakeSerialDevice(core)
-        try:
-            rig = SerialRig(device.url, policy)
-        except BaseException:
-            device.close()
-            raise
-        owning = OwningRig(rig, device)
-        try:
-            return dwell_experiment(procedure, owning, settings)
-        except BaseException:
-            owning.close()
-            raise
-    if kind == "can-virtual":
-        from setmem_hil.drivers.can_rig import open_can_virtual_rig
-
-        return dwell_experiment(procedure, open_can_virtual_rig(procedure, seed), settings)
-    if kind == "modbus-loopback":
-        from setmem_hil.drivers.modbus_rig import open_modbus_loopback_rig
-
-        return dwell_experiment(procedure, open_modbus_loopback_rig(procedure, seed), settings)
-    raise ProcedureError(source, "[backend] key 'kind'", f"expected one of {list(BACKENDS)}, found {kind!r}")
+    rig = LOOPBACK_RIGS[kind](procedure, seed)
+    try:
+        return dwell_experiment(procedure, rig, settings)
+    except BaseException:
+        rig.close()
+        raise

@@ -7,7 +7,7 @@ was detected or tolerated, corrupted data were discarded and never used, and the
 not disturb the device's state (the exciter and the virtual clock). The survey also reports
 what the host detected (``transport_statistics``).
 
-Run ``python -m setmem_hil.sim_backends.fault_survey`` for the table.
+Run ``python -m setmem_hil.loopback.fault_survey`` for the table.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from typing import Callable
 import numpy as np
 
 from setmem_hil.errors import DeviceError
+from setmem_hil.loopback.rigs import open_can_virtual_rig, open_modbus_loopback_rig
 from setmem_hil.io.procedure import Procedure, SimulationSettings, default_procedure
 
 CAN_KINDS = ("timeout", "truncate", "corrupt", "duplicate", "reorder", "disconnect", "error_frame", "bus_off")
@@ -64,13 +65,7 @@ def _procedure(transport: str, faults: dict) -> Procedure:
 
 
 def _opener(transport: str) -> Callable:
-    if transport == "can":
-        from setmem_hil.drivers.can_rig import open_can_virtual_rig
-
-        return open_can_virtual_rig
-    from setmem_hil.drivers.modbus_rig import open_modbus_loopback_rig
-
-    return open_modbus_loopback_rig
+    return open_can_virtual_rig if transport == "can" else open_modbus_loopback_rig
 
 
 def _acquire(rig, omegas, n_samples: int) -> list:
@@ -103,7 +98,7 @@ def survey(
         except DeviceError as exc:
             error = str(exc)
         finally:
-            injected = rig.fake_device.injected.get(kind, 0)
+            injected = rig.owned[0].injected.get(kind, 0)
             detected = rig.transport_statistics()
             rig.close()
         if blocks is not None:

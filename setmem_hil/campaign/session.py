@@ -1,0 +1,318 @@
+"""The application layer of a campaign run: directories, journal, lock, signals, resume.
+
+:func:`start_run` creates a run directory with a new journal and runs the campaign;
+:func:`resume_run` continues a stopped one from its journal (REPLAY, see
+:mod:`setmem_hil.campaign.runner`). Both go through :func:`run_journaled_campaign`, the one way
+a journaled campaign is run (also by the sweep task), so every procedure setting means the same
+everywhere: the runner plus the standard subscribers of :mod:`setmem_hil.campaign.observers`
+plus whatever display the caller adds (terminal progress, live view).
+
+Ctrl-C (or SIGTERM) stops cleanly: the exciter is commanded to zero, the journal is closed, the
+message says how to resume, and ``KeyboardInterrupt`` propagates (exit 130 in the CLI). SIGKILL
+or a power cut cannot be caught; the journal still holds every completed measurement.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import sys
+import threading
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, ContextManager, Iterator, Sequence
+
+from rich.console import Console
+
+from setmem_hil import __version__
+from setmem_hil.campaign.observers import Observer, broadcast, standard_observers
+from setmem_hil.campaign.runner import CampaignSummary, run_campaign
+from setmem_hil.errors import DeviceError, InputFormatError, SetmemError
+from setmem_hil.io.atomic_file import write_json_atomic, write_text_atomic
+from setmem_hil.io.journal import JOURNAL_FILENAME, Journal
+from setmem_hil.io.procedure import STRATEGIES, Procedure
+from setmem_hil.io.procedure_file import format_procedure, parse_procedure_text
+
+__all__ = [
+    "RunOutcome", "start_run", "resume_run", "run_journaled_campaign", "default_run_dir", "describe_procedure",
+    "directory_lock", "SUMMARY_FILENAME", "PROCEDURE_COPY", "Display",
+]
+
+SUMMARY_FILENAME = "summary.json"
+PROCEDURE_COPY = "procedure.toml"
+LOCK_FILENAME = ".run.lock"
+
+Display = Callable[[Any], ContextManager[Observer]]
+"""``display(experiment)``: a context manager yielding an observer that shows the campaign."""
+
+ExperimentOpener = Callable[[Procedure, int], Any]
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What :func:`start_run` / :func:`resume_run` did."""
+
+    run_dir: Path
+    summary: dict
+    already_finished: bool = False
+
+
+def _arguments_error(problem: str) -> InputFormatError:
+    return InputFormatError("setmem-hil run", "arguments", problem)
+
+
+@contextmanager
+def directory_lock(folder: Path, lock_name: str, busy: str) -> Iterator[None]:
+    """One process at a time per directory (POSIX advisory ``flock``, released when the process
+    ends, also on SIGKILL); ``InputFormatError(folder, "", busy)`` when another holds it. Where
+    ``fcntl`` is missing there is no lock."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover (not POSIX)
+        yield
+        return
+    fh = open(Path(folder) / lock_name, "a+")
+    try:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise InputFormatError(str(folder), "", busy) from None
+        yield
+    finally:
+        fh.close()
+
+
+@contextmanager
+def _run_lock(run_dir: Path, journal: Journal) -> Iterator[None]:
+    """Two resumes of the same run would both append after the stored measurements."""
+    try:
+        with directory_lock(run_dir, LOCK_FILENAME, "another setmem-hil process is running this campaign; wait for it or stop it first"):
+            yield
+    except InputFormatError:
+        if not journal.closed:
+            journal.close()
+        raise
+
+
+def run_journaled_campaign(procedure: Procedure, experiment: Any, journal: Journal, *, seed: int, strategy: str,
+                           observers: Sequence[Observer] = ()) -> CampaignSummary:
+    """Algorithm 5.1 on ``experiment`` into ``journal`` with the standard subscribers plus ``observers``."""
+    subscribers = [*observers, *standard_observers(procedure, experiment, journal)]
+    return run_campaign(procedure, experiment, journal, seed=seed, strategy=strategy, progress=broadcast(subscribers))
+
+
+def default_run_dir(procedure: Procedure, now: datetime | None = None) -> Path:
+    """``runs/<name>-<YYYYmmddTHHMMSSZ>`` (name made file-system safe)."""
+    now = now or datetime.now(timezone.utc)
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "-", procedure.name).strip("-.") or "run"
+    return Path("runs") / f"{safe}-{now.strftime('%Y%m%dT%H%M%SZ')}"
+
+
+def describe_procedure(procedure: Procedure, console: Console) -> None:
+    p = procedure
+    console.print(
+        f"procedure {p.name!r}: backend {p.backend.kind}, {p.prior.n_modes} modes, "
+        f"{len(p.initial_omegas_rad_s)} initial frequencies, strategy {p.input_design.strategy}, "
+        f"goal mu-bar < {p.goal.mu_target:g} within {p.goal.max_experiments} added experiments, seed {p.seed}",
+        highlight=False,
+    )
+
+
+def start_run(
+    procedure: Procedure,
+    run_dir: str | os.PathLike,
+    *,
+    seed: int | None = None,
+    strategy: str | None = None,
+    console: Console | None = None,
+    opener: ExperimentOpener,
+    display: Display | None = None,
+) -> RunOutcome:
+    """Create ``run_dir`` with a new journal and run the campaign (see the module docstring).
+
+    The procedure's text (``procedure.source_text``, or its :func:`format_procedure` rendering
+    for a programmatic procedure) is stored in the journal with the seed, strategy, backend and
+    software version, so the run can be resumed and reported later. ``opener(procedure, seed)``
+    builds the experiment (:func:`setmem_hil.experiment_factory.open_experiment`); ``display``
+    adds a view of the campaign (terminal progress, live view).
+    """
+    console = console or Console()
+    run_dir = Path(run_dir)
+    seed = procedure.seed if seed is None else int(seed)
+    if seed < 0:
+        raise _arguments_error(f"--seed {seed} must be >= 0")
+    strategy = strategy or procedure.input_design.strategy
+    if strategy not in STRATEGIES:
+        raise _arguments_error(f"strategy {strategy!r} is not one of {', '.join(STRATEGIES)}")
+    text = procedure.source_text or format_procedure(procedure)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise InputFormatError(str(run_dir), "", "exists and is not a directory")
+    if (run_dir / JOURNAL_FILENAME).exists():
+        raise InputFormatError(str(run_dir), "", f"already holds a run (it already holds a journal.sqlite); continue it with `setmem-hil run --resume {run_dir}` or choose another --out")
+    # Open the rig first: a transport option the driver rejects, or a device that does not
+    # start, must not leave behind a journal whose stored procedure can never run.
+    experiment = opener(procedure, seed)
+    try:
+        journal = Journal.create(
+            run_dir / JOURNAL_FILENAME,
+            procedure_text=text,
+            procedure_name=procedure.name,
+            seed=seed,
+            software_version=__version__,
+            backend=procedure.backend.kind,
+            strategy=strategy,
+        )
+    except BaseException:
+        experiment.close()
+        raise
+    with _run_lock(run_dir, journal):
+        write_text_atomic(run_dir / PROCEDURE_COPY, text)
+        console.print(f"run directory: {run_dir}", highlight=False)
+        describe_procedure(procedure, console)
+        return _run_with_journal(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console,
+                                 experiment=experiment, opener=opener, display=display)
+
+
+def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, opener: ExperimentOpener,
+               display: Display | None = None) -> RunOutcome:
+    """Continue the run in ``run_dir`` from its journal (REPLAY; see the module docstring)."""
+    console = console or Console()
+    run_dir = Path(run_dir)
+    journal = Journal.open(run_dir)
+    try:
+        info = journal.run_info()
+        source = f"{journal.path} (stored procedure)"
+        if not info["procedure_text"].strip():
+            raise InputFormatError(str(journal.path), "table run", "the journal holds no procedure text; this run cannot be resumed")
+        procedure = parse_procedure_text(info["procedure_text"], source)
+        if procedure.backend.kind != info["backend"]:
+            raise InputFormatError(source, "[backend]", f"kind {procedure.backend.kind!r} differs from the run's backend {info['backend']!r}")
+    except BaseException:
+        journal.close()
+        raise
+    if info["finished"]:
+        journal.close()
+        summary = info["summary"] or {}
+        if not (run_dir / SUMMARY_FILENAME).exists():
+            write_json_atomic(summary, run_dir / SUMMARY_FILENAME)
+        console.print(f"{run_dir}: the run is already finished; nothing to do", highlight=False)
+        return RunOutcome(run_dir, summary, already_finished=True)
+    if info["software_version"] != __version__:
+        console.print(
+            f"warning: the run was started with setmem-hil {info['software_version']}, this is {__version__}; "
+            "the replay stops with an error if the loop now makes different choices",
+            highlight=False,
+        )
+    with _run_lock(run_dir, journal):
+        stored = journal.n_measurements()
+        journal.add_event("resumed", f"resumed with {stored} stored measurements and {len(journal.iterations())} iterations (setmem-hil {__version__})")
+        console.print(f"resuming {run_dir}: {stored} measurements stored, seed {info['seed']}, strategy {info['strategy']}", highlight=False)
+        return _run_with_journal(procedure, journal, run_dir, seed=int(info["seed"]), strategy=str(info["strategy"]), console=console,
+                                 opener=opener, display=display)
+
+
+@contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Ignore Ctrl-C and SIGTERM while shutting down, so a second one cannot skip the exciter stop."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    previous_term = signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGTERM, previous_term)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill PID``, a service manager stopping us): handled exactly like Ctrl-C."""
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Turn SIGTERM into an interrupt for the duration of the campaign, so the exciter is
+    zeroed and the journal closed (the default action would end the process on the spot)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise _Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
+                      opener: ExperimentOpener, display: Display | None, experiment: Any = None) -> RunOutcome:
+    with _sigterm_as_interrupt():
+        return _run_campaign_in(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console,
+                                opener=opener, display=display, experiment=experiment)
+
+
+def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
+                     opener: ExperimentOpener, display: Display | None, experiment: Any = None) -> RunOutcome:
+    try:
+        if experiment is None:
+            experiment = opener(procedure, seed)
+        with (display(experiment) if display is not None else contextlib.nullcontext(None)) as shown:
+            summary = run_journaled_campaign(procedure, experiment, journal, seed=seed, strategy=strategy,
+                                             observers=[shown] if shown is not None else [])
+        doc = summary.to_document()
+    except KeyboardInterrupt as exc:
+        why = "SIGTERM: stopped by a signal" if isinstance(exc, _Terminated) else "Ctrl-C: stopped by the operator"
+        with _sigint_deferred():
+            _shutdown(experiment, journal, "interrupted", why)
+        print(f"setmem-hil: stopped; {_stored(journal)} measurements are in the journal. Continue with:\n"
+              f"    setmem-hil run --resume {run_dir}", file=sys.stderr)
+        raise
+    except DeviceError as exc:
+        with _sigint_deferred():
+            _shutdown(experiment, journal, "device-fault", str(exc))
+        print(f"setmem-hil: after fixing the rig, continue with: setmem-hil run --resume {run_dir}", file=sys.stderr)
+        raise
+    except BaseException as exc:
+        with _sigint_deferred():
+            _shutdown(experiment, journal, "error", f"{type(exc).__name__}: {exc}")
+        raise
+    with _sigint_deferred():
+        _shutdown(experiment, journal, None, "")
+    write_json_atomic(doc, run_dir / SUMMARY_FILENAME)
+    console.print(f"summary: {run_dir / SUMMARY_FILENAME}", highlight=False)
+    console.print(f"report:  setmem-hil report {run_dir}", highlight=False)
+    return RunOutcome(run_dir, doc)
+
+
+def _stored(journal: Journal) -> str:
+    try:
+        j = Journal.open(journal.path)
+        try:
+            return str(j.n_measurements())
+        finally:
+            j.close()
+    except SetmemError:
+        return "all completed"
+
+
+def _shutdown(experiment: Any, journal: Journal, kind: str | None, message: str) -> None:
+    """Exciter to zero first, then record why we stopped, then close the journal."""
+    try:
+        if experiment is not None:
+            experiment.close()
+    finally:
+        try:
+            if kind is not None and not journal.closed:
+                journal.add_event(kind, message)
+        finally:
+            journal.close()
+
+

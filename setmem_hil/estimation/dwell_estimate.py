@@ -1,0 +1,367 @@
+"""Numerics of one sine dwell: planning, pole bands, the transient-aware estimate and its bound.
+
+Pure functions and data (no device I/O): :func:`plan_dwell` (sample rate, skip and window from
+the current pole intervals), :func:`pole_bands` (eq. 2.25 midpoint poles and their
+``omega_n`` bands), :class:`PoleTracker` (pole posteriors carried between dwells),
+:func:`fit_response` and :func:`estimate_dwell` (the response and force phasors with modelled
+transients, their ratio ``g`` and the bound ``R`` covering noise, transient mismatch and the
+extra unmodelled-dynamics term, eq. 3.7), :func:`check_block` (refuse unusable samples). The
+device side, :class:`setmem_hil.drivers.sine_dwell.SineDwellExperiment`, drives the rig and
+calls these.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from setmem_hil.errors import DataQualityError
+from setmem_hil.estimation.sine_fit import (
+    DampedPole,
+    PoleSearchBand,
+    SineFit,
+    confidence_radius,
+    fit_sine,
+    fit_sine_with_transients,
+    phasor_ratio,
+)
+from setmem_hil.model.experiment import Measurement
+from setmem_hil.model.modal_model import IntervalModel, ModalParameters
+
+__all__ = ["DwellSettings", "DwellPlan", "DwellResult", "PoleTracker", "pole_bands", "plan_dwell", "replan_fixed_rate",
+           "fit_response", "estimate_dwell", "fixed_pole_term", "check_block"]
+
+
+@dataclass(frozen=True)
+class DwellSettings:
+    """How a dwell is planned, checked and bounded (defaults suit the thesis beam).
+
+    Attributes
+    ----------
+    amplitude_n : float
+        Force amplitude (checked against ``SafetyLimits.max_amplitude_n``).
+    samples_per_period : int
+        Coherent sampling rate, samples per excitation period.
+    max_samples : int
+        Most samples in one acquisition (the sample rate is lowered to respect it, never below
+        ``min_samples_per_period``).
+    min_samples_per_period : int
+    min_periods : int
+        Shortest fit window, in excitation periods.
+    min_window_s : float
+        Shortest fit window in seconds (lets unmodelled fast modes ring down and be resolved).
+    separation_cycles : float
+        Fit window of at least this many beat periods ``2 pi / |omega - omega_k|`` with the
+        nearest modelled mode (so its ringing is separable from the steady state).
+    max_window_s : float
+        Longest first window.
+    skip_periods, skip_s : float
+        Samples discarded after the sine starts: ``max(skip_periods periods, skip_s)``.
+    confidence : float
+        Confidence of the returned bound (radius of the fitted covariance, chi-square with 2
+        degrees of freedom: 0.9995 is 3.9 sigma).
+    settle_confidence : float
+        Level of the halves-agree settling test.
+    max_extensions : int
+        Times the window may be extended when the halves disagree.
+    max_attempts : int
+        Dwells tried per measurement (discarded data, device faults) before giving up.
+    learn_poles : bool
+        Carry the modelled modes' pole estimates from dwell to dwell (:class:`PoleTracker`,
+        each dwell's posterior is the next one's prior): near a mode this brings the variance
+        close to the Cramer-Rao bound at short dwells. Off by default because a
+        measurement then depends on the earlier dwells' raw data, so a campaign resumed from
+        its journal would no longer repeat an uninterrupted run bit for bit.
+    mismatch_factor : float
+        The bound includes ``mismatch_factor`` times the excess of ``|g_first_half -
+        g_second_half|`` over its noise RMS (transient mismatch: unmodelled modes and pole
+        errors that the fitted covariance misses).
+    unmodelled_band : float
+        A further transient pole (an unmodelled mode) is searched in ``omega / b .. omega b``.
+    fixed_pole_phase_limit : float
+        Use the model's poles without refinement when their interval half-width times the
+        window length is below this (radians of phase drift).
+    """
+
+    amplitude_n: float = 1.0
+    samples_per_period: int = 32
+    max_samples: int = 2048
+    min_samples_per_period: int = 6
+    min_periods: int = 12
+    min_window_s: float = 10.0
+    separation_cycles: float = 2.0
+    max_window_s: float = 120.0
+    skip_periods: float = 0.5
+    skip_s: float = 2.0
+    confidence: float = 0.9995
+    settle_confidence: float = 0.999
+    max_extensions: int = 2
+    max_attempts: int = 5
+    fixed_pole_phase_limit: float = 0.05
+    unmodelled_band: float = 1.5
+    mismatch_factor: float = 1.0
+    learn_poles: bool = False
+
+
+@dataclass(frozen=True)
+class DwellPlan:
+    """A planned dwell: sample rate, skip and window (seconds)."""
+
+    omega_rad_s: float
+    sample_rate_hz: float
+    skip_s: float
+    window_s: float
+    n_samples: int
+
+
+@dataclass(frozen=True)
+class DwellResult:
+    """Everything one dwell produced (kept as ``last_result`` for diagnostics and benchmarks)."""
+
+    measurement: Measurement
+    plan: DwellPlan
+    response_fit: SineFit
+    force_fit: SineFit
+    covariance: np.ndarray
+    radius: float
+    transient_term: float
+    extra_term: float
+    dwell_s: float
+    attempts: int
+    extensions: int
+
+
+def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+    n = 2 * len(blocks)
+    out = np.zeros((n, n))
+    for k, b in enumerate(blocks):
+        out[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = b
+    return out
+
+
+class PoleTracker:
+    """Sequential Bayesian estimate of the modelled modes' poles over dwells.
+
+    Each dwell refines a mode's pole ``(sigma, omega_d)`` with the tracker's current estimate
+    as a Gaussian prior (:func:`setmem_hil.estimation.sine_fit.fit_sine_with_transients`, ``pole_priors``);
+    the posterior (mean and covariance: data and prior information combined) replaces the
+    tracker's estimate. The pole uncertainty, which dominates the variance of a short dwell near
+    a mode, thus shrinks with every dwell and stays in each dwell's covariance.
+    """
+
+    def __init__(self):
+        self._est: dict[int, tuple[DampedPole, np.ndarray]] = {}
+        self.updates = 0
+
+    def estimate(self, index: int) -> tuple[DampedPole, np.ndarray] | None:
+        return self._est.get(index)
+
+    def update(self, index: int, pole: DampedPole, cov: np.ndarray) -> bool:
+        cov = np.asarray(cov, dtype=float)
+        cov = 0.5 * (cov + cov.T)
+        if cov.shape != (2, 2) or not np.all(np.isfinite(cov)) or np.linalg.det(cov) <= 0 or cov[0, 0] <= 0:
+            return False
+        self._est[index] = (pole, cov)
+        self.updates += 1
+        return True
+
+
+def pole_bands(model: IntervalModel | ModalParameters | None, relative_band: float = 0.15) -> tuple[PoleSearchBand, ...]:
+    """Pole estimates and search bands of the modelled modes.
+
+    From an :class:`IntervalModel`: midpoint poles (eq. 2.25) and ``omega_n`` bands
+    ``[sqrt(a0_lower), sqrt(a0_upper)]``; damping from the ``a1`` midpoint. From a point model:
+    ``omega_n (1 +- relative_band)``.
+    """
+    if model is None:
+        return ()
+    if isinstance(model, IntervalModel):
+        lo, hi = model.lower, model.upper
+        out = []
+        for i in range(model.n_modes):
+            w_lo, w_hi = math.sqrt(max(lo[i, 1], 0.0)), math.sqrt(max(hi[i, 1], 0.0))
+            wn = 0.5 * (w_lo + w_hi)
+            a1 = 0.5 * (lo[i, 0] + hi[i, 0])
+            if wn <= 0:
+                continue
+            out.append(PoleSearchBand(DampedPole.from_modal(wn, a1 / (2 * wn)), w_lo, w_hi))
+        return tuple(out)
+    out = []
+    for wn, z in zip(model.natural_frequencies, model.damping_ratios):
+        out.append(PoleSearchBand(DampedPole.from_modal(wn, z), wn * (1 - relative_band), wn * (1 + relative_band)))
+    return tuple(out)
+
+
+def plan_dwell(settings: DwellSettings, model, omega_rad_s: float) -> DwellPlan:
+    """Sample rate, skip and window for a dwell at ``omega_rad_s``: long enough to separate the
+    excitation from the modelled modes' transients (``separation_cycles`` over the gap to each
+    pole band), capped by ``max_window_s`` and ``max_samples``."""
+    s = settings
+    w = float(omega_rad_s)
+    period = 2 * math.pi / w
+    window = max(s.min_periods * period, s.min_window_s)
+    for band in pole_bands(model):
+        gap = max(band.omega_min_rad_s - w, w - band.omega_max_rad_s, abs(w - band.guess.omega_d_rad_s) * 0.5, 0.0)
+        gap = max(gap, 1e-9)
+        window = max(window, s.separation_cycles * 2 * math.pi / gap)
+    window = min(window, max(s.max_window_s, s.min_periods * period, s.min_window_s))
+    rate = s.samples_per_period / period
+    if rate * window > s.max_samples:
+        rate = max(s.max_samples / window, s.min_samples_per_period / period)
+    n = int(math.ceil(window * rate))
+    if n > s.max_samples:
+        n = s.max_samples
+        window = n / rate
+    skip = max(s.skip_periods * period, s.skip_s)
+    return DwellPlan(w, rate, skip, n / rate, n)
+
+
+
+def replan_fixed_rate(plan: DwellPlan, rate_hz: float) -> DwellPlan:
+    """The same dwell at a rate the sensor cannot change."""
+    n = int(math.ceil(plan.window_s * rate_hz))
+    return DwellPlan(plan.omega_rad_s, rate_hz, plan.skip_s, n / rate_hz, n)
+
+
+
+def fit_response(settings: DwellSettings, model, tracker: PoleTracker, t, y, w, t_ref, window_s) -> tuple[SineFit, float]:
+    """Response fit with transients; returns the fit and the worst-case fixed-pole term.
+
+    Per modelled mode: with ``learn_poles`` and an estimate from earlier dwells, the pole is
+    refined with that estimate as a Gaussian prior; else a pole whose model interval is
+    narrow enough is fixed with a worst-case term; else it is searched in its band and
+    refined on the data. An unmodelled mode near the excitation is searched too.
+    """
+    bands = pole_bands(model)
+    # an unmodelled mode near the excitation rings too: search outside the modelled bands
+    # and outside +-pi/T of omega (a pole there cannot be told from the steady state)
+    resolve = math.pi / max(window_s, 1e-9)
+    exclude = tuple((b.omega_min_rad_s - resolve, b.omega_max_rad_s + resolve) for b in bands) + ((w - resolve, w + resolve),)
+    generic = PoleSearchBand(DampedPole(0.01 * w, w), w / settings.unmodelled_band, w * settings.unmodelled_band, exclude)
+    limit = settings.fixed_pole_phase_limit
+    fixed: list[DampedPole] = []
+    fixed_cov: list[np.ndarray] = []
+    halfwidths: list[tuple[float, float]] = []
+    search: list[PoleSearchBand] = []
+    search_index: list[int] = []
+    priors: dict[int, tuple[DampedPole, np.ndarray]] = {}
+    for i, b in enumerate(bands):
+        learned = tracker.estimate(i) if settings.learn_poles else None
+        if learned is not None:
+            priors[len(search)] = learned  # refine with the earlier dwells as a prior
+            search.append(b)
+            search_index.append(i)
+            continue
+        half_w = 0.5 * (b.omega_max_rad_s - b.omega_min_rad_s)
+        if isinstance(model, IntervalModel):
+            half_s = 0.25 * (model.upper[i, 0] - model.lower[i, 0])
+        else:
+            half_s = math.inf
+        if max(half_w, half_s) * window_s < limit:
+            fixed.append(b.guess)
+            fixed_cov.append(np.zeros((2, 2)))
+            halfwidths.append((half_w, half_s))
+        else:
+            search.append(b)
+            search_index.append(i)
+    search.append(generic)
+    search_index.append(-1)
+    cov = _block_diag(fixed_cov) if fixed else None
+    fit = fit_sine_with_transients(t, y, w, tuple(search), t_ref_s=t_ref, fixed_poles=tuple(fixed),
+                                   fixed_covariance=cov, pole_priors=priors)
+    fit = dataclasses.replace(fit, pole_sources=tuple(search_index[k] for k in fit.pole_sources))
+    term = 0.0
+    if any(h != (0.0, 0.0) for h in halfwidths):
+        term = fixed_pole_term(t, y, w, t_ref, fit.poles, halfwidths)
+    return fit, term
+
+
+
+def estimate_dwell(settings: DwellSettings, model, tracker: PoleTracker, extra_bound, plan: DwellPlan, block,
+                   attempt: int, dwell_s: float, extensions: int) -> DwellResult | None:
+    """The frequency-response point of one settled window with its guaranteed-coverage bound, or
+    None when the window's halves disagree (not settled yet: extend the dwell)."""
+    t, f, y = block.t_s, block.force, block.response
+    w = plan.omega_rad_s
+    t_ref = float(t[0])
+    window_s = float(t[-1] - t[0])
+    rfit, transient_term = fit_response(settings, model, tracker, t, y, w, t_ref, window_s)
+    ffit = fit_sine(t, f, w, t_ref_s=t_ref)
+    h, cov = phasor_ratio(rfit, ffit)
+    # settling: the halves must agree within their uncertainty
+    half = t.size // 2
+    mismatch = 0.0
+    if half >= 16 and rfit.n_params < half - 4:
+        ra = fit_sine(t[:half], y[:half], w, rfit.poles, t_ref_s=t_ref)
+        rb = fit_sine(t[half:], y[half:], w, rfit.poles, t_ref_s=t_ref)
+        fa = fit_sine(t[:half], f[:half], w, t_ref_s=t_ref)
+        fb = fit_sine(t[half:], f[half:], w, t_ref_s=t_ref)
+        ha, ca = phasor_ratio(ra, fa)
+        hb, cb = phasor_ratio(rb, fb)
+        d = np.array([(ha - hb).real, (ha - hb).imag])
+        cd = ca + cb
+        try:
+            stat = float(d @ np.linalg.solve(cd, d))
+        except np.linalg.LinAlgError:
+            stat = math.inf
+        if stat > -2.0 * math.log1p(-settings.settle_confidence):
+            return None
+        # transient-mismatch term: what remains of an unmodelled or mis-modelled transient
+        # shows as a difference between the halves (the later half has less of it) beyond
+        # the difference their noise explains (its RMS, sqrt(trace(cov_a + cov_b)))
+        excess = max(0.0, abs(ha - hb) - math.sqrt(float(np.trace(cd))))
+        mismatch = settings.mismatch_factor * excess
+    radius = confidence_radius(cov, settings.confidence)
+    t_term = transient_term / abs(ffit.phasor)
+    extra = float(extra_bound(w)) if extra_bound is not None else 0.0
+    t_term += mismatch
+    bound = radius + t_term + extra
+    if not (math.isfinite(bound) and math.isfinite(h.real) and math.isfinite(h.imag)):
+        raise DataQualityError(f"dwell at {w:g} rad/s: non-finite estimate")
+    m = Measurement(w, complex(h), float(bound))
+    return DwellResult(m, plan, rfit, ffit, cov, radius, t_term, extra, dwell_s, attempt + 1, extensions)
+
+
+
+def fixed_pole_term(t, y, w, t_ref, poles, halfwidths) -> float:
+    """Worst-case linearised phasor error from fixed poles known to within half-widths.
+
+    ``dY = G dtheta`` with ``G`` the first two rows of ``-X^+ J_pole`` (the change of the
+    linear coefficients when the pole parameters move); ``|dY| <= sum_i |G_i| h_i``.
+    """
+    from setmem_hil.estimation.sine_fit import _design, _pole_jacobian_columns, _solve
+
+    t0 = float(t[0])
+    X = _design(t, w, t_ref, poles, t0)
+    coef, _ = _solve(X, y)
+    cols = _pole_jacobian_columns(t, poles[: len(halfwidths)], coef, t0)
+    if not cols:
+        return 0.0
+    Jp = np.column_stack(cols)
+    G = -np.linalg.lstsq(X, Jp, rcond=None)[0][:2]
+    h = np.array([q for hw, hs in halfwidths for q in (hs, hw)])
+    return float(np.sum(np.hypot(G[0], G[1]) * h))
+
+
+def check_block(block, force_range_n: float, response_range: float, rate_hz: float) -> None:
+    """Raise DataQualityError for unusable samples: non-finite, clipped, or irregular timestamps.
+
+    ``block`` has ``t_s``, ``force`` and ``response`` arrays (:class:`setmem_hil.drivers.protocols.SampleBlock`).
+    """
+    t, f, y = (np.asarray(a, dtype=float) for a in (block.t_s, block.force, block.response))
+    if not (t.size == f.size == y.size) or t.size < 8:
+        raise DataQualityError(f"sample block: channel lengths {t.size}, {f.size}, {y.size} (need equal, >= 8)")
+    bad = int(np.sum(~np.isfinite(t)) + np.sum(~np.isfinite(f)) + np.sum(~np.isfinite(y)))
+    if bad:
+        raise DataQualityError(f"sample block: {bad} NaN or infinite samples")
+    clipped = int(np.sum(np.abs(f) >= 0.999 * force_range_n) + np.sum(np.abs(y) >= 0.999 * response_range))
+    if clipped:
+        raise DataQualityError(f"sample block: {clipped} samples at full scale (sensor saturation)")
+    dt = np.diff(t)
+    expected = 1.0 / rate_hz
+    if np.any(np.abs(dt - expected) > 1e-6 * expected + 1e-9):
+        k = int(np.argmax(np.abs(dt - expected)))
+        raise DataQualityError(f"sample block: timestamp jump of {dt[k]:.6g} s at sample {k + 1} (expected {expected:.6g} s)")

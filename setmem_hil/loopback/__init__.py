@@ -1,0 +1,1 @@
+"""Loopback rigs (drivers + fake devices) and the transport fault survey."""

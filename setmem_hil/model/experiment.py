@@ -1,0 +1,80 @@
+"""The experiment protocol: what the campaign loop needs from a rig, real or simulated.
+
+Optional capabilities are declared protocols too (checked with ``isinstance``, never probed
+with ``getattr``): :class:`ResumableExperiment`, :class:`ModelAwareExperiment`,
+:class:`BoundPredictingExperiment`, :class:`CountingExperiment`, :class:`PlanningExperiment`.
+
+One call applies a unit-amplitude sinusoid at ``omega_rad_s`` and returns the steady-state
+complex response ``G(j omega)`` with an absolute bound on its total error (noise, estimation
+error and unmodelled dynamics), exactly the four columns of the data CSV. The loop depends on
+this protocol only (devices and procedures apart, as in Bluesky/ophyd): the simulated beam,
+the sine-dwell measurement over serial/CAN/Modbus and test doubles all implement it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping, Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One frequency-response measurement: a row of the data CSV."""
+
+    omega_rad_s: float
+    response: complex
+    bound: float
+
+
+@runtime_checkable
+class Experiment(Protocol):
+    """Anything that can measure the structure's frequency response at one frequency."""
+
+    def measure(self, omega_rad_s: float) -> Measurement:
+        """Apply a unit sinusoid at ``omega_rad_s``, wait for steady state, return the response.
+
+        Must leave the actuator at zero output when it returns or raises.
+        """
+        ...
+
+    def close(self) -> None:
+        """Command the actuator to zero and release the device (idempotent)."""
+        ...
+
+
+@runtime_checkable
+class ResumableExperiment(Protocol):
+    """Counts its measurements; a resumed campaign sets ``n_measured`` to the stored count so the
+    (simulated) noise continues exactly where the stopped run left it."""
+
+    n_measured: int
+
+
+@runtime_checkable
+class ModelAwareExperiment(Protocol):
+    """Uses the current interval model (e.g. to fit transients with the identified poles)."""
+
+    def update_model(self, model: Any) -> None: ...
+
+
+@runtime_checkable
+class BoundPredictingExperiment(Protocol):
+    """Knows the total error bound ``R(omega)`` a measurement at ``omega`` will report."""
+
+    def total_bound(self, omega_rad_s: np.ndarray) -> np.ndarray: ...
+
+
+@runtime_checkable
+class CountingExperiment(Protocol):
+    """Counts faults, retries and discarded dwells (journaled as events by an observer)."""
+
+    counters: Mapping[str, int]
+
+
+@runtime_checkable
+class PlanningExperiment(Protocol):
+    """Can say beforehand how long a dwell at ``omega`` will take (``plan(w).skip_s + .window_s``)."""
+
+    def plan(self, omega_rad_s: float) -> Any: ...

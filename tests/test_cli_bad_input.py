@@ -1,0 +1,118 @@
+"""Every command on bad input: its documented exit code, one line on stderr, no traceback.
+
+Run through the installed entry point (a subprocess, as a technician runs it) for a few cases
+and in-process for the rest; ``--debug`` is the only way to see a traceback.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from setmem_hil.cli.main import main
+
+REPO = Path(__file__).resolve().parents[1]
+PRIOR = """
+[[mode]]
+omega_min = 0.89
+omega_max = 1.12
+zeta_max = 0.5
+b1 = 0.0
+"""
+GOOD_CSV = "omega,re,im,bound\n" + "".join(
+    f"{w},{1.0 / (1.0 - w * w):.9g},0.0,0.01\n" for w in (0.5, 0.7, 0.8, 1.2, 1.4, 1.6))
+
+
+def _files(tmp: Path) -> dict[str, str]:
+    files = {
+        "good.csv": GOOD_CSV,
+        "prior.toml": PRIOR,
+        "bad.csv": "omega,re,im\n1,2,3\n",
+        "garbled.csv": "\x00\x01 not a csv at all",
+        "bad.toml": "[[mode]\nomega_min = ",
+        "bad.json": "{not json",
+        "model_wrong.json": '{"modes": [{"a1": [1, 0]}]}',
+        "conflict.csv": "omega,re,im,bound\n0.5,1.3,0,0.001\n0.5,-5,0,0.001\n",
+        "proc_typo.toml": (REPO / "procedures" / "beam_6_3_2.toml").read_text().replace("[goal]", "[goal]\nmu_targt = 1.0", 1),
+        "proc_bad_kind.toml": (REPO / "procedures" / "beam_6_3_2.toml").read_text().replace('kind = "sim"', 'kind = "telepathy"', 1),
+        "not_a_run/readme.txt": "no journal here",
+    }
+    for name, text in files.items():
+        path = tmp / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return {name: str(tmp / name) for name in files}
+
+
+CASES = [
+    # (name, argv template, expected exit code)
+    ("identify: missing data file", ["identify", "--data", "{tmp}/nope.csv", "--prior", "{prior.toml}", "--out", "{tmp}/r.json"], 2),
+    ("identify: CSV without bound column", ["identify", "--data", "{bad.csv}", "--prior", "{prior.toml}", "--out", "{tmp}/r.json"], 2),
+    ("identify: garbled CSV", ["identify", "--data", "{garbled.csv}", "--prior", "{prior.toml}", "--out", "{tmp}/r.json"], 2),
+    ("identify: malformed TOML prior", ["identify", "--data", "{good.csv}", "--prior", "{bad.toml}", "--out", "{tmp}/r.json"], 2),
+    ("identify: data inconsistent with the prior", ["identify", "--data", "{conflict.csv}", "--prior", "{prior.toml}", "--out", "{tmp}/r.json"], 3),
+    ("analyze: malformed JSON model", ["analyze", "--model", "{bad.json}", "--out", "{tmp}/a.json"], 2),
+    ("analyze: model with crossed bounds", ["analyze", "--model", "{model_wrong.json}", "--out", "{tmp}/a.json"], 2),
+    ("analyze: missing model", ["analyze", "--model", "{tmp}/none.json", "--out", "{tmp}/a.json"], 2),
+    ("discrepancy: missing data", ["discrepancy", "--data", "{tmp}/none.csv", "--prior", "{prior.toml}", "--out", "{tmp}/d.json"], 2),
+    ("discrepancy: malformed model", ["discrepancy", "--data", "{good.csv}", "--model", "{bad.json}", "--out", "{tmp}/d.json"], 2),
+    ("run: misspelt key", ["run", "--check", "{proc_typo.toml}"], 2),
+    ("run: unknown backend", ["run", "--check", "{proc_bad_kind.toml}"], 2),
+    ("run: missing procedure", ["run", "{tmp}/none.toml", "--out", "{tmp}/run"], 2),
+    ("run: resume of a folder without journal", ["run", "--resume", "{tmp}/not_a_run"], 2),
+    ("export: not a run directory", ["export", "{tmp}/not_a_run", "--csv", "{tmp}/csv"], 2),
+    ("report: not a run directory", ["report", "{tmp}/not_a_run"], 2),
+    ("sweep: bad seed range", ["sweep", "--procedure", "{proc_typo.toml}", "--seeds", "x-y", "--out", "{tmp}/sw"], 2),
+]
+
+
+def _argv(template, files, tmp):
+    def fill(arg: str) -> str:
+        for name, path in {**files, "tmp": str(tmp)}.items():
+            arg = arg.replace("{" + name + "}", path)
+        return arg
+
+    return [fill(a) for a in template]
+
+
+@pytest.mark.parametrize("name, template, code", CASES, ids=[c[0] for c in CASES])
+def test_bad_input_gives_exit_code_and_one_line(tmp_path, capsys, name, template, code):
+    files = _files(tmp_path)
+    assert main(_argv(template, files, tmp_path)) == code
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("setmem-hil: ") and len(err.splitlines()) == 1, err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("name, template, code", [CASES[0], CASES[4], CASES[10]], ids=["missing-file", "inconsistent", "typo"])
+def test_installed_command_prints_no_traceback_unless_debug(tmp_path, name, template, code):
+    files = _files(tmp_path)
+    cmd = [sys.executable, "-m", "setmem_hil.cli.main", *_argv(template, files, tmp_path)]
+    plain = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert plain.returncode == code and "Traceback" not in plain.stderr
+    assert len(plain.stderr.strip().splitlines()) == 1, plain.stderr
+    debug = subprocess.run(cmd[:3] + ["--debug"] + cmd[3:], capture_output=True, text=True, timeout=120)
+    assert debug.returncode == code and "Traceback" in debug.stderr
+
+
+def test_every_setmem_error_has_an_exit_code_and_a_message():
+    import inspect
+
+    from setmem_hil import errors
+    from setmem_hil.cli.main import exit_code_and_message
+
+    expected = {"InputFormatError": 2, "ProcedureError": 2, "SafetyLimitError": 2, "InconsistentDataError": 3,
+                "DeviceError": 4, "DeviceTimeoutError": 4, "FrameError": 4, "DeviceDisconnectedError": 4,
+                "DeviceRejectedError": 4, "ModbusExceptionError": 4, "DeviceIdentityError": 4, "CampaignAborted": 130}
+    for name, cls in inspect.getmembers(errors, inspect.isclass):
+        if not issubclass(cls, errors.SetmemError) or cls is errors.SetmemError:
+            continue
+        required = [p for p in inspect.signature(cls.__init__).parameters.values()
+                    if p.name != "self" and p.default is p.empty and p.kind is p.POSITIONAL_OR_KEYWORD]
+        exc = cls(*(["a problem"] * max(1, len(required))))
+        code, message = exit_code_and_message(exc)
+        assert code == expected.get(name, 1), name
+        assert message and "\n" not in message
