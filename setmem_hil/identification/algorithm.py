@@ -79,6 +79,7 @@ class IdentificationResult:
         return result_document(
             self.model, self.embedding_gamma, self.mismatch_ratio, self.iterations,
             n_solves=int(self.n_solves), partitions=[list(p) for p in self.partitions],
+            verified=[bool(v) for v in self.verified], unverified_reason=list(self.unverified_reason),
         )
 
 
