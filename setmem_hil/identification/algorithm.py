@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from setmem_hil.identification.embedding import conservatism_ratio, embedding_bound, embedding_residual
+from setmem_hil.identification.embedding import conservatism_ratio, embedding_bound, embedding_residual, redundant_points
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import A0, A1, IntervalModel
@@ -104,7 +104,7 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
     ``g_mode`` is the data with the other modes' midpoint estimates subtracted (eq. 3.11) and
     ``E`` the matching error bound; points with an infinite bound carry no information.
     """
-    usable = np.isfinite(E)
+    usable = np.isfinite(E) & ~redundant_points(omega_all, g_mode, E, lo, hi)
     if not usable.any():
         return lo, hi, np.full((4, 4), np.nan), np.full((4, 4), np.nan), np.inf, PartitionPlan(1, 1), ()
     omega, E_used = omega_all[usable], E[usable]
