@@ -76,9 +76,8 @@ def main(argv=None) -> int:
     print("gamma per mode:", np.array2string(result.embedding_gamma, precision=3))
     print("partitions:", result.partitions)
     print("verified:", getattr(result, "verified", "n/a"))
-    notes = getattr(result, "notes", None)
-    if notes:
-        print("notes:", *notes, sep="\n  ")
+    for note in getattr(result, "notes", ()):
+        print("note:", note)
     for i, (lo, hi) in enumerate(zip(result.model.lower, result.model.upper)):
         wn_lo, wn_hi = np.sqrt(lo[1]), np.sqrt(hi[1])
         print(f"mode {i + 1}: omega_n [{wn_lo:.6g}, {wn_hi:.6g}] rad/s, a1 [{lo[0]:.3g}, {hi[0]:.3g}], b0 [{lo[3]:.4g}, {hi[3]:.4g}]")

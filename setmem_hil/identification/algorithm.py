@@ -71,6 +71,7 @@ class IdentificationResult:
     partitioned: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     verified: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     unverified_reason: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()  # why gamma exceeds the target, per mode where it does
 
     def to_document(self) -> dict:
         """The identify RESULT.json dict (public contract)."""
@@ -80,6 +81,7 @@ class IdentificationResult:
             self.model, self.embedding_gamma, self.mismatch_ratio, self.iterations,
             n_solves=int(self.n_solves), partitions=[list(p) for p in self.partitions],
             verified=[bool(v) for v in self.verified], unverified_reason=list(self.unverified_reason),
+            conservatism_notes=list(self.notes),
         )
 
 
@@ -150,6 +152,23 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
             break
     counter.n_solves += problem.n_solves
     return lo, hi, argmin, argmax, gamma, plan, tuple(unverified)
+
+
+def _gamma_note(i: int, gamma: float, plan: PartitionPlan, lo, hi, prior: Prior, settings: IdentifySettings) -> str:
+    """Why mode ``i``'s embedding ratio exceeds the target, or ``""`` when it does not."""
+    if not gamma > prior.gamma:
+        return ""
+    head = f"mode {i + 1}: gamma {gamma:.3g} > target {prior.gamma:g}: "
+    if not settings.partition:
+        return head + "partitioning disabled"
+    if lo[A1] <= 0.0:
+        return head + "the a1 lower bound is 0 (damping not bounded away from zero by the data), so no finite partition exists (Assumption 3.1)"
+    need = minimal_partition(prior.gamma, lo[A0], hi[A0], lo[A1], hi[A1], 100 * prior.max_partitions)
+    if need is None:
+        return head + f"more than {100 * prior.max_partitions} partitions would be needed (max_partitions = {prior.max_partitions})"
+    if need.count > prior.max_partitions:
+        return head + f"{need.n0} x {need.n1} = {need.count} partitions needed > max_partitions = {prior.max_partitions}"
+    return head + f"partition {plan.n0} x {plan.n1} ran on bounds that have shrunk since (run again with these bounds as previous)"
 
 
 def _effective_bound(R: np.ndarray, mismatch: np.ndarray, mode: int) -> np.ndarray:
@@ -275,6 +294,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         pts = (owner == i) & (R > 0)
         if pts.any():
             ratios[i] = float(np.max(E_all[i, pts] / R[pts]))
+    notes = tuple(_gamma_note(i, gammas[i], plans[i], lo[i], hi[i], prior, settings) for i in range(n))
     fixed = model.fixed
     optimizers[fixed[:, :, None, None].repeat(2, axis=2).repeat(4, axis=3)] = np.nan
     return IdentificationResult(
@@ -290,4 +310,5 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         partitioned=np.array([p.count > 1 for p in plans]),
         verified=np.array([not u for u in last_unverified], dtype=bool),
         unverified_reason=tuple("; ".join(u) for u in last_unverified),
+        notes=tuple(note for note in notes if note),
     )

@@ -8,7 +8,8 @@ zero-width intervals and omit the rest); extra keys are allowed and ignored.
 ``identify`` also writes, per mode, ``"verified": true|false`` (every bound of the mode carries a
 checked dual certificate of the conic program, see
 :mod:`setmem_hil.identification.one_mode_solver`) and, where false, ``"unverified_reason"``;
-and, when ``[residuals]`` are enabled in the prior, ``"residuals": {"lower": [lo, hi],
+``"conservatism": {"notes": [...]}`` says, per mode whose gamma exceeds the target, why
+(no finite partition, or the partition budget); and, when ``[residuals]`` are enabled in the prior, ``"residuals": {"lower": [lo, hi],
 "upper": [lo, hi]}`` (only the enabled terms).
 """
 
@@ -66,7 +67,7 @@ def read_result(path: str | os.PathLike) -> IntervalModel:
 
 def result_document(model: IntervalModel, embedding_gamma, mismatch_ratio, iterations: int,
                     verified=None, unverified_reason=None, residuals: Mapping[str, Any] | None = None,
-                    **extra) -> dict[str, Any]:
+                    conservatism_notes=None, **extra) -> dict[str, Any]:
     # JSON has no infinity: an unbounded ratio is written as null (json_safe)
     modes = model.named_intervals()
     if verified is not None and len(verified) == len(modes):
@@ -83,6 +84,8 @@ def result_document(model: IntervalModel, embedding_gamma, mismatch_ratio, itera
         },
         "iterations": int(iterations),
     }
+    if conservatism_notes:
+        doc["conservatism"]["notes"] = [str(n) for n in conservatism_notes]
     if residuals:
         doc["residuals"] = {name: [float(v) for v in pair] for name, pair in residuals.items()}
     doc.update(extra)
