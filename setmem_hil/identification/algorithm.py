@@ -30,6 +30,7 @@ from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 from setmem_hil.identification.one_mode_solver import OneModeProblem
 from setmem_hil.identification.partitioning import PartitionPlan, minimal_partition, partition_boxes
 from setmem_hil.model.prior import Prior
+from setmem_hil.identification.residual_terms import bound_residual, residual_midpoint_response, residual_mismatch
 from setmem_hil.identification.residue_bootstrap import bootstrap_residue_bounds
 
 __all__ = [
@@ -72,6 +73,7 @@ class IdentificationResult:
     verified: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     unverified_reason: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()  # why gamma exceeds the target, per mode where it does
+    residuals: dict = field(default_factory=dict)  # enabled residual terms: name -> (lo, hi)
 
     def to_document(self) -> dict:
         """The identify RESULT.json dict (public contract)."""
@@ -81,7 +83,7 @@ class IdentificationResult:
             self.model, self.embedding_gamma, self.mismatch_ratio, self.iterations,
             n_solves=int(self.n_solves), partitions=[list(p) for p in self.partitions],
             verified=[bool(v) for v in self.verified], unverified_reason=list(self.unverified_reason),
-            conservatism_notes=list(self.notes),
+            conservatism_notes=list(self.notes), residuals=self.residuals or None,
         )
 
 
@@ -250,7 +252,11 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         if previous.lower.shape != box.lower.shape:
             raise InputFormatError("previous bounds", "", f"expected {box.n_modes} modes, found {previous.n_modes}")
         box = box.intersect(previous)
-    box = bootstrap_residue_bounds(data, box)
+    res = {name: prior.residuals.bounds(name) for name in prior.residuals.enabled}
+    if res:
+        box, res = bootstrap_residue_bounds(data, box, res)
+    else:
+        box = bootstrap_residue_bounds(data, box)
     lo, hi = box.lower.copy(), box.upper.copy()
     n = box.n_modes
     counter = _SolveCounter()
@@ -267,9 +273,9 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         any_improved = False
         for i in range(n):
             current = IntervalModel(lo, hi)
-            E = _effective_bound(R, mode_mismatch_bounds(current, data.omega_rad_s), i)
+            E = _effective_bound(R, mode_mismatch_bounds(current, data.omega_rad_s), i) + residual_mismatch(res, data.omega_rad_s)
             estimates = current.midpoint.mode_responses(data.omega_rad_s)
-            g_mode = data.response - (estimates.sum(axis=0) - estimates[i])  # eq. (3.11)
+            g_mode = data.response - (estimates.sum(axis=0) - estimates[i]) - residual_midpoint_response(res, data.omega_rad_s)  # eq. (3.11)
             new_lo, new_hi, amin, amax, gamma, plan, unverified = _one_mode_pass(
                 data.omega_rad_s, g_mode, E, lo[i], hi[i], prior, allow_partition and settings.partition,
                 settings, i, counter,
@@ -279,6 +285,14 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
             optimizers[i, :, 0, :], optimizers[i, :, 1, :] = amin, amax
             gammas[i], plans[i] = gamma, plan
             last_unverified[i] = unverified
+        for name in res:  # the residual terms: extra linear blocks (residual_terms)
+            current = IntervalModel(lo, hi)
+            E_r = R + mode_mismatch_bounds(current, data.omega_rad_s).sum(axis=0) + residual_mismatch(res, data.omega_rad_s, exclude=name)
+            g_r = (data.response - current.midpoint.mode_responses(data.omega_rad_s).sum(axis=0)
+                   - residual_midpoint_response(res, data.omega_rad_s, exclude=name))
+            r_lo, r_hi = bound_residual(name, data.omega_rad_s, g_r, E_r, *res[name])
+            any_improved |= _improved(np.array([res[name][0]]), np.array([res[name][1]]), np.array([r_lo]), np.array([r_hi]), settings.tolerance)
+            res[name] = (r_lo, r_hi)
         if not any_improved:
             if allow_partition or not settings.partition:
                 break
@@ -286,7 +300,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
 
     model = IntervalModel(lo, hi)
     mismatch = mode_mismatch_bounds(model, data.omega_rad_s)
-    E_all = np.array([_effective_bound(R, mismatch, i) for i in range(n)])
+    E_all = np.array([_effective_bound(R, mismatch, i) + residual_mismatch(res, data.omega_rad_s) for i in range(n)])
     C_all = np.array([embedding_bound(data.omega_rad_s, E_all[i], lo[i, A0], hi[i, A0], hi[i, A1]) for i in range(n)])
     owner = _assign_points_to_modes(prior, data.omega_rad_s)
     ratios = np.ones(n)
@@ -311,4 +325,5 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         verified=np.array([not u for u in last_unverified], dtype=bool),
         unverified_reason=tuple("; ".join(u) for u in last_unverified),
         notes=tuple(note for note in notes if note),
+        residuals={name: (float(a), float(b)) for name, (a, b) in res.items()},
     )
