@@ -102,3 +102,31 @@ def test_intervals_scale_exactly(reference_result, S, magnitude):
     assert np.all(np.abs(result.model.upper - hi) <= tol)
     assert result.model.contains(truth).all()
     assert result.partitions == reference_result.partitions
+
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    log_s=st.floats(-3.0, 5.0),
+    log_m=st.floats(-7.0, 3.0),
+    edge_offsets=st.lists(st.sampled_from([0.0, 0.0, 1e-12, -1e-12, 1e-6, -1e-6, 1e-3, -1e-3]), min_size=6, max_size=6),
+    seed=st.integers(0, 2**16),
+)
+def test_truth_inside_with_points_on_or_near_band_edges(log_s, log_m, edge_offsets, seed):
+    """Issue 18 property: random scale, data points on or near the prior band edges, truth inside."""
+    S, magnitude = 10.0**log_s, 10.0**log_m
+    data, prior, truth = scaled_case(S, magnitude, seed)
+    edges = np.array([[m.omega_min, m.omega_max] for m in prior.modes]).ravel() * (1.0 + np.array(edge_offsets))
+    # measure the same noisy system at the edge frequencies (bound as in scaled_case)
+    full = scaled_beam(S, magnitude)
+    w1 = edges / S
+    unit = scaled_beam(1.0)
+    noise_bound = fully_damped_magnitude(unit, w1)
+    noise = bounded_complex_noise(noise_bound, np.random.default_rng(seed + 1))
+    bound = (noise_bound + polynomial_magnitude(W1_NUM, W1_DEN, w1)) * magnitude
+    extra = FrequencyData(edges, full.frequency_response(edges) + noise * magnitude, bound)
+    result = identify(data.appended(extra), prior)
+    assert result.model.contains(truth).all()
