@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from setmem_hil.identification.embedding import conservatism_ratio, embedding_bound, embedding_residual
+from setmem_hil.identification.embedding import conservatism_ratio, embedding_bound, embedding_residual, redundant_points
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import A0, A1, IntervalModel
@@ -30,6 +30,7 @@ from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 from setmem_hil.identification.one_mode_solver import OneModeProblem
 from setmem_hil.identification.partitioning import PartitionPlan, minimal_partition, partition_boxes
 from setmem_hil.model.prior import Prior
+from setmem_hil.identification.residual_terms import bound_residual, residual_midpoint_response, residual_mismatch
 from setmem_hil.identification.residue_bootstrap import bootstrap_residue_bounds
 
 __all__ = [
@@ -69,6 +70,10 @@ class IdentificationResult:
     embedding_bound: np.ndarray
     optimizers: np.ndarray
     partitioned: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    verified: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    unverified_reason: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()  # why gamma exceeds the target, per mode where it does
+    residuals: dict = field(default_factory=dict)  # enabled residual terms: name -> (lo, hi)
 
     def to_document(self) -> dict:
         """The identify RESULT.json dict (public contract)."""
@@ -77,6 +82,8 @@ class IdentificationResult:
         return result_document(
             self.model, self.embedding_gamma, self.mismatch_ratio, self.iterations,
             n_solves=int(self.n_solves), partitions=[list(p) for p in self.partitions],
+            verified=[bool(v) for v in self.verified], unverified_reason=list(self.unverified_reason),
+            conservatism_notes=list(self.notes), residuals=self.residuals or None,
         )
 
 
@@ -101,11 +108,11 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
     ``g_mode`` is the data with the other modes' midpoint estimates subtracted (eq. 3.11) and
     ``E`` the matching error bound; points with an infinite bound carry no information.
     """
-    usable = np.isfinite(E)
+    usable = np.isfinite(E) & ~redundant_points(omega_all, g_mode, E, lo, hi)
     if not usable.any():
-        return lo, hi, np.full((4, 4), np.nan), np.full((4, 4), np.nan), np.inf, PartitionPlan(1, 1)
+        return lo, hi, np.full((4, 4), np.nan), np.full((4, 4), np.nan), np.inf, PartitionPlan(1, 1), ()
     omega, E_used = omega_all[usable], E[usable]
-    problem = OneModeProblem(omega, g_mode[usable], lo != hi, lo)
+    problem = OneModeProblem(omega, g_mode[usable], lo, hi)
     argmin = np.full((4, 4), np.nan)
     argmax = np.full((4, 4), np.nan)
     gamma, plan = np.inf, PartitionPlan(1, 1)
@@ -120,6 +127,7 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
         new_hi = np.full(4, -np.inf)
         gamma = 1.0
         certificates = []
+        unverified: list[str] = []
         for a0_lo, a0_hi, a1_lo, a1_hi in boxes:
             box_lo, box_hi = lo.copy(), hi.copy()
             box_lo[A0], box_hi[A0], box_lo[A1], box_hi[A1] = a0_lo, a0_hi, a1_lo, a1_hi
@@ -128,6 +136,7 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
             if not sol.feasible:
                 certificates.append(sol.certificate)
                 continue
+            unverified.extend(sol.unverified)
             gamma = max(gamma, conservatism_ratio(omega, a0_lo, a0_hi, a1_lo, a1_hi))
             for p in range(4):
                 if sol.lower[p] < new_lo[p]:
@@ -144,7 +153,24 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
         if not improved:
             break
     counter.n_solves += problem.n_solves
-    return lo, hi, argmin, argmax, gamma, plan
+    return lo, hi, argmin, argmax, gamma, plan, tuple(unverified)
+
+
+def _gamma_note(i: int, gamma: float, plan: PartitionPlan, lo, hi, prior: Prior, settings: IdentifySettings) -> str:
+    """Why mode ``i``'s embedding ratio exceeds the target, or ``""`` when it does not."""
+    if not gamma > prior.gamma:
+        return ""
+    head = f"mode {i + 1}: gamma {gamma:.3g} > target {prior.gamma:g}: "
+    if not settings.partition:
+        return head + "partitioning disabled"
+    if lo[A1] <= 0.0:
+        return head + "the a1 lower bound is 0 (damping not bounded away from zero by the data), so no finite partition exists (Assumption 3.1)"
+    need = minimal_partition(prior.gamma, lo[A0], hi[A0], lo[A1], hi[A1], 100 * prior.max_partitions)
+    if need is None:
+        return head + f"more than {100 * prior.max_partitions} partitions would be needed (max_partitions = {prior.max_partitions})"
+    if need.count > prior.max_partitions:
+        return head + f"{need.n0} x {need.n1} = {need.count} partitions needed > max_partitions = {prior.max_partitions}"
+    return head + f"partition {plan.n0} x {plan.n1} ran on bounds that have shrunk since (run again with these bounds as previous)"
 
 
 def _effective_bound(R: np.ndarray, mismatch: np.ndarray, mode: int) -> np.ndarray:
@@ -169,7 +195,7 @@ def _raise_inconsistent(omega, g, E, lo, hi, certificates: list, mode_index: int
     C = embedding_bound(omega, E, lo[A0], hi[A0], hi[A1])
     for j in involved:  # leave-one-out over the certificate's points (a handful of solves)
         keep = np.arange(omega.size) != j
-        if keep.any() and OneModeProblem(omega[keep], g[keep], lo != hi, lo).is_feasible(C[keep], lo, hi):
+        if keep.any() and OneModeProblem(omega[keep], g[keep], lo, hi).is_feasible(C[keep], lo, hi):
             suspects.append(omega[j])
     freqs = ", ".join(f"{w:.6g}" for w in np.sort(omega[involved]))
     hint = ""
@@ -226,13 +252,18 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         if previous.lower.shape != box.lower.shape:
             raise InputFormatError("previous bounds", "", f"expected {box.n_modes} modes, found {previous.n_modes}")
         box = box.intersect(previous)
-    box = bootstrap_residue_bounds(data, box)
+    res = {name: prior.residuals.bounds(name) for name in prior.residuals.enabled}
+    if res:
+        box, res = bootstrap_residue_bounds(data, box, res)
+    else:
+        box = bootstrap_residue_bounds(data, box)
     lo, hi = box.lower.copy(), box.upper.copy()
     n = box.n_modes
     counter = _SolveCounter()
     optimizers = np.full((n, 4, 2, 4), np.nan)
     gammas = np.full(n, np.inf)
     plans = [PartitionPlan(1, 1)] * n
+    last_unverified: list[tuple[str, ...]] = [()] * n
     R = data.bound
 
     iterations = 0
@@ -242,10 +273,10 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         any_improved = False
         for i in range(n):
             current = IntervalModel(lo, hi)
-            E = _effective_bound(R, mode_mismatch_bounds(current, data.omega_rad_s), i)
+            E = _effective_bound(R, mode_mismatch_bounds(current, data.omega_rad_s), i) + residual_mismatch(res, data.omega_rad_s)
             estimates = current.midpoint.mode_responses(data.omega_rad_s)
-            g_mode = data.response - (estimates.sum(axis=0) - estimates[i])  # eq. (3.11)
-            new_lo, new_hi, amin, amax, gamma, plan = _one_mode_pass(
+            g_mode = data.response - (estimates.sum(axis=0) - estimates[i]) - residual_midpoint_response(res, data.omega_rad_s)  # eq. (3.11)
+            new_lo, new_hi, amin, amax, gamma, plan, unverified = _one_mode_pass(
                 data.omega_rad_s, g_mode, E, lo[i], hi[i], prior, allow_partition and settings.partition,
                 settings, i, counter,
             )
@@ -253,6 +284,15 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
             lo[i], hi[i] = new_lo, new_hi
             optimizers[i, :, 0, :], optimizers[i, :, 1, :] = amin, amax
             gammas[i], plans[i] = gamma, plan
+            last_unverified[i] = unverified
+        for name in res:  # the residual terms: extra linear blocks (residual_terms)
+            current = IntervalModel(lo, hi)
+            E_r = R + mode_mismatch_bounds(current, data.omega_rad_s).sum(axis=0) + residual_mismatch(res, data.omega_rad_s, exclude=name)
+            g_r = (data.response - current.midpoint.mode_responses(data.omega_rad_s).sum(axis=0)
+                   - residual_midpoint_response(res, data.omega_rad_s, exclude=name))
+            r_lo, r_hi = bound_residual(name, data.omega_rad_s, g_r, E_r, *res[name])
+            any_improved |= _improved(np.array([res[name][0]]), np.array([res[name][1]]), np.array([r_lo]), np.array([r_hi]), settings.tolerance)
+            res[name] = (r_lo, r_hi)
         if not any_improved:
             if allow_partition or not settings.partition:
                 break
@@ -260,7 +300,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
 
     model = IntervalModel(lo, hi)
     mismatch = mode_mismatch_bounds(model, data.omega_rad_s)
-    E_all = np.array([_effective_bound(R, mismatch, i) for i in range(n)])
+    E_all = np.array([_effective_bound(R, mismatch, i) + residual_mismatch(res, data.omega_rad_s) for i in range(n)])
     C_all = np.array([embedding_bound(data.omega_rad_s, E_all[i], lo[i, A0], hi[i, A0], hi[i, A1]) for i in range(n)])
     owner = _assign_points_to_modes(prior, data.omega_rad_s)
     ratios = np.ones(n)
@@ -268,6 +308,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         pts = (owner == i) & (R > 0)
         if pts.any():
             ratios[i] = float(np.max(E_all[i, pts] / R[pts]))
+    notes = tuple(_gamma_note(i, gammas[i], plans[i], lo[i], hi[i], prior, settings) for i in range(n))
     fixed = model.fixed
     optimizers[fixed[:, :, None, None].repeat(2, axis=2).repeat(4, axis=3)] = np.nan
     return IdentificationResult(
@@ -281,4 +322,8 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         embedding_bound=C_all,
         optimizers=optimizers,
         partitioned=np.array([p.count > 1 for p in plans]),
+        verified=np.array([not u for u in last_unverified], dtype=bool),
+        unverified_reason=tuple("; ".join(u) for u in last_unverified),
+        notes=tuple(note for note in notes if note),
+        residuals={name: (float(a), float(b)) for name, (a, b) in res.items()},
     )

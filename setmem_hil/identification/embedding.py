@@ -71,3 +71,29 @@ def conservatism_ratio(omega_rad_s, a0_lo, a0_hi, a1_lo, a1_hi) -> float:
     with np.errstate(divide="ignore"):
         ratio = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.inf)
     return float(np.max(ratio))
+
+
+def redundant_points(omega_rad_s, g, E, lo, hi) -> np.ndarray:
+    """Points whose constraint holds for every parameter in the box ``[lo, hi]`` (our addition).
+
+    Over the box, ``|r0 + J x| <= |r0 + J c| + sum_p |J_p| h_p`` (centre ``c``, half-width ``h``).
+    When this is at most ``min |D| E`` (eq. 3.35 times the bound), the point's constraint in the
+    embedding (eq. 3.26), in every sub-box of a partition, and in the exact set (eq. 3.25) is
+    inactive: dropping it changes no bound and no conservatism ratio. Far from a mode's band the
+    other modes' mismatch makes most points so, and the conic programs shrink accordingly.
+    """
+    w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
+    E = np.asarray(E, dtype=float)
+    lo = np.asarray(lo, dtype=float)
+    hi = np.asarray(hi, dtype=float)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return np.zeros(w.shape, dtype=bool)
+    c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    g = np.atleast_1d(np.asarray(g, dtype=complex))
+    jw = 1j * w
+    r_c = g * ((c[1] - w * w) + jw * c[0]) - (jw * c[2] + c[3])
+    spread = np.abs(g) * (w * h[0] + h[1]) + w * h[2] + h[3]
+    worst = np.abs(r_c) + spread
+    floor = denominator_min(w, lo[1], hi[1], lo[0]) * E
+    # a relative margin far above rounding keeps the test safe in floating point
+    return np.isfinite(E) & (worst * (1.0 + 1e-9) + 1e-300 < floor * (1.0 - 1e-9))

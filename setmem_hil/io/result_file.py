@@ -4,6 +4,13 @@
 "conservatism": {"embedding_gamma": [...], "mismatch_ratio": [...]}, "iterations": N}``,
 modes in the prior's order. Readers need only ``modes`` (a simulation model may give
 zero-width intervals and omit the rest); extra keys are allowed and ignored.
+
+``identify`` also writes, per mode, ``"verified": true|false`` (every bound of the mode carries a
+checked dual certificate of the conic program, see
+:mod:`setmem_hil.identification.one_mode_solver`) and, where false, ``"unverified_reason"``;
+``"conservatism": {"notes": [...]}`` says, per mode whose gamma exceeds the target, why
+(no finite partition, or the partition budget); and, when ``[residuals]`` are enabled in the prior, ``"residuals": {"lower": [lo, hi],
+"upper": [lo, hi]}`` (only the enabled terms).
 """
 
 from __future__ import annotations
@@ -58,16 +65,29 @@ def read_result(path: str | os.PathLike) -> IntervalModel:
     return parse_result_mapping(doc, str(path))
 
 
-def result_document(model: IntervalModel, embedding_gamma, mismatch_ratio, iterations: int, **extra) -> dict[str, Any]:
+def result_document(model: IntervalModel, embedding_gamma, mismatch_ratio, iterations: int,
+                    verified=None, unverified_reason=None, residuals: Mapping[str, Any] | None = None,
+                    conservatism_notes=None, **extra) -> dict[str, Any]:
     # JSON has no infinity: an unbounded ratio is written as null (json_safe)
+    modes = model.named_intervals()
+    if verified is not None and len(verified) == len(modes):
+        reasons = list(unverified_reason or [""] * len(modes))
+        for mode, ok, reason in zip(modes, verified, reasons):
+            mode["verified"] = bool(ok)
+            if not ok:
+                mode["unverified_reason"] = str(reason) or "no certificate obtained"
     doc: dict[str, Any] = {
-        "modes": model.named_intervals(),
+        "modes": modes,
         "conservatism": {
             "embedding_gamma": json_safe([float(v) for v in embedding_gamma]),
             "mismatch_ratio": json_safe([float(v) for v in mismatch_ratio]),
         },
         "iterations": int(iterations),
     }
+    if conservatism_notes:
+        doc["conservatism"]["notes"] = [str(n) for n in conservatism_notes]
+    if residuals:
+        doc["residuals"] = {name: [float(v) for v in pair] for name, pair in residuals.items()}
     doc.update(extra)
     return doc
 

@@ -39,11 +39,25 @@ def modal_response(params: np.ndarray, omega_rad_s) -> np.ndarray:
     return num / den
 
 
+def residual_response(lower_residual: float, upper_residual: float, omega_rad_s) -> np.ndarray:
+    """Receptance of the residual terms: ``-r_l / omega^2 + r_u`` (``r_l / s^2 + r_u`` at ``s = j omega``)."""
+    w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
+    return (-lower_residual / (w * w) + upper_residual).astype(complex)
+
+
 @dataclass(frozen=True)
 class ModalParameters:
-    """One point in parameter space: ``values[i] = (a1, a0, b1, b0)`` of mode ``i``."""
+    """One point in parameter space: ``values[i] = (a1, a0, b1, b0)`` of mode ``i``.
+
+    Optional residual terms for modes outside the band (modal-analysis practice, issue 14):
+    ``lower_residual`` ``r_l`` (mass line, ``r_l / s^2``, i.e. ``-r_l / omega^2`` in receptance)
+    and ``upper_residual`` ``r_u`` (residual flexibility, a constant). Both default to 0 and
+    enter :meth:`frequency_response` only; the state-space form holds the modes alone.
+    """
 
     values: np.ndarray
+    lower_residual: float = 0.0
+    upper_residual: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "values", _as_param_array(self.values, "values"))
@@ -74,8 +88,12 @@ class ModalParameters:
         return modal_response(self.values, omega_rad_s)
 
     def frequency_response(self, omega_rad_s) -> np.ndarray:
-        """``G(j omega) = sum_i G_i(j omega)`` (eq. 2.3), shape ``(n_omega,)``."""
-        return self.mode_responses(omega_rad_s).sum(axis=0)
+        """``G(j omega) = sum_i G_i(j omega)`` (eq. 2.3) plus the residual terms, shape ``(n_omega,)``."""
+        g = self.mode_responses(omega_rad_s).sum(axis=0)
+        if self.lower_residual or self.upper_residual:
+            w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
+            g = g + residual_response(self.lower_residual, self.upper_residual, w)
+        return g
 
     def state_space_matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Block-diagonal ``(A, B, C, D)`` of eq. (2.6)-(2.8); D = 0."""

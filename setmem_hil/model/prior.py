@@ -6,6 +6,11 @@ to fix ``b1`` (``b1 = 0`` for a displacement sensor), or ``b1_min``/``b1_max``; 
 ``b0_min``/``b0_max``. Top level: optional ``gamma = 1.1`` (target embedding conservatism ratio)
 and ``max_partitions = 200``.
 
+Optional ``[residuals]`` table (issue 14): booleans ``lower`` (mass line ``r_l / s^2``, i.e.
+``-r_l / omega^2`` in receptance) and ``upper`` (residual flexibility, a constant ``r_u``) enable
+residual terms for modes outside the band; optional ``lower_min``/``lower_max``/``upper_min``/
+``upper_max`` bound them (without bounds they are bounded from the data).
+
 The prior gives ``a0 = omega_n^2`` in ``[omega_min^2, omega_max^2]`` and
 ``a1 = 2 zeta omega_n`` in ``[0, 2 zeta_max omega_max]``.
 """
@@ -31,7 +36,8 @@ except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib  # type: ignore[no-redef]
 
 MODE_KEYS = ("omega_min", "omega_max", "zeta_max", "b1", "b1_min", "b1_max", "b0_min", "b0_max")
-PRIOR_TOP_KEYS = ("mode", "gamma", "max_partitions")
+PRIOR_TOP_KEYS = ("mode", "gamma", "max_partitions", "residuals")
+RESIDUAL_KEYS = ("lower", "upper", "lower_min", "lower_max", "upper_min", "upper_max")
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,25 @@ class ModePrior:
 
 
 @dataclass(frozen=True)
+class ResidualPrior:
+    """Which residual terms are modelled and their a-priori bounds (``+-inf`` when not given)."""
+
+    lower: bool = False
+    upper: bool = False
+    lower_min: float = -math.inf
+    lower_max: float = math.inf
+    upper_min: float = -math.inf
+    upper_max: float = math.inf
+
+    @property
+    def enabled(self) -> tuple[str, ...]:
+        return tuple(name for name, on in (("lower", self.lower), ("upper", self.upper)) if on)
+
+    def bounds(self, name: str) -> tuple[float, float]:
+        return (self.lower_min, self.lower_max) if name == "lower" else (self.upper_min, self.upper_max)
+
+
+@dataclass(frozen=True)
 class Prior:
     """Prior for all modes plus the partitioning settings of section 3.2.3."""
 
@@ -59,6 +84,7 @@ class Prior:
     gamma: float = 1.1
     max_partitions: int = 200
     extra: Mapping[str, Any] = field(default_factory=dict)
+    residuals: ResidualPrior = field(default_factory=ResidualPrior)
 
     def time_scaled(self, factor: float) -> "Prior":
         """The prior of the time-scaled structure ``G(s / factor)``: frequencies and ``b1`` times
@@ -125,6 +151,32 @@ def parse_mode_table(table: Any, source: str, index: int) -> ModePrior:
     return ModePrior(w_lo, w_hi, z_hi, **kwargs)
 
 
+def parse_residuals_table(table: Any, source: str) -> ResidualPrior:
+    """Validate the optional ``[residuals]`` table."""
+    where = "[residuals]"
+    if not isinstance(table, Mapping):
+        raise InputFormatError(source, where, f"expected a table, found {type(table).__name__}")
+    unknown = sorted(set(table) - set(RESIDUAL_KEYS))
+    if unknown:
+        raise InputFormatError(source, where, f"unknown key {unknown[0]!r}; allowed: {', '.join(RESIDUAL_KEYS)}")
+    kwargs: dict[str, Any] = {}
+    for key in ("lower", "upper"):
+        if key in table:
+            if not isinstance(table[key], bool):
+                raise InputFormatError(source, where, f"{key}: expected true or false, found {table[key]!r}")
+            kwargs[key] = table[key]
+    for name in ("lower", "upper"):
+        lo_key, hi_key = f"{name}_min", f"{name}_max"
+        for key in (lo_key, hi_key):
+            if key in table:
+                kwargs[key] = _number(table[key], source, where, key)
+        if lo_key in kwargs and hi_key in kwargs and kwargs[lo_key] > kwargs[hi_key]:
+            raise InputFormatError(source, where, f"{lo_key} {kwargs[lo_key]:g} > {hi_key} {kwargs[hi_key]:g}")
+        if (lo_key in kwargs or hi_key in kwargs) and not kwargs.get(name, False):
+            raise InputFormatError(source, where, f"{lo_key}/{hi_key} given but {name} is not true")
+    return ResidualPrior(**kwargs)
+
+
 def parse_prior_mapping(doc: Mapping[str, Any], source: str, allow_extra: bool = False) -> Prior:
     """Validate a parsed prior document (also used for the ``[[mode]]`` part of procedures)."""
     if not allow_extra:
@@ -147,7 +199,8 @@ def parse_prior_mapping(doc: Mapping[str, Any], source: str, allow_extra: bool =
     max_partitions = doc.get("max_partitions", 200)
     if isinstance(max_partitions, bool) or not isinstance(max_partitions, int) or max_partitions < 1:
         raise InputFormatError(source, "key 'max_partitions'", f"expected a positive integer, found {max_partitions!r}")
-    return Prior(modes, gamma, max_partitions)
+    residuals = parse_residuals_table(doc["residuals"], source) if "residuals" in doc else ResidualPrior()
+    return Prior(modes, gamma, max_partitions, residuals=residuals)
 
 
 def load_toml(path: str | os.PathLike) -> dict[str, Any]:
