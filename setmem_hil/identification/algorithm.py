@@ -145,7 +145,14 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
                     new_hi[p], argmax[p] = sol.upper[p], sol.argmax[p]
         if not np.all(np.isfinite(new_lo)):
             counter.n_solves += problem.n_solves
-            _raise_inconsistent(omega, g_mode[usable], E_used, lo, hi, certificates, mode_index)
+            # diagnose on every informative point, inactive ones included: the point at fault may
+            # sit where this mode's constraint is slack (it corrupted another mode's bounds)
+            finite = np.isfinite(E)
+            w_f, g_f, E_f = omega_all[finite], g_mode[finite], E[finite]
+            full = OneModeProblem(w_f, g_f, lo, hi)
+            sol = full.bound_box(embedding_bound(w_f, E_f, lo[A0], hi[A0], hi[A1]), lo, hi)
+            certs = [sol.certificate] if not sol.feasible else certificates
+            _raise_inconsistent(w_f, g_f, E_f, lo, hi, certs, mode_index)
         new_lo, new_hi = np.maximum(lo, new_lo), np.minimum(hi, new_hi)
         new_hi = np.maximum(new_lo, new_hi)
         improved = _improved(lo[[A1, A0]], hi[[A1, A0]], new_lo[[A1, A0]], new_hi[[A1, A0]], settings.tolerance)
