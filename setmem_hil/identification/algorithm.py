@@ -172,9 +172,9 @@ def _gamma_note(i: int, gamma: float, plan: PartitionPlan, lo, hi, prior: Prior,
         return head + "partitioning disabled"
     if lo[A1] <= 0.0:
         return head + "the a1 lower bound is 0 (damping not bounded away from zero by the data), so no finite partition exists (Assumption 3.1)"
-    need = minimal_partition(prior.gamma, lo[A0], hi[A0], lo[A1], hi[A1], 100 * prior.max_partitions)
+    need = minimal_partition(prior.gamma, lo[A0], hi[A0], lo[A1], hi[A1], 10 * prior.max_partitions)
     if need is None:
-        return head + f"more than {100 * prior.max_partitions} partitions would be needed (max_partitions = {prior.max_partitions})"
+        return head + f"more than {10 * prior.max_partitions} partitions would be needed (max_partitions = {prior.max_partitions})"
     if need.count > prior.max_partitions:
         return head + f"{need.n0} x {need.n1} = {need.count} partitions needed > max_partitions = {prior.max_partitions}"
     return head + f"partition {plan.n0} x {plan.n1} ran on bounds that have shrunk since (run again with these bounds as previous)"
