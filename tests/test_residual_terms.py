@@ -78,3 +78,26 @@ def test_residuals_table_parsing():
     for bad in ({"lower": 1}, {"middle": True}, {"lower": True, "lower_min": 3.0, "lower_max": 2.0}, {"upper_min": 0.0}):
         with pytest.raises(InputFormatError, match=r"\[residuals\]"):
             parse_prior_mapping({**doc, "residuals": bad}, "PRIOR.toml")
+
+
+def test_identify_command_writes_residuals_and_verified(tmp_path):
+    import json
+
+    from setmem_hil.cli.main import main
+    from setmem_hil.io.data_file import write_data_csv
+
+    data, modes, _ = case(2)
+    write_data_csv(data, tmp_path / "data.csv")
+    lines = []
+    for m in modes:
+        lines += ["[[mode]]", f"omega_min = {float(m.omega_min)!r}", f"omega_max = {float(m.omega_max)!r}", f"zeta_max = {float(m.zeta_max)!r}", "b1 = 0.0"]
+    lines += ["[residuals]", "lower = true", "upper = true"]
+    (tmp_path / "prior.toml").write_text("\n".join(lines) + "\n")
+    code = main(["identify", "--data", str(tmp_path / "data.csv"), "--prior", str(tmp_path / "prior.toml"), "--out", str(tmp_path / "r.json")])
+    assert code == 0
+    doc = json.loads((tmp_path / "r.json").read_text())
+    lo, hi = doc["residuals"]["lower"]
+    assert lo <= R_LOWER <= hi
+    lo, hi = doc["residuals"]["upper"]
+    assert lo <= R_UPPER <= hi
+    assert all(m["verified"] is True for m in doc["modes"])

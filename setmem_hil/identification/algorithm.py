@@ -145,7 +145,14 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
                     new_hi[p], argmax[p] = sol.upper[p], sol.argmax[p]
         if not np.all(np.isfinite(new_lo)):
             counter.n_solves += problem.n_solves
-            _raise_inconsistent(omega, g_mode[usable], E_used, lo, hi, certificates, mode_index)
+            # diagnose on every informative point, inactive ones included: the point at fault may
+            # sit where this mode's constraint is slack (it corrupted another mode's bounds)
+            finite = np.isfinite(E)
+            w_f, g_f, E_f = omega_all[finite], g_mode[finite], E[finite]
+            full = OneModeProblem(w_f, g_f, lo, hi)
+            sol = full.bound_box(embedding_bound(w_f, E_f, lo[A0], hi[A0], hi[A1]), lo, hi)
+            certs = [sol.certificate] if not sol.feasible else certificates
+            _raise_inconsistent(w_f, g_f, E_f, lo, hi, certs, mode_index)
         new_lo, new_hi = np.maximum(lo, new_lo), np.minimum(hi, new_hi)
         new_hi = np.maximum(new_lo, new_hi)
         improved = _improved(lo[[A1, A0]], hi[[A1, A0]], new_lo[[A1, A0]], new_hi[[A1, A0]], settings.tolerance)
@@ -165,9 +172,9 @@ def _gamma_note(i: int, gamma: float, plan: PartitionPlan, lo, hi, prior: Prior,
         return head + "partitioning disabled"
     if lo[A1] <= 0.0:
         return head + "the a1 lower bound is 0 (damping not bounded away from zero by the data), so no finite partition exists (Assumption 3.1)"
-    need = minimal_partition(prior.gamma, lo[A0], hi[A0], lo[A1], hi[A1], 100 * prior.max_partitions)
+    need = minimal_partition(prior.gamma, lo[A0], hi[A0], lo[A1], hi[A1], 10 * prior.max_partitions)
     if need is None:
-        return head + f"more than {100 * prior.max_partitions} partitions would be needed (max_partitions = {prior.max_partitions})"
+        return head + f"more than {10 * prior.max_partitions} partitions would be needed (max_partitions = {prior.max_partitions})"
     if need.count > prior.max_partitions:
         return head + f"{need.n0} x {need.n1} = {need.count} partitions needed > max_partitions = {prior.max_partitions}"
     return head + f"partition {plan.n0} x {plan.n1} ran on bounds that have shrunk since (run again with these bounds as previous)"
