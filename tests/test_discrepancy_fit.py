@@ -13,6 +13,7 @@ EFFECT_VALUES = {
     "time_delay": [0.01],
     "first_order_lag": [0.05],
     "feedthrough": [0.003],
+    "residual_mass": [0.05],
     "extra_mode": [2 * 0.02 * 12.0, 144.0, 0.0, 0.3],
 }
 

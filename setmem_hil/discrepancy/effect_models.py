@@ -7,7 +7,9 @@ Each one-parameter effect ``p`` augments the modal response ``G`` (eq. 3.6):
 ``FirstOrderLag`` (``tau`` s)
     ``G / (tau s + 1)``: sensor or actuator bandwidth.
 ``Feedthrough`` (``d``)
-    ``G + d``: residual flexibility of modes above the band.
+    ``G + d``: residual flexibility of modes above the band (the upper residual).
+``ResidualMass`` (``r``)
+    ``G + r / s^2``: mass line of modes below the band (the lower residual).
 
 and :class:`ExtraMode` adds a mode ``(b1 s + b0) / (s^2 + a1 s + a0)`` (its Jacobian is the
 modal one, eq. 3.9). Every user of an effect goes through these classes: the minimax fit
@@ -26,7 +28,7 @@ import numpy as np
 
 from setmem_hil.model.frequency_data import FrequencyData
 
-__all__ = ["EffectModel", "TimeDelay", "FirstOrderLag", "Feedthrough", "ExtraMode", "EFFECT_MODELS"]
+__all__ = ["EffectModel", "TimeDelay", "FirstOrderLag", "Feedthrough", "ResidualMass", "ExtraMode", "EFFECT_MODELS"]
 
 
 class EffectModel:
@@ -101,6 +103,27 @@ class Feedthrough(EffectModel):
 
 
 @dataclass(frozen=True)
+class ResidualMass(EffectModel):
+    """``G + r / s^2``: the lower residual (mass line) of modes below the band, as in modal-analysis
+    practice (``-r / omega^2`` in receptance; ``r = 1 / m`` of a rigid-body mode)."""
+
+    name: str = "residual_mass"
+    param_names: tuple[str, ...] = ("r",)
+    lower_limit: float = -np.inf
+
+    def response_and_jacobian(self, g_modal, s, p):
+        inv = 1.0 / (s * s)
+        return g_modal + p * inv, None, inv
+
+    def remove(self, data, value, delta=0.0):
+        w = data.omega_rad_s
+        return FrequencyData(w, data.response + value / w**2, data.bound + delta / w**2)
+
+    def typical_step(self, data):
+        return 0.1 * float(np.median(data.bound * data.omega_rad_s**2))
+
+
+@dataclass(frozen=True)
 class ExtraMode:
     """An added mode; fitted and identified as a mode (its Jacobian is eq. 3.9's)."""
 
@@ -112,5 +135,5 @@ class ExtraMode:
         return g_modal + (b1 * s + b0) / (s * s + 2 * zeta * omega_n * s + omega_n * omega_n)
 
 
-EFFECT_MODELS: dict[str, EffectModel] = {m.name: m for m in (TimeDelay(), FirstOrderLag(), Feedthrough())}
+EFFECT_MODELS: dict[str, EffectModel] = {m.name: m for m in (TimeDelay(), FirstOrderLag(), Feedthrough(), ResidualMass())}
 """The one-parameter effects by name (the extra mode is :class:`ExtraMode`)."""

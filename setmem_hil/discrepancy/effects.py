@@ -31,7 +31,7 @@ from setmem_hil.discrepancy.fit import EFFECT_PARAM_NAMES, fit_minimax, model_re
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import ModalParameters
 
-CANDIDATE_EFFECTS: tuple[str, ...] = ("none", "time_delay", "first_order_lag", "feedthrough", "extra_mode")
+CANDIDATE_EFFECTS: tuple[str, ...] = ("none", "time_delay", "first_order_lag", "feedthrough", "residual_mass", "extra_mode")
 DELAY_START_PHASE_DEG = (3.0, 15.0, 60.0)
 LAG_START_CORNER_RATIOS = (3.0, 1.0, 1.0 / 3.0, 0.1)
 EXTRA_MODE_START_ZETAS = (0.003, 0.01, 0.03, 0.1)
@@ -241,6 +241,15 @@ def fit_feedthrough(data: FrequencyData, box: ModalBox, modal0: np.ndarray, resi
     return _best_of_starts("feedthrough", data, box, modal0, [[0.0], [d0]], np.array([-np.inf]), np.array([np.inf]), np.array([typical]), polish)
 
 
+def fit_residual_mass(data: FrequencyData, box: ModalBox, modal0: np.ndarray, residual: np.ndarray, polish: bool = True) -> CandidateFit:
+    """``G + r / s^2`` (``r`` real); starts: 0 and the weighted least-squares ``r`` of the ``none`` residual."""
+    phi = -1.0 / data.omega_rad_s**2
+    wgt = 1.0 / np.maximum(data.bound, 1e-300) ** 2
+    r0 = float(np.sum(wgt * phi * residual.real) / np.sum(wgt * phi * phi))
+    typical = float(np.median(data.bound * data.omega_rad_s**2))
+    return _best_of_starts("residual_mass", data, box, modal0, [[0.0], [r0]], np.array([-np.inf]), np.array([np.inf]), np.array([typical]), polish)
+
+
 def extra_mode_starts(data: FrequencyData, residual: np.ndarray, b1: float, n_starts: int = EXTRA_MODE_N_STARTS) -> list:
     """Starts ``(a1, a0, b1, b0)`` for an added mode: a grid search on the residual.
 
@@ -310,6 +319,8 @@ def fit_candidate(name: str, data: FrequencyData, box: ModalBox, none: Candidate
         return fit_first_order_lag(data, box, modal0, polish)
     if name == "feedthrough":
         return fit_feedthrough(data, box, modal0, residual, polish)
+    if name == "residual_mass":
+        return fit_residual_mass(data, box, modal0, residual, polish)
     if name == "extra_mode":
         return fit_extra_mode(data, box, modal0, residual, polish)
     raise ValueError(f"effect: expected one of {CANDIDATE_EFFECTS}, found {name!r}")

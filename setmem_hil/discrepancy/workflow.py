@@ -69,7 +69,10 @@ from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.prior import ModePrior, Prior
 
-ONE_PARAMETER_EFFECTS = ("time_delay", "first_order_lag", "feedthrough")
+ONE_PARAMETER_EFFECTS = ("time_delay", "first_order_lag", "feedthrough", "residual_mass")
+AMBIGUITY_MARGIN = 0.05
+"""Two consistent candidates with the same number of added parameters whose worst normalised
+residuals differ by less than this (in units of the threshold) explain the data equally well."""
 
 
 @dataclass(frozen=True)
@@ -158,7 +161,9 @@ class DiscrepancyReport:
 RULE_TEXT = (
     "candidates with worst normalised residual <= threshold are consistent; among them the "
     "smallest score = added parameters + residual / threshold wins; a first-order lag with its "
-    "corner above the band yields to a consistent time delay; no consistent candidate: unexplained"
+    "corner above the band yields to a consistent time delay; another consistent candidate with as many "
+    "parameters within 0.05 threshold of the winner: ambiguous (both named, with the frequency that separates "
+    "them most); no consistent candidate: unexplained"
 )
 
 
@@ -266,6 +271,31 @@ def choose_effect(fits: dict[str, CandidateFit], threshold: float, omega_top: fl
         if tau <= 0 or 1.0 / tau > omega_top:
             consistent = {n: f for n, f in consistent.items() if n != "first_order_lag"}
     return min(consistent, key=lambda n: consistent[n].n_added_params + consistent[n].max_normalized_residual / threshold)
+
+
+def ambiguous_alternative(fits: dict[str, CandidateFit], decision: str, threshold: float, omega_top: float) -> str | None:
+    """The candidate that explains the data as well as ``decision`` does, if one does."""
+    chosen = fits.get(decision)
+    if chosen is None or decision in ("none", "unexplained"):
+        return None
+    rivals = [f for n, f in fits.items() if n not in (decision, "none") and f.max_normalized_residual <= threshold
+              and f.n_added_params == chosen.n_added_params
+              and abs(f.max_normalized_residual - chosen.max_normalized_residual) < AMBIGUITY_MARGIN * threshold]
+    if decision == "time_delay":  # a lag with its corner above the band is, in band, this delay (rule above)
+        rivals = [f for f in rivals if not (f.name == "first_order_lag" and (f.params.get("tau", 0.0) <= 0
+                                                                              or 1.0 / f.params["tau"] > omega_top))]
+    return min(rivals, key=lambda f: f.max_normalized_residual).name if rivals else None
+
+
+def discriminating_frequency(data: FrequencyData, a: CandidateFit, b: CandidateFit) -> float:
+    """The frequency (rad/s) where the two fitted structures differ most relative to the error bound
+    a measurement there is expected to have (bounds interpolated log-log, held outside the data)."""
+    w = data.omega_rad_s
+    grid = np.geomspace(w.min() / 1.5, w.max() * 1.5, 2000)
+    order = np.argsort(w)
+    bound = np.exp(np.interp(np.log(grid), np.log(w[order]), np.log(np.maximum(data.bound[order], 1e-300))))
+    gap = np.abs(a.response(grid) - b.response(grid)) / bound
+    return float(grid[int(np.argmax(gap))])
 
 
 def _refit_delay_from_lag(data: FrequencyData, box: ModalBox, fits: dict, threshold: float, top: float) -> None:
@@ -387,6 +417,16 @@ def check_discrepancy(
         )
         return replace(report, effects=({"name": "unexplained", "params": {}, "evidence": evidence},))
 
+    rival = ambiguous_alternative(fits, decision, settings.threshold, float(np.max(data.omega_rad_s)))
+    if rival is not None:
+        a, b = fits[decision], fits[rival]
+        w = discriminating_frequency(data, a, b)
+        evidence = (f"{a.name} and {b.name} both explain the data (worst normalised residuals "
+                    f"{a.max_normalized_residual:.3g} and {b.max_normalized_residual:.3g}, threshold {settings.threshold:g}) "
+                    f"with the same number of added parameters; a measurement at {w:.6g} rad/s "
+                    f"({w / (2 * np.pi):.6g} Hz) separates them most; the model is left unchanged")
+        effect = {"name": "ambiguous", "candidates": [a.name, b.name], "discriminating_omega": w, "evidence": evidence}
+        return replace(report, effects=(effect,))
     chosen = fits[decision]
     after = {"max_normalized_residual": chosen.max_normalized_residual, "feasible": None}
     new_model = None
