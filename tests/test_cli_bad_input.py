@@ -116,3 +116,54 @@ def test_every_setmem_error_has_an_exit_code_and_a_message():
         code, message = exit_code_and_message(exc)
         assert code == expected.get(name, 1), name
         assert message and "\n" not in message
+
+
+# --- issue 17: absurd values on otherwise good data; never exit 0 with bounds not derived from data ---
+def _beam_rows():
+    import numpy as np
+
+    from setmem_hil.io.procedure import thesis_6_3_2_initial_omegas
+    from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
+
+    ms = SimulatedBeamExperiment(seed=1).measure_many(np.array(thesis_6_3_2_initial_omegas()))
+    return [[repr(m.omega_rad_s), repr(m.response.real), repr(m.response.imag), repr(m.bound)] for m in ms]
+
+
+ABSURD = [
+    ("re 1e18", 3, 1, "1e18", 3),
+    ("re 1e40", 3, 1, "1e40", 3),
+    ("re 1e308", 3, 1, "1e308", 2),
+    ("omega 1e308", 14, 0, "1e308", 2),
+    ("omega negative", 2, 0, "-3.0", 2),
+    ("bound NaN", 4, 3, "nan", 2),
+    ("re inf", 4, 1, "inf", 2),
+    ("re subnormal", 3, 1, "5e-324", 3),
+    ("bound huge", 5, 3, "1e200", 2),
+]
+
+
+@pytest.mark.parametrize("name, row, col, value, code", ABSURD, ids=[a[0] for a in ABSURD])
+def test_absurd_values_give_their_exit_code_never_a_prior_box(tmp_path, capsys, name, row, col, value, code):
+    rows = _beam_rows()
+    rows[row][col] = value
+    data = tmp_path / "data.csv"
+    data.write_text("\ufeffomega,re,im,bound\n" + "\n".join(",".join(r) for r in rows) + "\n")  # with a BOM, as spreadsheets write
+    out = tmp_path / "r.json"
+    assert main(["identify", "--data", str(data), "--prior", str(REPO / "procedures" / "beam_6_3_2.toml"), "--out", str(out)]) == code
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and "Warning" not in err, err
+    assert not out.exists()
+
+
+def test_good_data_with_a_bom_and_a_procedure_as_prior_identifies(tmp_path, capsys):
+    rows = _beam_rows()
+    data = tmp_path / "data.csv"
+    data.write_text("\ufeffomega,re,im,bound\n" + "\n".join(",".join(r) for r in rows) + "\n")
+    assert main(["identify", "--data", str(data), "--prior", str(REPO / "procedures" / "beam_6_3_2.toml"), "--out", str(tmp_path / "r.json")]) == 0
+    assert "identified 3 mode(s) from 15 points" in capsys.readouterr().out
+
+
+def test_output_into_a_missing_folder_fails_before_computing(tmp_path, capsys):
+    files = _files(tmp_path)
+    assert main(["identify", "--data", files["good.csv"], "--prior", files["prior.toml"], "--out", str(tmp_path / "no" / "r.json")]) == 2
+    assert "does not exist" in capsys.readouterr().err

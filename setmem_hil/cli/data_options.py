@@ -5,10 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 
+from pathlib import Path
+
+from setmem_hil.errors import InputFormatError
 from setmem_hil.io.frf_file import QUANTITIES, load_frf
 from setmem_hil.model.frequency_data import FrequencyData
 
-__all__ = ["add_data_options", "load_data"]
+__all__ = ["add_data_options", "load_data", "load_prior", "check_out_path"]
 
 
 def add_data_options(p: argparse.ArgumentParser) -> None:
@@ -27,3 +30,29 @@ def load_data(args: argparse.Namespace) -> FrequencyData:
     for note in loaded.notes:
         print(f"setmem-hil: note: {args.data}: {note}", file=sys.stderr)
     return loaded.data
+
+
+PROCEDURE_TABLES = ("backend", "initial", "safety", "goal", "input_design", "weights", "discrepancy", "name", "seed")
+
+
+def load_prior(path: str):
+    """A PRIOR.toml, or a procedure file whose ``[[mode]]`` tables are the prior (its other tables
+    are validated too, since a procedure with a typo is not a trustworthy prior)."""
+    from setmem_hil.model.prior import load_toml, parse_prior_mapping
+
+    mapping = load_toml(path)
+    if any(key in mapping for key in PROCEDURE_TABLES):
+        from setmem_hil.io.procedure_file import load_procedure
+
+        return load_procedure(path).prior
+    return parse_prior_mapping(mapping, str(path))
+
+
+def check_out_path(path: str, option: str = "--out") -> Path:
+    """Refuse an output path whose folder does not exist, before any computation."""
+    out = Path(path)
+    if out.is_dir():
+        raise InputFormatError(str(out), option, "is a folder; give a file name")
+    if not out.parent.is_dir():
+        raise InputFormatError(str(out), option, f"folder {out.parent} does not exist (create it first)")
+    return out

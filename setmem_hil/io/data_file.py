@@ -16,13 +16,16 @@ from pathlib import Path
 import numpy as np
 
 from setmem_hil.errors import InputFormatError
-from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.model.frequency_data import MAX_MAGNITUDE, FrequencyData
 
 DATA_COLUMNS = ("omega", "re", "im", "bound")
 
 
 def parse_data_csv(text: str, source: str = "<data>") -> FrequencyData:
-    """Parse the text of a data CSV; raise :class:`InputFormatError` naming line and column."""
+    """Parse the text of a data CSV; raise :class:`InputFormatError` naming line and column.
+
+    A byte-order mark (spreadsheets write one) is ignored."""
+    text = text.removeprefix("\ufeff")
     try:
         rows = list(csv.reader(io.StringIO(text, newline="")))
     except csv.Error as exc:
@@ -46,6 +49,9 @@ def parse_data_csv(text: str, source: str = "<data>") -> FrequencyData:
                 raise InputFormatError(source, f"line {line}", f"column {name}: expected a number, found {cell.strip()!r}") from None
             if not math.isfinite(v):
                 raise InputFormatError(source, f"line {line}", f"column {name}: expected a finite number, found {cell.strip()}")
+            if abs(v) > MAX_MAGNITUDE:
+                raise InputFormatError(source, f"line {line}", f"column {name}: {cell.strip()} is outside the range the "
+                                       f"identification computes with (|x| <= {MAX_MAGNITUDE:g}; check the units)")
             parsed.append(v)
         if parsed[0] <= 0:
             raise InputFormatError(source, f"line {line}", f"column omega: expected a positive frequency, found {parsed[0]:g}")

@@ -70,6 +70,15 @@ def load_frf(path: str | os.PathLike, *, quantity: str | None = None, bound_rel:
         without a way to bound its errors.
     """
     p = Path(path)
+    try:
+        return _load(p, quantity, bound_rel, bound_abs, averages)
+    except ValueError as exc:  # FrequencyData's own checks (non-finite, out of range)
+        if isinstance(exc, InputFormatError):
+            raise
+        raise InputFormatError(str(p), "", str(exc)) from None
+
+
+def _load(p: Path, quantity, bound_rel, bound_abs, averages) -> FrfLoad:
     if quantity is not None and quantity not in QUANTITIES:
         raise InputFormatError(str(p), "--quantity", f"expected one of {', '.join(QUANTITIES)}, found {quantity!r}")
     if p.suffix.lower() in (".uff", ".unv"):

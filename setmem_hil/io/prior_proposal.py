@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 
-from setmem_hil.estimation.modal_estimate import ModalEstimate
 
 __all__ = ["format_prior_proposal", "WIDTH"]
 
@@ -30,7 +29,7 @@ def _num(x: float) -> str:
     return repr(float(f"{x:.8g}"))
 
 
-def _bands(estimate: ModalEstimate) -> list[tuple[float, float]]:
+def _bands(estimate) -> list[tuple[float, float]]:
     lo_band = estimate.band_rad_s[0]
     wn = [m.omega_n_rad_s for m in estimate.modes]
     out = []
@@ -47,8 +46,8 @@ def _bands(estimate: ModalEstimate) -> list[tuple[float, float]]:
     return out
 
 
-def format_prior_proposal(estimate: ModalEstimate, source: str, residuals: tuple[str, ...] = ()) -> str:
-    """The PRIOR.toml text for ``estimate`` (see the module docstring for the rules)."""
+def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()) -> str:
+    """The PRIOR.toml text for ``estimate`` (a :class:`setmem_hil.estimation.modal_estimate.ModalEstimate`)."""
     lo_hz, hi_hz = (w / (2 * math.pi) for w in estimate.band_rad_s)
     lines = [
         f"# Prior proposed by `setmem-hil prior` from {source}, band {lo_hz:.6g}-{hi_hz:.6g} Hz.",

@@ -10,6 +10,10 @@ import numpy as np
 from setmem_hil.model.experiment import Measurement
 
 
+MAX_MAGNITUDE = 1e150
+"""Largest |omega|, |G| or bound accepted: squares and products stay finite in double precision."""
+
+
 @dataclass(frozen=True)
 class FrequencyData:
     """Measured ``g(j omega_i)`` with absolute error bounds ``R_i``; arrays of equal length."""
@@ -30,6 +34,9 @@ class FrequencyData:
             raise ValueError("response: expected finite values")
         if np.any(~np.isfinite(r)) or np.any(r < 0):
             raise ValueError("bound: expected finite non-negative bounds")
+        if max(np.max(w, initial=0.0), np.max(np.abs(g), initial=0.0), np.max(r, initial=0.0)) > MAX_MAGNITUDE:
+            raise ValueError(f"omega, response, bound: values beyond {MAX_MAGNITUDE:g} (the identification squares "
+                             "frequencies and responses; such values overflow; check the units)")
         object.__setattr__(self, "omega_rad_s", w)
         object.__setattr__(self, "response", g)
         object.__setattr__(self, "bound", r)

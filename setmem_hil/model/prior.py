@@ -214,6 +214,7 @@ def load_toml(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def parse_toml_text(text: str, source: str) -> dict[str, Any]:
+    text = text.removeprefix("\ufeff")  # a byte-order mark some editors write
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

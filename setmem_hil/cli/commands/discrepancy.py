@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from setmem_hil.cli.data_options import add_data_options, load_data
+from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data, load_prior
 from setmem_hil.io.result_file import write_json
 
 
@@ -33,11 +33,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from setmem_hil.discrepancy.workflow import check_discrepancy, discrepancy_from_prior
 
+    check_out_path(args.out)
+    if args.plot:
+        check_out_path(args.plot, "--plot")
     data = load_data(args)
     if args.prior:
-        from setmem_hil.model.prior import read_prior
-
-        report = discrepancy_from_prior(data, read_prior(args.prior))
+        report = discrepancy_from_prior(data, load_prior(args.prior))
     else:
         from setmem_hil.io.result_file import read_result
 

@@ -10,9 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from setmem_hil.cli.data_options import add_data_options, load_data
+from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data, load_prior
 from setmem_hil.identification.algorithm import identify
-from setmem_hil.model.prior import read_prior
 from setmem_hil.io.result_file import write_json
 
 
@@ -29,8 +28,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_out_path(args.out)
     data = load_data(args)
-    prior = read_prior(args.prior)
+    prior = load_prior(args.prior)
     if args.reject_outliers:
         from setmem_hil.identification.outlier_rejection import identify_rejecting_outliers
 
@@ -42,4 +42,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         doc = identify(data, prior).to_document()
     write_json(doc, args.out)
+    unverified = [i + 1 for i, m in enumerate(doc["modes"]) if m.get("verified") is False]
+    print(f"identified {len(doc['modes'])} mode(s) from {len(data.omega_rad_s)} points in {doc['iterations']} iteration(s): "
+          f"{args.out}" + (f"; bounds of mode(s) {unverified} NOT verified (see unverified_reason)" if unverified else ""))
     return 0

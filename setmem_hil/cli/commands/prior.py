@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from setmem_hil.cli.data_options import add_data_options, load_data
+from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data
 from setmem_hil.errors import InputFormatError
 
 __all__ = ["register", "run"]
@@ -32,9 +32,7 @@ def run(args: argparse.Namespace) -> int:
     from setmem_hil.io.prior_proposal import format_prior_proposal
     from setmem_hil.report.stability_diagram import plot_stability_diagram
 
-    out = Path(args.out)
-    if not out.parent.exists():
-        raise InputFormatError(str(out), "--out", f"folder {out.parent} does not exist")
+    out = check_out_path(args.out)
     if args.modes < 1:
         raise InputFormatError("setmem-hil prior", "--modes", f"expected at least 1, found {args.modes}")
     data = load_data(args)
