@@ -167,3 +167,33 @@ def test_output_into_a_missing_folder_fails_before_computing(tmp_path, capsys):
     files = _files(tmp_path)
     assert main(["identify", "--data", files["good.csv"], "--prior", files["prior.toml"], "--out", str(tmp_path / "no" / "r.json")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def _model_doc(changes=None):
+    import json
+
+    from setmem_hil.sim_backends.beam import beam_parameters
+
+    v = beam_parameters().truncated(3).values
+    modes = [{k: [float(v[i, j]) * 0.95, float(v[i, j]) * 1.05] for j, k in enumerate(("a1", "a0", "b1", "b0"))} for i in range(3)]
+    for (i, key), interval in (changes or {}).items():
+        modes[i][key] = interval
+    return json.dumps({"modes": modes, "conservatism": {"embedding_gamma": [1, 1, 1], "mismatch_ratio": [1, 1, 1]}, "iterations": 1})
+
+
+@pytest.mark.parametrize("changes, where", [({(0, "a0"): [-1.0, 1.0]}, "mode 1 a0"), ({(1, "a1"): [0.01, 1e308]}, "mode 2 a1"),
+                                            ({(2, "a1"): [-0.5, 0.5]}, "mode 3 a1")])
+def test_analyze_refuses_models_it_cannot_mean(tmp_path, capsys, changes, where):
+    (tmp_path / "m.json").write_text(_model_doc(changes))
+    assert main(["analyze", "--model", str(tmp_path / "m.json"), "--out", str(tmp_path / "a.json")]) == 2
+    err = capsys.readouterr().err
+    assert where in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "a.json").exists()
+
+
+def test_analyze_takes_a_weights_only_file_and_prints_a_summary(tmp_path, capsys):
+    from setmem_hil.model.weights import THESIS_WEIGHTS
+
+    (tmp_path / "m.json").write_text(_model_doc())
+    (tmp_path / "w.toml").write_text("[weights]\n" + "\n".join(f"{k} = {list(getattr(THESIS_WEIGHTS, k))}" for k in ("w1_num", "w1_den", "w2_num", "w2_den")) + "\n")
+    assert main(["analyze", "--model", str(tmp_path / "m.json"), "--procedure", str(tmp_path / "w.toml"), "--out", str(tmp_path / "a.json")]) == 0
+    assert "mu-bar peak" in capsys.readouterr().out

@@ -23,9 +23,11 @@ _WEIGHT_KEYS = ("w1_num", "w1_den", "w2_num", "w2_den", "w2_extra_pole_rad_s")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("analyze", help="H2 design, mixed-mu robust performance and mu-sensitivities of a model")
+    p = subparsers.add_parser("analyze", help="H2 design, mixed-mu robust performance and mu-sensitivities of a model",
+                              description="Design the H2 compensator for the model's midpoint and compute the mixed-mu upper "
+                              "bound of robust performance (D and G scales), its peak and the mu-sensitivities (ANALYSIS.json).")
     p.add_argument("--model", required=True, metavar="RESULT.json", help="interval model (identify result format)")
-    p.add_argument("--procedure", metavar="FILE.toml", help="procedure file; only its [weights] table is used")
+    p.add_argument("--procedure", metavar="FILE.toml", help="procedure file, or a file with only a [weights] table; its weights are used")
     p.add_argument("--out", required=True, metavar="ANALYSIS.json", help="where to write the analysis")
     p.set_defaults(func=run)
 
@@ -61,21 +63,49 @@ def _weights_from_table(path: str) -> Weights:
 
 
 def weights_for(procedure_path: str | None) -> Weights:
-    """Weights of a procedure file (``[weights]``), or the thesis's when no file is given."""
+    """Weights of a procedure file (``[weights]``; a file with only that table is enough), or the
+    thesis's when no file is given. A full procedure is validated as a whole."""
     if procedure_path is None:
         return THESIS_WEIGHTS
-    try:
+    from setmem_hil.model.prior import load_toml
+
+    if "mode" in load_toml(procedure_path):
         from setmem_hil.io.procedure_file import load_procedure
-    except ImportError:
-        return _weights_from_table(procedure_path)
-    return load_procedure(procedure_path).weights
+
+        return load_procedure(procedure_path).weights
+    return _weights_from_table(procedure_path)
+
+
+def check_model(model, source: str) -> None:
+    """Refuse a model the analysis cannot mean: non-finite or absurd bounds, natural frequencies
+    not bounded away from zero (``a0 <= 0``), negative damping (``a1 < 0``)."""
+    from setmem_hil.model.frequency_data import MAX_MAGNITUDE
+    from setmem_hil.model.modal_model import PARAM_NAMES
+
+    for i in range(model.n_modes):
+        for j, name in enumerate(PARAM_NAMES):
+            lo, hi = float(model.lower[i, j]), float(model.upper[i, j])
+            where = f"mode {i + 1} {name}"
+            if not (math.isfinite(lo) and math.isfinite(hi)) or max(abs(lo), abs(hi)) > MAX_MAGNITUDE:
+                raise InputFormatError(source, where, f"[{lo:g}, {hi:g}]: the analysis needs finite bounds below {MAX_MAGNITUDE:g}")
+        if model.lower[i, 1] <= 0:
+            raise InputFormatError(source, f"mode {i + 1} a0", f"lower bound {model.lower[i, 1]:g} must be > 0 (a0 = omega_n^2 of a vibration mode)")
+        if model.lower[i, 0] < 0:
+            raise InputFormatError(source, f"mode {i + 1} a1", f"lower bound {model.lower[i, 0]:g} must be >= 0 (a1 = 2 zeta omega_n, no negative damping)")
 
 
 def run(args: argparse.Namespace) -> int:
+    from setmem_hil.cli.data_options import check_out_path
     from setmem_hil.robust.analysis import analyze_robust_performance
 
+    check_out_path(args.out)
     model = read_result(args.model)
+    check_model(model, args.model)
     weights = weights_for(args.procedure)
     result = analyze_robust_performance(model, weights)
     write_json(result.to_document(), args.out)
+    top = sorted(result.sensitivities.items(), key=lambda kv: -kv[1])[:3]
+    mu = "inf (nominal loop unstable)" if not math.isfinite(result.mu_peak) else f"{result.mu_peak:.4f}"
+    print(f"mu-bar peak {mu} at {result.mu_peak_omega:.4g} rad/s ({result.mu_peak_omega / (2 * math.pi):.4g} Hz); "
+          f"most sensitive: {', '.join(f'{k} {v:.3g}' for k, v in top) or '-'}; {args.out}")
     return 0
