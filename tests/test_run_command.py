@@ -284,3 +284,15 @@ def test_a_rig_that_does_not_open_leaves_no_run_behind(tmp_path, cheap, monkeypa
     assert main(["run", str(cheap), "--out", str(out)]) == 2
     assert "reply_timeout_s" in capsys.readouterr().err
     assert not (out / "journal.sqlite").exists()  # fix the file and run again into the same --out
+
+
+def test_run_check_runs_the_residue_bootstrap_before_any_dwell(tmp_path, capsys):
+    """Issue 17: a prior whose residues cannot be bounded at the initial frequencies fails --check
+    (exit 2, naming the file and the overlapping bands), not after measuring every initial point."""
+    text = (REPO / "procedures" / "beam_6_3_2.toml").read_text().replace("omega_min = 5.41", "omega_min = 0.9", 1)
+    bad = tmp_path / "overlap.toml"
+    bad.write_text(text)
+    assert main(["run", "--check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "mode coupling" in err and "[[mode]] 1 and 2" in err and "overlap" in err
+    assert main(["run", "--check", str(REPO / "procedures" / "beam_6_3_2.toml")]) == 0

@@ -39,7 +39,7 @@ from setmem_hil.io.procedure_file import format_procedure, parse_procedure_text
 
 __all__ = [
     "RunOutcome", "start_run", "resume_run", "run_journaled_campaign", "default_run_dir", "describe_procedure",
-    "directory_lock", "SUMMARY_FILENAME", "PROCEDURE_COPY", "Display",
+    "directory_lock", "preflight", "SUMMARY_FILENAME", "PROCEDURE_COPY", "Display",
 ]
 
 SUMMARY_FILENAME = "summary.json"
@@ -98,6 +98,41 @@ def _run_lock(run_dir: Path, journal: Journal) -> Iterator[None]:
         raise
 
 
+def preflight(procedure: Procedure) -> None:
+    """Every check a run makes before its first dwell that does not need the rig (``run --check``).
+
+    The procedure file is validated when it is loaded (schema, keys, transport options, safety
+    limits); this adds what depends on the prior and the initial design together: the residues of
+    modes without ``b0`` bounds must be boundable from measurements at the ``[initial]``
+    frequencies (the residue bootstrap's coupling depends on the frequencies and the prior's poles
+    only, so it is decided before measuring), else the campaign would measure every initial point
+    and then stop.
+    """
+    import numpy as np
+
+    from setmem_hil.identification.residue_bootstrap import bootstrap_residue_bounds
+    from setmem_hil.model.frequency_data import FrequencyData
+
+    source = procedure.source_path or procedure.name
+    modes = procedure.prior.modes
+    w = np.asarray(procedure.initial_omegas_rad_s, dtype=float)
+    probe = FrequencyData(w, np.zeros(w.size, complex), np.zeros(w.size))
+    try:
+        bootstrap_residue_bounds(probe, procedure.prior.initial_bounds())
+    except InputFormatError as exc:
+        overlaps = [f"[[mode]] {i} and {i + 1} ({modes[i - 1].omega_min:g}-{modes[i - 1].omega_max:g} and "
+                    f"{modes[i].omega_min:g}-{modes[i].omega_max:g} rad/s)"
+                    for i in range(1, len(modes)) if modes[i].omega_min < modes[i - 1].omega_max]
+        cause = f"; the bands of {', '.join(overlaps)} overlap" if overlaps else ""
+        import re
+
+        coupling = re.search(r"mode coupling [^)]*", exc.problem)
+        raise InputFormatError(source, "[[mode]] / [initial]",
+                               f"the residues cannot be bounded from measurements at the [initial] frequencies"
+                               f"{f' ({coupling.group(0)})' if coupling else ''}{cause}; give b0_min/b0_max, separate the "
+                               "bands or move initial points nearer the resonances") from None
+
+
 def run_journaled_campaign(procedure: Procedure, experiment: Any, journal: Journal, *, seed: int, strategy: str,
                            observers: Sequence[Observer] = ()) -> CampaignSummary:
     """Algorithm 5.1 on ``experiment`` into ``journal`` with the standard subscribers plus ``observers``."""
@@ -153,6 +188,7 @@ def start_run(
         raise InputFormatError(str(run_dir), "", "exists and is not a directory")
     if (run_dir / JOURNAL_FILENAME).exists():
         raise InputFormatError(str(run_dir), "", f"already holds a run (it already holds a journal.sqlite); continue it with `setmem-hil run --resume {run_dir}` or choose another --out")
+    preflight(procedure)
     # Open the rig first: a transport option the driver rejects, or a device that does not
     # start, must not leave behind a journal whose stored procedure can never run.
     experiment = opener(procedure, seed)

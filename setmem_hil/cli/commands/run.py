@@ -65,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
             raise _arguments_error("give a procedure file, or --resume DIR")
         procedure = load_procedure(args.procedure)
         if args.check:
+            session.preflight(procedure)
             describe_procedure(procedure, console)
             console.print(f"{args.procedure}: OK", highlight=False)
             return 0
