@@ -296,3 +296,36 @@ def test_run_check_runs_the_residue_bootstrap_before_any_dwell(tmp_path, capsys)
     err = capsys.readouterr().err
     assert str(bad) in err and "mode coupling" in err and "[[mode]] 1 and 2" in err and "overlap" in err
     assert main(["run", "--check", str(REPO / "procedures" / "beam_6_3_2.toml")]) == 0
+
+
+def test_resume_with_a_corrected_procedure_reuses_every_stored_measurement(tmp_path, capsys):
+    """Issue 17: a run stopped by a prior that excludes the first mode (exit 3 after measuring the
+    initial points) continues with the corrected prior; nothing is measured twice; the change is
+    journaled; a later plain resume keeps the corrected procedure."""
+    from setmem_hil.io.journal import Journal
+
+    good_text = (REPO / "procedures" / "beam_6_3_2.toml").read_text().replace("max_experiments = 30", "max_experiments = 2")
+    bad_text = good_text.replace("omega_min = 0.884\nomega_max = 1.125", "omega_min = 1.3\nomega_max = 1.5", 1)
+    assert bad_text != good_text
+    (tmp_path / "bad.toml").write_text(bad_text)
+    (tmp_path / "good.toml").write_text(good_text)
+    run_dir = tmp_path / "run"
+    assert main(["run", str(tmp_path / "bad.toml"), "--out", str(run_dir), "--quiet"]) == 3
+    j = Journal.open(run_dir)
+    stored = j.measurements()
+    j.close()
+    assert len(stored) == 15
+    assert main(["run", "--resume", str(run_dir), "--procedure", str(tmp_path / "good.toml"), "--quiet"]) == 0
+    j = Journal.open(run_dir)
+    try:
+        after = j.measurements()
+        rows = j.measurement_rows()
+        kinds = [e["kind"] for e in j.events()]
+        assert after[:15] == stored  # reused, not re-measured
+        assert all(r["role"] == "added" for r in rows[15:]) and len(rows) - 15 <= 2
+        assert "procedure-changed" in kinds and j.run_info()["finished"]
+        assert j.iterations()[0].n_points == 15
+    finally:
+        j.close()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["iterations"] and summary["experiments_added"] == len(rows) - 15

@@ -255,6 +255,7 @@ def run_campaign(
     seed: int | None = None,
     strategy: str | None = None,
     progress: ProgressFn | None = None,
+    continue_stored: bool = False,
 ) -> CampaignSummary:
     """Run Algorithm 5.1 on ``experiment`` until mu-bar < goal or the budget is spent.
 
@@ -280,6 +281,11 @@ def run_campaign(
         ``progress(event, **info)`` with events ``"measure"`` (index, total, omega_rad_s,
         replayed), ``"iteration"`` (k, n_points, mu_peak, mu_peak_omega, safeguard),
         ``"chosen"`` (k, next_omega) and ``"finished"`` (summary).
+    continue_stored : bool, optional
+        Continue a stopped run with a changed procedure (``run --resume DIR --procedure FILE``):
+        every measurement stored in ``journal`` is data from the start (none is measured again,
+        no replay check), iterations continue after the last stored one, and the bounds are not
+        intersected with the old ones (the prior may have changed).
 
     Returns
     -------
@@ -316,11 +322,21 @@ def run_campaign(
     def analyze(model, controller):
         return analyze_robust_performance(model, procedure.weights, controller=controller)
 
-    measured = [source.measure(w, iteration=0, role="initial") for w in procedure.initial_omegas_rad_s]
+    k, n_added = 1, 0
+    if continue_stored and journal is not None:
+        measured = list(source.stored)
+        n_added = sum(1 for row in journal.measurement_rows() if row["role"] == "added")
+        k = max(stored_iterations, default=0) + 1
+        source.count = len(measured)
+        source.stored, source._synced, replayed_before = [], True, len(measured)
+        stored_iterations = {}
+        if isinstance(experiment, ResumableExperiment):
+            experiment.n_measured = len(measured)  # simulated noise goes on, never repeats
+    else:
+        measured = [source.measure(w, iteration=0, role="initial") for w in procedure.initial_omegas_rad_s]
     previous_model = None
     previous_outcome: SafeguardOutcome | None = None
     rows: list[IterationSummary] = []
-    k, n_added = 1, 0
     while True:
         t_it, cpu_it = time.perf_counter(), time.process_time()
         data = FrequencyData.from_measurements(measured)

@@ -134,10 +134,21 @@ def preflight(procedure: Procedure) -> None:
 
 
 def run_journaled_campaign(procedure: Procedure, experiment: Any, journal: Journal, *, seed: int, strategy: str,
-                           observers: Sequence[Observer] = ()) -> CampaignSummary:
+                           observers: Sequence[Observer] = (), continue_stored: bool = False) -> CampaignSummary:
     """Algorithm 5.1 on ``experiment`` into ``journal`` with the standard subscribers plus ``observers``."""
     subscribers = [*observers, *standard_observers(procedure, experiment, journal)]
-    return run_campaign(procedure, experiment, journal, seed=seed, strategy=strategy, progress=broadcast(subscribers))
+    return run_campaign(procedure, experiment, journal, seed=seed, strategy=strategy, progress=broadcast(subscribers),
+                        continue_stored=continue_stored)
+
+
+PROCEDURE_CHANGED = "procedure-changed"
+"""Journal event of ``run --resume DIR --procedure FILE``: its message ends with the new procedure text."""
+
+
+def _changed_procedure_text(journal: Journal) -> str | None:
+    """The procedure text of the latest ``run --resume --procedure`` of this run, if any."""
+    changed = [e for e in journal.events() if e["kind"] == PROCEDURE_CHANGED]
+    return changed[-1]["message"].split("\n", 1)[1] if changed else None
 
 
 def default_run_dir(procedure: Procedure, now: datetime | None = None) -> Path:
@@ -214,8 +225,14 @@ def start_run(
 
 
 def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, opener: ExperimentOpener,
-               display: Display | None = None) -> RunOutcome:
-    """Continue the run in ``run_dir`` from its journal (REPLAY; see the module docstring)."""
+               display: Display | None = None, procedure_path: str | os.PathLike | None = None) -> RunOutcome:
+    """Continue the run in ``run_dir`` from its journal (REPLAY; see the module docstring).
+
+    With ``procedure_path`` the run continues with that (corrected) procedure: every stored
+    measurement is reused as data, iterations go on after the last stored one, and the change
+    (old and new text's SHA-256, the new text) is journaled as a ``procedure-changed`` event, so a
+    later plain resume continues with the corrected procedure too.
+    """
     console = console or Console()
     run_dir = Path(run_dir)
     journal = Journal.open(run_dir)
@@ -224,7 +241,13 @@ def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, op
         source = f"{journal.path} (stored procedure)"
         if not info["procedure_text"].strip():
             raise InputFormatError(str(journal.path), "table run", "the journal holds no procedure text; this run cannot be resumed")
-        procedure = parse_procedure_text(info["procedure_text"], source)
+        changed = _changed_procedure_text(journal)
+        procedure = parse_procedure_text(changed or info["procedure_text"], source if changed is None else f"{journal.path} (changed procedure)")
+        if procedure_path is not None:
+            from setmem_hil.io.procedure_file import load_procedure
+
+            procedure = load_procedure(procedure_path)
+            preflight(procedure)
         if procedure.backend.kind != info["backend"]:
             raise InputFormatError(source, "[backend]", f"kind {procedure.backend.kind!r} differs from the run's backend {info['backend']!r}")
     except BaseException:
@@ -246,9 +269,19 @@ def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, op
     with _run_lock(run_dir, journal):
         stored = journal.n_measurements()
         journal.add_event("resumed", f"resumed with {stored} stored measurements and {len(journal.iterations())} iterations (setmem-hil {__version__})")
+        continue_stored = procedure_path is not None or changed is not None
+        if procedure_path is not None:
+            import hashlib
+
+            old_text = changed or info["procedure_text"]
+            new_text = procedure.source_text or format_procedure(procedure)
+            digest = lambda t: hashlib.sha256(t.encode("utf-8")).hexdigest()[:16]  # noqa: E731
+            journal.add_event(PROCEDURE_CHANGED, f"procedure replaced by {procedure_path} (sha256 {digest(new_text)}, was "
+                                                 f"{digest(old_text)}); the {stored} stored measurements are reused as data\n{new_text}")
+            console.print(f"continuing {run_dir} with {procedure_path}: the {stored} stored measurements are reused", highlight=False)
         console.print(f"resuming {run_dir}: {stored} measurements stored, seed {info['seed']}, strategy {info['strategy']}", highlight=False)
         return _run_with_journal(procedure, journal, run_dir, seed=int(info["seed"]), strategy=str(info["strategy"]), console=console,
-                                 opener=opener, display=display)
+                                 opener=opener, display=display, continue_stored=continue_stored)
 
 
 @contextmanager
@@ -289,20 +322,22 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 
 def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
-                      opener: ExperimentOpener, display: Display | None, experiment: Any = None) -> RunOutcome:
+                      opener: ExperimentOpener, display: Display | None, experiment: Any = None,
+                      continue_stored: bool = False) -> RunOutcome:
     with _sigterm_as_interrupt():
         return _run_campaign_in(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console,
-                                opener=opener, display=display, experiment=experiment)
+                                opener=opener, display=display, experiment=experiment, continue_stored=continue_stored)
 
 
 def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
-                     opener: ExperimentOpener, display: Display | None, experiment: Any = None) -> RunOutcome:
+                     opener: ExperimentOpener, display: Display | None, experiment: Any = None,
+                     continue_stored: bool = False) -> RunOutcome:
     try:
         if experiment is None:
             experiment = opener(procedure, seed)
         with (display(experiment) if display is not None else contextlib.nullcontext(None)) as shown:
             summary = run_journaled_campaign(procedure, experiment, journal, seed=seed, strategy=strategy,
-                                             observers=[shown] if shown is not None else [])
+                                             observers=[shown] if shown is not None else [], continue_stored=continue_stored)
         doc = summary.to_document()
     except KeyboardInterrupt as exc:
         why = "SIGTERM: stopped by a signal" if isinstance(exc, _Terminated) else "Ctrl-C: stopped by the operator"

@@ -42,6 +42,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("procedure", nargs="?", metavar="PROCEDURE.toml", help="procedure file (see docs/procedures.md)")
     p.add_argument("--out", metavar="DIR", help="run directory (default: runs/<name>-<UTC time>)")
     p.add_argument("--resume", metavar="DIR", help="continue the run stored in DIR")
+    p.add_argument("--procedure", dest="fixed_procedure", metavar="FIXED.toml",
+                   help="with --resume: continue with this corrected procedure, reusing every stored measurement (journaled)")
     p.add_argument("--seed", type=int, help="override the procedure's seed (stored with the run)")
     p.add_argument("--strategy", choices=STRATEGIES, help="override the procedure's input-design strategy")
     p.add_argument("--check", action="store_true", help="validate the procedure and exit")
@@ -58,11 +60,14 @@ def run(args: argparse.Namespace) -> int:
     console = Console(stderr=False, quiet=bool(args.quiet), soft_wrap=True)
     if args.resume:
         if args.procedure or args.out or args.seed is not None or args.strategy or args.check:
-            raise _arguments_error("--resume DIR takes no procedure, --out, --seed, --strategy or --check: the run's own are stored in its journal")
-        outcome = resume_run(args.resume, console=console)
+            raise _arguments_error("--resume DIR takes no procedure argument, --out, --seed, --strategy or --check: the run's own "
+                                   "are stored in its journal (a corrected procedure goes in --procedure FIXED.toml)")
+        outcome = resume_run(args.resume, console=console, procedure_path=args.fixed_procedure)
     else:
         if not args.procedure:
             raise _arguments_error("give a procedure file, or --resume DIR")
+        if args.fixed_procedure:
+            raise _arguments_error("--procedure FIXED.toml goes with --resume DIR")
         procedure = load_procedure(args.procedure)
         if args.check:
             session.preflight(procedure)
@@ -92,8 +97,8 @@ def start_run(procedure: Procedure, run_dir: str | os.PathLike, *, seed: int | N
                              opener=lambda p, s: open_backend(p, s), display=terminal_display(console))
 
 
-def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None) -> RunOutcome:
+def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, procedure_path=None) -> RunOutcome:
     """:func:`setmem_hil.campaign.session.resume_run` with the terminal display."""
     console = console or Console()
     return session.resume_run(run_dir, console=console, opener=lambda p, s: open_backend(p, s),
-                              display=terminal_display(console))
+                              display=terminal_display(console), procedure_path=procedure_path)
