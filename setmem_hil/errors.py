@@ -148,3 +148,8 @@ class CampaignReplayError(SetmemError, RuntimeError):
 
 class CampaignAborted(SetmemError, RuntimeError):
     """A campaign stopped on request (live-view Abort): exciter off, journal closed, exit 130."""
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM stopped a campaign after it made the rig safe; the message says what was
+    kept and how to resume (exit 130). A ``KeyboardInterrupt``, so code that handles Ctrl-C sees it."""

@@ -269,3 +269,17 @@ def test_transport_values_are_checked_by_run_check(tmp_path, capsys, line, probl
         path.write_text(text)
         assert main(["run", "--check", str(path)]) == 2
         assert problem in capsys.readouterr().err
+
+
+def test_packaged_demo_procedure_is_the_shipped_file_and_the_thesis_default():
+    """The demo stores the shipped file's text (comments kept); it must not drift from the repo copy."""
+    import dataclasses as dc
+
+    from setmem_hil.cli.commands.demo import packaged_demo_procedure
+
+    packaged = Path(__file__).resolve().parents[1] / "setmem_hil" / "procedures" / "beam_6_3_2.toml"
+    assert packaged.read_bytes() == (PROCEDURES / "beam_6_3_2.toml").read_bytes()
+    p = packaged_demo_procedure()
+    strip = lambda q: dc.replace(q, source_text="", source_path="", description="")  # noqa: E731
+    assert strip(p) == strip(default_procedure())
+    assert "#" in p.source_text  # the comments are what the run stores

@@ -18,7 +18,6 @@ import contextlib
 import os
 import re
 import signal
-import sys
 import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -31,7 +30,7 @@ from rich.console import Console
 from setmem_hil import __version__
 from setmem_hil.campaign.observers import Observer, broadcast, standard_observers
 from setmem_hil.campaign.runner import CampaignSummary, run_campaign
-from setmem_hil.errors import DeviceError, InputFormatError, SetmemError
+from setmem_hil.errors import DeviceError, InputFormatError, RunInterrupted, SetmemError
 from setmem_hil.io.atomic_file import write_json_atomic, write_text_atomic
 from setmem_hil.io.journal import JOURNAL_FILENAME, Journal
 from setmem_hil.io.procedure import STRATEGIES, Procedure
@@ -343,13 +342,13 @@ def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, s
         why = "SIGTERM: stopped by a signal" if isinstance(exc, _Terminated) else "Ctrl-C: stopped by the operator"
         with _sigint_deferred():
             _shutdown(experiment, journal, "interrupted", why)
-        print(f"setmem-hil: stopped; {_stored(journal)} measurements are in the journal. Continue with:\n"
-              f"    setmem-hil run --resume {run_dir}", file=sys.stderr)
-        raise
+        # one line says what was made safe, what is kept and how to go on (the CLI prints it)
+        raise RunInterrupted(f"interrupted ({why.split(':')[0]}); exciter at zero, journal closed with "
+                             f"{_stored(journal)} measurements; continue with `setmem-hil run --resume {run_dir}`") from exc
     except DeviceError as exc:
         with _sigint_deferred():
             _shutdown(experiment, journal, "device-fault", str(exc))
-        print(f"setmem-hil: after fixing the rig, continue with: setmem-hil run --resume {run_dir}", file=sys.stderr)
+        exc.resume_hint = f"journal closed; after fixing the rig continue with `setmem-hil run --resume {run_dir}`"
         raise
     except BaseException as exc:
         with _sigint_deferred():
@@ -358,8 +357,7 @@ def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, s
     with _sigint_deferred():
         _shutdown(experiment, journal, None, "")
     write_json_atomic(doc, run_dir / SUMMARY_FILENAME)
-    console.print(f"summary: {run_dir / SUMMARY_FILENAME}", highlight=False)
-    console.print(f"report:  setmem-hil report {run_dir}", highlight=False)
+    console.print(f"summary: {run_dir / SUMMARY_FILENAME} (report: setmem-hil report {run_dir})", highlight=False)
     return RunOutcome(run_dir, doc)
 
 

@@ -25,6 +25,7 @@ from setmem_hil.errors import (
     InconsistentDataError,
     InputFormatError,
     JournalError,
+    RunInterrupted,
     SafetyLimitError,
     SetmemError,
     SolverError,
@@ -59,7 +60,10 @@ def exit_code_and_message(exc: BaseException, interrupted: str = "interrupted") 
     if isinstance(exc, (InputFormatError, SafetyLimitError)):
         return EXIT_BAD_INPUT, str(exc)
     if isinstance(exc, DeviceError):
-        return EXIT_DEVICE, f"device fault: {exc} (exciter commanded to zero)"
+        hint = getattr(exc, "resume_hint", "")
+        return EXIT_DEVICE, f"device fault: {exc} (exciter commanded to zero){'; ' + hint if hint else ''}"
+    if isinstance(exc, RunInterrupted) and exc.args:
+        return EXIT_INTERRUPTED, str(exc)
     if isinstance(exc, (KeyboardInterrupt, CampaignAborted)):
         return EXIT_INTERRUPTED, interrupted
     if isinstance(exc, CampaignReplayError):

@@ -22,8 +22,28 @@ from typing import Any, Callable
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.text import Text
 
-__all__ = ["CampaignProgress", "format_mu", "terminal_display"]
+__all__ = ["CampaignProgress", "format_frequency", "format_mu", "terminal_display"]
+
+
+class _CampaignBars(Progress):
+    """The measurement and dwell bars, and below them the campaign status as a line of its own
+    (wrapped, never cut, on a narrow terminal)."""
+
+    status_text = ""
+
+    def get_renderables(self):
+        yield self.make_tasks_table(self.tasks)
+        if self.status_text:
+            yield Text(self.status_text, overflow="fold")
+
+
+def format_frequency(omega_rad_s: float) -> str:
+    """A frequency in both units a lab uses: ``6.246 rad/s (0.9941 Hz)``."""
+    if not math.isfinite(omega_rad_s):
+        return "-"
+    return f"{omega_rad_s:.4g} rad/s ({omega_rad_s / (2 * math.pi):.4g} Hz)"
 
 
 def format_mu(mu: float) -> str:
@@ -69,6 +89,7 @@ class CampaignProgress:
         self._progress: Progress | None = None
         self._task = None
         self._dwell_task = None
+        self._status_task = None
         self._dwell_started: float | None = None
         self._dwell_total: float | None = None
         self._stop = threading.Event()
@@ -77,10 +98,12 @@ class CampaignProgress:
     # -- context -------------------------------------------------------------------------
     def __enter__(self) -> "CampaignProgress":
         if self.live:
-            self._progress = Progress(
+            # three short rows, so an 80-column terminal shows every word: the measurement count,
+            # the current dwell, and the campaign status (iteration, mu-bar, next frequency)
+            self._progress = _CampaignBars(
                 SpinnerColumn(),
                 TextColumn("{task.description}"),
-                BarColumn(),
+                BarColumn(bar_width=16),
                 MofNCompleteColumn(),
                 TimeElapsedColumn(),
                 TextColumn("{task.fields[status]}"),
@@ -88,8 +111,9 @@ class CampaignProgress:
                 transient=False,
             )
             self._progress.start()
-            self._task = self._progress.add_task("measurements", total=None, status="starting")
+            self._task = self._progress.add_task("measurements", total=None, status="")
             self._dwell_task = self._progress.add_task("waiting", total=None, status="")
+            self._status_task = None
             self._stop.clear()
             self._ticker = threading.Thread(target=self._tick, name="dwell-progress", daemon=True)
             self._ticker.start()
@@ -119,10 +143,15 @@ class CampaignProgress:
     def _status(self) -> str:
         parts = []
         if self.k:
-            parts.append(f"iteration {self.k}, mu-bar {format_mu(self.mu_peak)}")
+            parts.append(f"iteration {self.k}: mu-bar {format_mu(self.mu_peak)}")
         if self.next_omega is not None:
-            parts.append(f"next {self.next_omega:.4g} rad/s")
-        return "; ".join(parts)
+            parts.append(f"next {format_frequency(self.next_omega)}")
+        return ", ".join(parts)
+
+    def _show_status(self) -> None:
+        if self._progress is not None:
+            self._progress.status_text = self._status()
+            self._progress.refresh()
 
     def _line(self, text: str) -> None:
         self.console.print(text, highlight=False, markup=False)
@@ -134,19 +163,24 @@ class CampaignProgress:
             self._set_dwell(f"iteration {info.get('k')}: choosing the next frequency", None, running=False)
             self.k = int(info.get("k", self.k))
             self.mu_peak = float(info.get("mu_peak", math.nan))
+            self.next_omega = None
+            self._show_status()
             safeguard = info.get("safeguard")
             extra = f" [{safeguard}]" if safeguard and safeguard != "new-design" else ""
             self._line(
                 f"iteration {self.k}: {info.get('n_points')} points, mu-bar peak {format_mu(self.mu_peak)}"
-                f" at {float(info.get('mu_peak_omega', math.nan)):.4g} rad/s{extra}"
+                f" at {format_frequency(float(info.get('mu_peak_omega', math.nan)))}{extra}"
             )
         elif event == "chosen":
             self.next_omega = float(info["next_omega"])
-            self._line(f"iteration {info.get('k')}: next frequency {self.next_omega:.6g} rad/s")
+            self._show_status()
+            self._line(f"iteration {info.get('k')}: next frequency {format_frequency(self.next_omega)}")
         elif event == "finished":
             summary = info.get("summary")
+            self.next_omega = None  # nothing comes next: never show a stale choice
             if self._progress is not None and self._task is not None:
-                self._progress.update(self._task, total=self.last_index, completed=self.last_index, description="done", status=self._status())
+                self._progress.update(self._task, total=self.last_index, completed=self.last_index, description="done")
+                self._show_status()
                 self._set_dwell("finished", None, running=False)
                 self._progress.update(self._dwell_task, visible=False)
             if summary is not None:
@@ -166,18 +200,18 @@ class CampaignProgress:
             self.measured += 1
         if self._progress is not None and self._task is not None:
             if replayed:
-                desc = f"replaying stored measurement {index} ({omega_rad_s:.4g} rad/s)"
+                desc = f"replaying stored point {index}"
             else:
                 planned = self._planned(omega_rad_s)
-                desc = f"dwell {index} at {omega_rad_s:.4g} rad/s" + (f" ({planned:.3g} s of excitation)" if planned else "")
-            self._progress.update(self._task, total=total, completed=index - 1, description="measurements", status=self._status())
+                desc = f"dwell {index} at {format_frequency(omega_rad_s)}" + (f", {planned:.3g} s" if planned else "")
+            self._progress.update(self._task, total=total, completed=index - 1, description="measurements")
             if replayed:
                 self._set_dwell(desc, None, running=False)
             else:
                 self._set_dwell(desc, planned, running=True)
         elif not replayed:
             planned = self._planned(omega_rad_s)
-            self._line(f"dwell {index}/{total} at {omega_rad_s:.6g} rad/s" + (f" ({planned:.3g} s of excitation)" if planned else ""))
+            self._line(f"dwell {index}/{total} at {format_frequency(omega_rad_s)}" + (f" ({planned:.3g} s of excitation)" if planned else ""))
         elif index == 1:
             self._line("replaying the measurements stored in the journal")
 

@@ -85,6 +85,10 @@ def print_iteration_table(summary: dict, console: Console) -> None:
     console.print(
         f"{'reached' if reached else 'did not reach'} mu-bar < {summary.get('goal_mu', 1.0):g} "
         f"with {summary.get('experiments_added')} added experiments "
-        f"(final mu-bar {summary.get('final_mu_peak')}, {summary.get('wall_s', 0.0):.1f} s)",
+        f"(final mu-bar {_mu_text(summary.get('final_mu_peak'))}, {summary.get('wall_s', 0.0):.1f} s)",
         highlight=False,
     )
+
+
+def _mu_text(mu) -> str:
+    return "inf (nominal loop unstable)" if mu is None else f"{float(mu):.4f}"

@@ -3,7 +3,7 @@
 Runs :func:`setmem_hil.io.procedure.default_procedure` (simulated cantilever, fully damped noise
 bound plus W1, b1 = 0, 15 initial points around the three modes but off the peaks) until
 mu-bar < 1, with live progress, and writes ``summary.json``, ``journal.sqlite`` and
-``procedure.toml`` (and ``report.html`` when the report module is installed) into ``DIR``
+``procedure.toml`` and ``report.html`` into ``DIR``
 (default ``./setmem-hil-demo-<UTC time>``). Prints the directory and the figure-6-12 table.
 """
 
@@ -31,6 +31,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=demo, interrupted=SAFE_STOP)
 
 
+def packaged_demo_procedure():
+    """The shipped ``procedures/beam_6_3_2.toml`` (packaged with the code), so the run stores the
+    file's own text, comments included; numerically it is :func:`setmem_hil.io.procedure.default_procedure`."""
+    from importlib.resources import files
+
+    from setmem_hil.io.procedure_file import parse_procedure_text
+
+    text = files("setmem_hil").joinpath("procedures/beam_6_3_2.toml").read_text(encoding="utf-8")
+    return parse_procedure_text(text, "beam_6_3_2.toml")
+
+
 def default_demo_dir(now: datetime | None = None) -> Path:
     now = now or datetime.now(timezone.utc)
     return Path(f"setmem-hil-demo-{now.strftime('%Y%m%dT%H%M%SZ')}")
@@ -39,24 +50,17 @@ def default_demo_dir(now: datetime | None = None) -> Path:
 def demo(args: argparse.Namespace) -> int:
     from setmem_hil.cli.commands.campaign import print_iteration_table
     from setmem_hil.cli.commands.run import start_run
-    from setmem_hil.io.procedure import default_procedure
 
     out = Path(args.out) if args.out else default_demo_dir()  # start_run refuses one holding a journal
     console = Console(quiet=bool(args.quiet))
-    procedure = default_procedure()
+    procedure = packaged_demo_procedure()
     if args.seed is not None:
         procedure = dataclasses.replace(procedure, seed=int(args.seed))
     console.print("setmem-hil demo: thesis section 6.3.2 on the simulated cantilever beam", highlight=False)
     outcome = start_run(procedure, out, seed=args.seed, console=console)
-    try:
-        from setmem_hil.report.document import write_report
-    except ModuleNotFoundError as exc:
-        if exc.name != "setmem_hil.report.document":
-            raise
-        write_report = None
-    if write_report is not None:
-        path = write_report(outcome.run_dir)
-        console.print(f"report: {path}", highlight=False)
+    from setmem_hil.report.document import write_report
+
+    console.print(f"report: {write_report(outcome.run_dir)}", highlight=False)
     print_iteration_table(outcome.summary, console)
     console.print(f"outputs in {outcome.run_dir.resolve()}", highlight=False)
     return 0

@@ -1,0 +1,57 @@
+"""Issue 17: the terminal display at 80 and 120 columns, as a technician sees it (rich recording console)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+from rich.console import Console
+
+from setmem_hil.campaign.runner import run_campaign
+from setmem_hil.cli.commands.campaign import print_iteration_table
+from setmem_hil.cli.progress import CampaignProgress
+from setmem_hil.experiment_factory import open_experiment
+from setmem_hil.io.procedure import Goal, default_procedure
+
+
+@pytest.fixture(scope="module")
+def short_campaign_events():
+    """The events of a 2-experiment 6.3.2 campaign, recorded once and replayed into each display."""
+    procedure = dataclasses.replace(default_procedure(), goal=Goal(mu_target=1.0, max_experiments=2))
+    events = []
+    with open_experiment(procedure, procedure.seed) as experiment:
+        summary = run_campaign(procedure, experiment, progress=lambda event, **info: events.append((event, info)))
+    return events, summary
+
+
+@pytest.mark.parametrize("width", [80, 120])
+def test_live_display_fits_the_terminal_and_ends_without_a_stale_choice(short_campaign_events, width):
+    """Every frame of the live display (rendered at the terminal's width after each event) shows
+    whole words, and the last frame names no next frequency once the run is over."""
+    events, _ = short_campaign_events
+    console = Console(record=True, width=width, force_terminal=True, color_system=None)
+    frames = []
+    with CampaignProgress(console, live=True) as display:
+        for event, info in events:
+            display(event, **info)
+            snap = Console(record=True, width=width, color_system=None)
+            snap.print(display._progress.get_renderable())
+            frames.append([line.rstrip() for line in snap.export_text().splitlines() if line.strip()])
+    for frame in frames:
+        assert all(len(line) <= width for line in frame)
+        assert not any("…" in line for line in frame), frame  # nothing cut off
+    assert any("next 6.246 rad/s (0.9941 Hz)" in line for frame in frames for line in frame)  # both units
+    assert not any("next " in line for line in frames[-1]), frames[-1]
+    printed = console.export_text()
+    assert "iteration 1: 15 points, mu-bar peak" in printed and "finished:" in printed
+
+
+@pytest.mark.parametrize("width", [80, 120])
+def test_iteration_table_rounds_mu_bar(short_campaign_events, width):
+    _, summary = short_campaign_events
+    console = Console(record=True, width=width, color_system=None)
+    print_iteration_table(summary.to_document(), console)
+    text = console.export_text()
+    assert f"final mu-bar {summary.final_mu_peak:.4f}," in text
+    assert repr(summary.final_mu_peak) not in text
+    assert all(len(line.rstrip()) <= width for line in text.splitlines())
