@@ -112,7 +112,8 @@ def test_export_command(tmp_path, capsys):
     run, ms, _ = _journal(tmp_path)
     assert main(["export", str(run), "--csv", str(tmp_path / "o")]) == 0
     assert (tmp_path / "o" / "bounds.csv").stat().st_size > 0
-    assert main(["export", str(run)]) == 2
-    assert "give --csv" in capsys.readouterr().err
+    assert main(["export", str(run)]) == 0  # issue 17: --csv defaults to DIR/csv
+    assert (run / "csv" / "bounds.csv").stat().st_size > 0
+    capsys.readouterr()
     assert main(["export", str(tmp_path / "nothing"), "--csv", str(tmp_path / "o2")]) == 2
     assert "no journal" in capsys.readouterr().err

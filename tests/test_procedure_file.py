@@ -283,3 +283,16 @@ def test_packaged_demo_procedure_is_the_shipped_file_and_the_thesis_default():
     strip = lambda q: dc.replace(q, source_text="", source_path="", description="")  # noqa: E731
     assert strip(p) == strip(default_procedure())
     assert "#" in p.source_text  # the comments are what the run stores
+
+
+def test_missing_safety_table_is_an_error_for_a_rig_and_a_default_for_the_simulation():
+    serial = (PROCEDURES / "serial_loopback.toml").read_text()
+    start = serial.index("[safety]")
+    end = serial.index("\n[", start + 1)
+    without = serial[:start] + serial[end + 1:]
+    with pytest.raises(ProcedureError, match=r"drives an exciter: give a \[safety\] table"):
+        parse_procedure_text(without, SRC)
+    beam = (PROCEDURES / "beam_6_3_2.toml").read_text()
+    start = beam.index("[safety]")
+    end = beam.index("\n[", start + 1)
+    assert parse_procedure_text(beam[:start] + beam[end + 1:], SRC).safety == default_procedure().safety

@@ -85,14 +85,14 @@ def test_report_holds_every_figure_and_table(tmp_path):
     assert "after applying a sinusoid at 6.48 rad/s" in text
     assert "after the initial data points" in text
     k2 = text[text.index('id="table-intervals-k2"'):].split("</table>")[0]
-    rows = re.findall(r"<tr><td>([ab][01]\d)</td><td>([^<]+)</td><td>([^<]+)</td><td>([^<]+)</td><td>([^<]+)</td></tr>", k2)
+    rows = re.findall(r"<tr><td>([ab][01]_\d)</td><td>([^<]+)</td><td>([^<]+)</td><td>([^<]+)</td><td>([^<]+)</td></tr>", k2)
     assert len(rows) == 12
-    a0_1 = next(r for r in rows if r[0] == "a01")
+    a0_1 = next(r for r in rows if r[0] == "a0_1")  # one name per parameter (issue 17), as in RESULT.json
     half = abs(TRUTH.values[0, 1]) * 0.3 / 2 + 1e-3
     assert float(a0_1[1]) == pytest.approx(TRUTH.values[0, 1] - half, rel=1e-4)
     assert float(a0_1[2]) == pytest.approx(TRUTH.values[0, 1] + half, rel=1e-4)
     assert float(a0_1[4]) == pytest.approx(0.8 / 2, rel=1e-4)
-    assert next(r for r in rows if r[0] == "b11")[3] == "fixed"
+    assert next(r for r in rows if r[0] == "b1_1")[3] == "fixed"
     # headless and self-contained: no script, nothing from the network, text escaped
     assert "<script" not in text and "http://" not in text and "https://" not in text
     assert "&lt;script&gt;" in text

@@ -10,7 +10,8 @@ empty cell for "none", ``inf``/``nan`` spelled so):
     ``omega, re, im, bound``: the same measurements in the data-CSV format that
     ``setmem-hil identify --data`` reads.
 ``bounds.csv``
-    ``k, n_points, mode, parameter, lower, upper``: the parameter intervals of every iteration
+    ``k, n_points, mode, parameter, lower, upper, name``: the parameter intervals of every iteration
+    (``name`` is the parameter's one name, ``a1_1``, as in RESULT.json and sensitivities.csv)
     (modes from 1; parameters a1, a0, b1, b0 of eq. 2.24), as the appendix B tables.
 ``mu.csv``
     ``k, omega_rad_s, mu``: mu-bar (upper bound) on the analysis grid per iteration (figure 6-13).
@@ -109,9 +110,9 @@ def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[P
     else:
         files["data.csv"] = "omega,re,im,bound\n"
     files["bounds.csv"] = _csv_text(
-        ("k", "n_points", "mode", "parameter", "lower", "upper"),
+        ("k", "n_points", "mode", "parameter", "lower", "upper", "name"),
         (
-            (rec.k, rec.n_points, i + 1, name, float(rec.lower[i, j]), float(rec.upper[i, j]))
+            (rec.k, rec.n_points, i + 1, name, float(rec.lower[i, j]), float(rec.upper[i, j]), f"{name}_{i + 1}")
             for rec in iterations for i in range(rec.lower.shape[0]) for j, name in enumerate(PARAM_NAMES)
         ),
     )

@@ -482,6 +482,10 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
     description = top.get("description", "")
     seed = top.get("seed", 1)
     backend = _backend(top)
+    if backend.kind != "sim" and not top.has("safety"):
+        # a rig is driven: its limits must be stated, never taken silently from the defaults
+        raise top.error(f"backend {backend.kind!r} drives an exciter: give a [safety] table (max_amplitude_n, "
+                        "omega_min_rad_s, omega_max_rad_s, max_dwell_s); only kind = \"sim\" may omit it")
     safety = _safety(top)
     prior = _prior(top)
     initial = _initial(top, safety)

@@ -131,7 +131,7 @@ def _interval_rows(rec: IterationRecord) -> list[list[str]]:
             key = f"{name}_{i + 1}"
             lo, hi = rec.lower[i, j], rec.upper[i, j]
             sens = rec.sensitivities.get(key)
-            rows.append([f"{name}{i + 1}", _num(lo), _num(hi), "fixed" if lo == hi else _num(hi - lo), "-" if sens is None else _num(sens)])
+            rows.append([key, _num(lo), _num(hi), "fixed" if lo == hi else _num(hi - lo), "-" if sens is None else _num(sens)])
     return rows
 
 

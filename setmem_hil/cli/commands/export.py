@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from setmem_hil.errors import InputFormatError
 from setmem_hil.io.export import export_csv
 
 
@@ -16,14 +15,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "iterations.csv, sensitivities.csv, candidates.csv, events.csv.",
     )
     p.add_argument("run_dir", metavar="DIR", help="run directory (holds journal.sqlite)")
-    p.add_argument("--csv", metavar="OUT", help="output directory for the CSV files (created if missing)")
+    p.add_argument("--csv", metavar="OUT", help="output directory for the CSV files (created if missing; default DIR/csv)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.csv:
-        raise InputFormatError("setmem-hil export", "arguments", "give --csv OUT/ (the output directory)")
-    paths = export_csv(args.run_dir, args.csv)
+    from pathlib import Path
+
+    out = args.csv or str(Path(args.run_dir) / "csv")
+    paths = export_csv(args.run_dir, out)
     for path in paths:
         print(path)
     return 0
