@@ -66,6 +66,10 @@ from setmem_hil.design.strategies import check_strategy, log_sweep_frequency, ra
 
 ProgressFn = Callable[..., None]
 
+EXACT_RESOLVE_EVENT = "exact-resolve"
+"""Journal event holding, as JSON, the candidates re-identified exactly at an iteration and their
+improvement (the choice is the best of these; the report's figure 6-14 shows them)."""
+
 EXACT_RESOLVE_OUTER_ITERATIONS = 1
 """Algorithm 3.1 passes of the exact re-solves of the top candidates (speed; see the report)."""
 
@@ -390,6 +394,12 @@ def run_campaign(
                     embedding_gamma=np.asarray(result.embedding_gamma, dtype=float),
                     mismatch_ratio=np.asarray(result.mismatch_ratio, dtype=float),
                 ))
+                if choice is not None and np.size(choice.resolved_omega_rad_s):
+                    import json
+
+                    journal.add_event(EXACT_RESOLVE_EVENT, json.dumps({
+                        "k": k, "omega_rad_s": [float(w) for w in choice.resolved_omega_rad_s],
+                        "improvement": [None if not math.isfinite(v) else float(v) for v in choice.resolved_improvement]}))
                 if outcome.branch != "new-design":
                     tried = ", ".join(f"{b} {v:.4f}" for b, v in outcome.tried.items())
                     journal.add_event("safeguard", f"iteration {k}: eq. 5.12 branch {outcome.branch} (mu-bar {tried})")

@@ -48,8 +48,9 @@ def plot_discrepancy(report: DiscrepancyReport, path: str | os.PathLike, title: 
             ax.axvspan(a, b, color="tab:red", alpha=0.15, lw=0)
         ax.set_xscale("log")
         ax.grid(True, which="both", alpha=0.3)
-    ax_mag.fill_between(w, np.maximum(np.abs(g) - R, np.abs(g) * 1e-3), np.abs(g) + R, color="0.8", label="data +- bound")
-    ax_mag.loglog(w, np.abs(g), "k.", ms=4, label="data")
+    # the bound belongs to each measured point: error bars, never a band interpolated between them
+    mag = np.abs(g)
+    ax_mag.errorbar(w, mag, yerr=[np.where(R >= mag, 0.0, R), R], fmt="k.", ms=4, ecolor="0.55", capsize=2, label="data +- bound")
     old = report.old_fit.response(dense)
     ax_mag.loglog(dense, np.abs(old), "tab:blue", lw=1.2, label="old model")
     old_phase = np.unwrap(np.angle(old))

@@ -40,7 +40,22 @@ FIGURE_FILES = {
     "mu_peak": "fig_mu_peak.png",
     "mu_vs_omega": "fig_mu_vs_omega.png",
     "improvement": "fig_improvement.png",
+    "intervals": "fig_intervals.png",
 }
+
+
+def _exact_resolves(events) -> dict:
+    """``k -> (omega, improvement)`` from the runner's exact-resolve events (none in older journals)."""
+    out = {}
+    for e in events:
+        if e["kind"] == "exact-resolve":
+            try:
+                doc = json.loads(e["message"])
+                out[int(doc["k"])] = (np.array(doc["omega_rad_s"], dtype=float),
+                                      np.array([np.nan if v is None else v for v in doc["improvement"]], dtype=float))
+            except (ValueError, KeyError, TypeError):  # a malformed event is shown in the events table, not plotted
+                continue
+    return out
 
 
 @dataclass(frozen=True)
@@ -184,8 +199,13 @@ def write_report(run_dir: str | os.PathLike) -> Path:
         parts.append(_figure(FIGURE_FILES["mu_peak"], "Peak mu-bar per iteration; each point is labelled with the frequency chosen for the next experiment (thesis figure 6-12).", "fig-mu-peak"))
         figs.mu_vs_frequency_figure(its, target, out_dir / FIGURE_FILES["mu_vs_omega"])
         parts.append(_figure(FIGURE_FILES["mu_vs_omega"], "mu-bar against frequency for each iteration (thesis figure 6-13).", "fig-mu-vs-omega"))
-        figs.improvement_figure(its, out_dir / FIGURE_FILES["improvement"])
-        parts.append(_figure(FIGURE_FILES["improvement"], "Estimated improvement of mu-bar for each candidate frequency; dashed: the chosen one (thesis figure 6-14).", "fig-improvement"))
+        figs.improvement_figure(its, out_dir / FIGURE_FILES["improvement"], exact=_exact_resolves(run.events))
+        parts.append(_figure(FIGURE_FILES["improvement"], "Estimated improvement of mu-bar for each candidate frequency (line); "
+                             "the best candidates re-identified exactly (circles) and the chosen one, the highest exact value "
+                             "(star) (thesis figure 6-14).", "fig-improvement"))
+        figs.interval_figure(its, out_dir / FIGURE_FILES["intervals"])
+        parts.append(_figure(FIGURE_FILES["intervals"], "Parameter intervals per iteration: natural frequency, damping ratio and "
+                             "residue of every mode shrinking as experiments are added.", "fig-intervals"))
         rows = [[r.k, r.n_points, _num(r.mu_peak), _num(r.mu_peak_omega, 4), _num(r.mu_lower_peak), _num(r.next_omega, 6),
                  r.safeguard, r.controller_order, f"{r.wall_s:.2f}"] for r in its]
         parts.append(_table(["k", "points", "peak mu-bar", "at omega (rad/s)", "lower bound peak", "next omega (rad/s)",

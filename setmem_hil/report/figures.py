@@ -137,16 +137,27 @@ def sample_transfer_functions_figure(model: IntervalModel, measurements: Sequenc
         mg = np.array([m.response for m in measurements])
         mb = np.array([m.bound for m in measurements])
         mag = np.abs(mg)
-        low = np.minimum(mb, mag * 0.999)  # keep the error bar inside the log axis
+        open_below = mb >= mag  # |G| - bound <= 0: no lower limit on a log axis
+        low = np.where(open_below, 0.0, mb)
         ax_mag.errorbar(mw, mag, yerr=[low, mb], fmt="o", ms=4, color="crimson", ecolor="crimson", capsize=2, label="data +- bound", zorder=5)
+        if open_below.any():  # the bar reaches down to zero: an arrow, not a bar to an arbitrary floor
+            ax_mag.plot(mw[open_below], mag[open_below] / 3.0, "v", ms=6, color="crimson", mfc="none", zorder=5,
+                        label="bound >= |G| (open below)")
         data_phase = np.degrees(np.angle(mg))
         if nominal_phase is not None:  # the 360-degree branch nearest the nominal model's phase
             ref = np.interp(np.log(mw), np.log(w), nominal_phase)
             data_phase = data_phase + 360.0 * np.round((ref - data_phase) / 360.0)
-        ax_ph.plot(mw, data_phase, "o", ms=4, color="crimson", zorder=5)
-    ax_mag.set_ylabel("|G(j omega)|")
+        # phase error bound: asin(R / |G|); undetermined when R >= |G| (any phase is possible)
+        known = ~open_below
+        dphi = np.degrees(np.arcsin(np.clip(mb[known] / np.maximum(mag[known], 1e-300), 0.0, 1.0)))
+        ax_ph.errorbar(mw[known], data_phase[known], yerr=dphi, fmt="o", ms=4, color="crimson", ecolor="crimson", capsize=2, zorder=5)
+        if open_below.any():
+            ref = np.interp(np.log(mw[open_below]), np.log(w), nominal_phase) if nominal_phase is not None else np.zeros(open_below.sum())
+            ax_ph.plot(mw[open_below], ref, "x", ms=7, color="crimson", zorder=5, label="phase undetermined (bound >= |G|)")
+            ax_ph.legend(fontsize=7, loc="lower left")
+    ax_mag.set_ylabel("|G(j omega)| (receptance)")
     ax_ph.set_ylabel("phase (deg)")
-    ax_ph.set_xlabel("omega (rad/s)")
+    ax_ph.set_xlabel("frequency (rad/s)")
     ax_mag.set_title(title, fontsize=10)
     ax_mag.grid(True, which="both", alpha=0.3)
     ax_ph.grid(True, which="both", alpha=0.3)
@@ -179,13 +190,18 @@ def mu_vs_frequency_figure(iterations: Sequence[IterationRecord], mu_target: flo
     fig = Figure(figsize=(8.0, 5.0))
     ax = fig.subplots()
     n = max(len(iterations), 1)
+    from matplotlib import colormaps
+
+    cmap = colormaps["viridis"]
+    styles = ("-", "--", "-.", ":")
     for i, rec in enumerate(iterations):
         mu = np.where(np.isfinite(rec.mu), rec.mu, np.nan)
-        color = (0.15 + 0.7 * i / max(n - 1, 1), 0.3, 0.9 - 0.7 * i / max(n - 1, 1))
-        ax.semilogx(rec.omega, mu, color=color, lw=1.2, label=f"k = {rec.k}" if n <= 12 or i in (0, n - 1) else None)
+        color = cmap(0.9 * i / max(n - 1, 1))  # sequential: dark = early, yellow = late
+        ax.semilogx(rec.omega, mu, color=color, ls=styles[i % len(styles)], lw=1.4,
+                    label=f"k = {rec.k}" if n <= 12 or i in (0, n - 1) else None)
     ax.axhline(mu_target, color="k", ls="--", lw=1, label=f"goal {mu_target:g}")
-    ax.set_xlabel("omega (rad/s)")
-    ax.set_ylabel("mu-bar")
+    ax.set_xlabel("frequency (rad/s)")
+    ax.set_ylabel("mu-bar (robust performance, upper bound)")
     ax.set_title("mu-bar against frequency per iteration (figure 6-13)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
@@ -213,8 +229,12 @@ def mu_peak_figure(iterations: Sequence[IterationRecord], mu_target: float, path
     return _save(fig, path)
 
 
-def improvement_figure(iterations: Sequence[IterationRecord], path: Path) -> Path:
-    """Estimated mu-bar improvement per candidate frequency, a panel per iteration (figure 6-14)."""
+def improvement_figure(iterations: Sequence[IterationRecord], path: Path, exact: dict | None = None) -> Path:
+    """Estimated mu-bar improvement per candidate frequency, a panel per iteration (figure 6-14).
+
+    ``exact`` (``k -> (omega, improvement)``) adds the candidates re-identified exactly: the choice
+    is the highest of those, which need not be the highest point of the estimate."""
+    exact = exact or {}
     recs = [r for r in iterations if np.size(r.candidate_omega)]
     n = max(len(recs), 1)
     ncols = 1 if n == 1 else 2
@@ -223,14 +243,23 @@ def improvement_figure(iterations: Sequence[IterationRecord], path: Path) -> Pat
     axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
     for ax, rec in zip(axes, recs):
         order = np.argsort(rec.candidate_omega)
-        ax.semilogx(rec.candidate_omega[order], rec.estimated_improvement[order], ".-", ms=2, lw=0.8)
+        ax.semilogx(rec.candidate_omega[order], rec.estimated_improvement[order], ".-", ms=2, lw=0.8, label="estimate (eq. 5.3)")
+        if rec.k in exact:
+            w_ex, v_ex = exact[rec.k]
+            ok = np.isfinite(v_ex)
+            ax.plot(w_ex[ok], v_ex[ok], "o", mfc="none", color="C1", ms=6, label="exact re-solve")
+            if rec.next_omega is not None and ok.any():
+                best = int(np.argmax(np.where(ok, v_ex, -np.inf)))
+                ax.plot(w_ex[best], v_ex[best], "*", color="crimson", ms=11, label="chosen (highest exact)")
         if rec.next_omega is not None:
-            ax.axvline(rec.next_omega, color="crimson", lw=1, ls="--")
+            ax.axvline(rec.next_omega, color="crimson", lw=0.8, ls="--")
         chosen = "" if rec.next_omega is None else f", chosen {rec.next_omega:.4g} rad/s"
         ax.set_title(f"iteration {rec.k}{chosen}", fontsize=9)
-        ax.set_xlabel("candidate omega (rad/s)", fontsize=8)
-        ax.set_ylabel("est. improvement", fontsize=8)
+        ax.set_xlabel("candidate frequency (rad/s)", fontsize=8)
+        ax.set_ylabel("improvement", fontsize=8)
         ax.grid(True, which="both", alpha=0.3)
+        if rec is recs[0]:
+            ax.legend(fontsize=7, loc="upper left")
     if not recs:
         axes[0].text(0.5, 0.5, "no candidates scored (strategy without scores, or no iteration chose an input)", ha="center", transform=axes[0].transAxes, fontsize=9)
     for ax in axes[len(recs):] if recs else axes[1:]:
@@ -238,3 +267,35 @@ def improvement_figure(iterations: Sequence[IterationRecord], path: Path) -> Pat
     fig.suptitle("estimated mu-bar improvement per candidate frequency (figure 6-14)", fontsize=10)
     height = fig.get_figheight()
     return _save(fig, path, hspace=0.75, top=1.0 - 0.75 / height, bottom=0.55 / height)
+
+
+def interval_figure(iterations: Sequence[IterationRecord], path: Path) -> Path:
+    """Parameter intervals per iteration: natural frequency, damping ratio and residue per mode.
+
+    ``omega_n = sqrt(a0)`` (rad/s) and ``zeta = a1 / (2 omega_n)`` are drawn as the ranges the
+    ``a0`` and ``a1`` intervals allow (eq. 2.25); ``b0`` in the data's units times (rad/s)^2.
+    """
+    fig = Figure(figsize=(9.0, 2.4 * max(iterations[0].lower.shape[0], 1) + 0.8 if iterations else 3.0))
+    if not iterations:
+        return _save(fig, path)
+    n_modes = iterations[0].lower.shape[0]
+    axes = np.atleast_2d(fig.subplots(n_modes, 3, squeeze=False))
+    k = np.array([rec.k for rec in iterations], dtype=float)
+    for i in range(n_modes):
+        lo = np.array([rec.lower[i] for rec in iterations])
+        hi = np.array([rec.upper[i] for rec in iterations])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            wn_lo, wn_hi = np.sqrt(np.maximum(lo[:, 1], 0.0)), np.sqrt(np.maximum(hi[:, 1], 0.0))
+            z_lo = lo[:, 0] / (2.0 * np.maximum(wn_hi, 1e-300))
+            z_hi = hi[:, 0] / (2.0 * np.maximum(wn_lo, 1e-300))
+        for ax, (a, b), label in zip(axes[i], ((wn_lo, wn_hi), (z_lo, z_hi), (lo[:, 3], hi[:, 3])),
+                                     (f"mode {i + 1}: omega_n (rad/s)", f"mode {i + 1}: zeta", f"mode {i + 1}: b0")):
+            finite = np.isfinite(a) & np.isfinite(b)
+            ax.vlines(k[finite], a[finite], b[finite], color="C0", lw=5, alpha=0.7)
+            ax.set_ylabel(label, fontsize=8)
+            ax.grid(True, alpha=0.3)
+            ax.tick_params(labelsize=7)
+            if i == n_modes - 1:
+                ax.set_xlabel("iteration k", fontsize=8)
+    fig.suptitle("parameter intervals per iteration (guaranteed bounds)", fontsize=10)
+    return _save(fig, path, wspace=0.45, hspace=0.45, left=0.09, top=0.93)
