@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from setmem_hil.errors import ProcedureError
+from setmem_hil.errors import InputFormatError, ProcedureError
 from setmem_hil.io.procedure import default_procedure
 from setmem_hil.io.procedure_file import SCHEMA, load_procedure, parse_procedure_text
 
@@ -296,3 +296,29 @@ def test_missing_safety_table_is_an_error_for_a_rig_and_a_default_for_the_simula
     start = beam.index("[safety]")
     end = beam.index("\n[", start + 1)
     assert parse_procedure_text(beam[:start] + beam[end + 1:], SRC).safety == default_procedure().safety
+
+
+def test_frequencies_in_hz_are_the_same_procedure_as_in_rad_s():
+    """Issue 18: every frequency key has an _hz twin (value x 2 pi); both at once is an error."""
+    import math
+    import re
+
+    text = (PROCEDURES / "beam_6_3_2.toml").read_text()
+    ref = parse_procedure_text(text, SRC)
+
+    def to_hz(match):  # omega_min = 0.884 -> omega_min_hz = 0.884 / (2 pi), and lists alike
+        key, value = match.group(1), match.group(2)
+        values = [float(v) / (2 * math.pi) for v in re.findall(r"[-+0-9.eE]+", value)]
+        body = f"[{', '.join(repr(v) for v in values)}]" if value.strip().startswith("[") else repr(values[0])
+        stem = key[: -len("_rad_s")] if key.endswith("_rad_s") else key
+        return f"{stem}_hz = {body}"
+
+    hz = re.sub(r"^(omega_min|omega_max|omega_min_rad_s|omega_max_rad_s|omega_rad_s|candidate_omega_min_rad_s|candidate_omega_max_rad_s)"
+                r" = (\[[^\]]*\]|[-+0-9.eE]+)", to_hz, text, flags=re.M)
+    assert "omega_min_hz" in hz and "omega_hz = [" in hz
+    p = parse_procedure_text(hz, SRC)
+    assert p.prior.modes[0].omega_min == pytest.approx(ref.prior.modes[0].omega_min, rel=1e-15)
+    np.testing.assert_allclose(p.initial_omegas_rad_s, ref.initial_omegas_rad_s, rtol=1e-15)
+    assert p.safety.omega_max_rad_s == pytest.approx(ref.safety.omega_max_rad_s, rel=1e-15)
+    with pytest.raises(InputFormatError, match="not both"):
+        parse_procedure_text(text.replace("omega_min = 0.884", "omega_min = 0.884\nomega_min_hz = 0.14", 1), SRC)

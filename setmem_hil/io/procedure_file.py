@@ -472,6 +472,10 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
     ProcedureError
         Naming the file, the table and the key of the first problem found.
     """
+    from setmem_hil.model.prior import MODE_KEYS
+    from setmem_hil.model.units import hz_keys_to_rad_s
+
+    doc = hz_keys_to_rad_s(doc, {**{t: set(keys) for t, keys in _BY_TABLE.items()}, "mode": set(MODE_KEYS)}, source)
     top = _Table(source, "", doc)
     stem = Path(source).stem if source and not source.startswith("<") else ""
     name = top.get("name", stem or "procedure")

@@ -178,7 +178,12 @@ def parse_residuals_table(table: Any, source: str) -> ResidualPrior:
 
 
 def parse_prior_mapping(doc: Mapping[str, Any], source: str, allow_extra: bool = False) -> Prior:
-    """Validate a parsed prior document (also used for the ``[[mode]]`` part of procedures)."""
+    """Validate a parsed prior document (also used for the ``[[mode]]`` part of procedures).
+
+    Frequencies may be given in Hz (``omega_min_hz``...: :mod:`setmem_hil.model.units`)."""
+    from setmem_hil.model.units import hz_keys_to_rad_s
+
+    doc = hz_keys_to_rad_s(doc, {"": set(PRIOR_TOP_KEYS), "mode": set(MODE_KEYS)}, source)
     if not allow_extra:
         unknown = sorted(set(doc) - set(PRIOR_TOP_KEYS))
         if unknown:
