@@ -216,14 +216,15 @@ def test_live_progress_on_a_terminal():
         show("measure", index=3, total=3, omega_rad_s=6.48, replayed=False)
         task, dwell = show._progress.tasks
         assert task.description == "measurements" and (task.completed, task.total) == (2, 3)
-        assert dwell.description == "dwell 3 at 6.48 rad/s (1.54 s of excitation)" and dwell.total == pytest.approx(10.0 / 6.48)
+        # frequencies in rad/s and Hz, compact enough for an 80-column terminal (issues 17, 18)
+        assert dwell.description == "dwell 3 at 6.48 rad/s (1.031 Hz), 1.54 s" and dwell.total == pytest.approx(10.0 / 6.48)
         import time
 
         time.sleep(0.6)  # the dwell bar follows the wall clock while the dwell runs
         assert 0.3 < dwell.completed < dwell.total
         show("finished", summary=type("S", (), {"reached_goal": True, "final_mu_peak": 0.9, "experiments_added": 1})())
     text = buf.getvalue()
-    assert "iteration 1: 2 points, mu-bar peak inf (nominal loop unstable) at 4.4 rad/s [expanded]" in text
+    assert "iteration 1: 2 points, mu-bar peak inf (nominal loop unstable) at 4.4 rad/s (0.7003 Hz) [expanded]" in text
     assert "next frequency 6.48 rad/s" in text and "finished: goal reached; mu-bar 0.9000" in text
     assert (show.replayed, show.measured) == (1, 2)
     assert seen == ["measure", "measure", "iteration", "chosen", "measure", "finished"]

@@ -176,6 +176,7 @@ def start_run(
     console: Console | None = None,
     opener: ExperimentOpener,
     display: Display | None = None,
+    quiet_report_hint: bool = False,
 ) -> RunOutcome:
     """Create ``run_dir`` with a new journal and run the campaign (see the module docstring).
 
@@ -220,7 +221,7 @@ def start_run(
         console.print(f"run directory: {run_dir}", highlight=False)
         describe_procedure(procedure, console)
         return _run_with_journal(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console,
-                                 experiment=experiment, opener=opener, display=display)
+                                 experiment=experiment, opener=opener, display=display, quiet_report_hint=quiet_report_hint)
 
 
 def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, opener: ExperimentOpener,
@@ -322,15 +323,16 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
                       opener: ExperimentOpener, display: Display | None, experiment: Any = None,
-                      continue_stored: bool = False) -> RunOutcome:
+                      continue_stored: bool = False, quiet_report_hint: bool = False) -> RunOutcome:
     with _sigterm_as_interrupt():
         return _run_campaign_in(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console,
-                                opener=opener, display=display, experiment=experiment, continue_stored=continue_stored)
+                                opener=opener, display=display, experiment=experiment, continue_stored=continue_stored,
+                                quiet_report_hint=quiet_report_hint)
 
 
 def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
                      opener: ExperimentOpener, display: Display | None, experiment: Any = None,
-                     continue_stored: bool = False) -> RunOutcome:
+                     continue_stored: bool = False, quiet_report_hint: bool = False) -> RunOutcome:
     try:
         if experiment is None:
             experiment = opener(procedure, seed)
@@ -357,7 +359,8 @@ def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, s
     with _sigint_deferred():
         _shutdown(experiment, journal, None, "")
     write_json_atomic(doc, run_dir / SUMMARY_FILENAME)
-    console.print(f"summary: {run_dir / SUMMARY_FILENAME} (report: setmem-hil report {run_dir})", highlight=False)
+    console.print(f"summary: {run_dir / SUMMARY_FILENAME}" + ("" if quiet_report_hint else f" (report: setmem-hil report {run_dir})"),
+                  highlight=False)
     return RunOutcome(run_dir, doc)
 
 

@@ -70,6 +70,9 @@ from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.prior import ModePrior, Prior
 
 ONE_PARAMETER_EFFECTS = ("time_delay", "first_order_lag", "feedthrough", "residual_mass")
+EFFECT_ALIASES = {"feedthrough": ("residual_flexibility",)}
+"""A constant added to the receptance is the upper residual (residual flexibility of the modes above
+the band) of modal-analysis practice: one candidate, reported under both names."""
 AMBIGUITY_MARGIN = 0.05
 """Two consistent candidates with the same number of added parameters whose worst normalised
 residuals differ by less than this (in units of the threshold) explain the data equally well."""
@@ -459,6 +462,8 @@ def check_discrepancy(
         evidence += (f"; a first-order lag also fits, but its corner ({corner:.3g} rad/s) lies above the band, "
                      "where a lag acts as a delay")
     effect = {"name": decision, "params": params, "evidence": evidence}
+    if decision in EFFECT_ALIASES:  # the same term under its modal-analysis name
+        effect["aliases"] = list(EFFECT_ALIASES[decision])
     return replace(report, effects=(effect,), after=after, new_fit=chosen, new_model=new_model)
 
 

@@ -207,9 +207,10 @@ def write_report(run_dir: str | os.PathLike) -> Path:
         parts.append(_figure(FIGURE_FILES["intervals"], "Parameter intervals per iteration: natural frequency, damping ratio and "
                              "residue of every mode shrinking as experiments are added.", "fig-intervals"))
         rows = [[r.k, r.n_points, _num(r.mu_peak), _num(r.mu_peak_omega, 4), _num(r.mu_lower_peak), _num(r.next_omega, 6),
+                 "-" if r.next_omega is None else _num(r.next_omega / (2 * math.pi), 5),
                  r.safeguard, r.controller_order, f"{r.wall_s:.2f}"] for r in its]
         parts.append(_table(["k", "points", "peak mu-bar", "at omega (rad/s)", "lower bound peak", "next omega (rad/s)",
-                             "eq. 5.12 branch", "controller order", "compute (s)"], rows, "table-iterations",
+                             "next (Hz)", "eq. 5.12 branch", "controller order", "compute (s)"], rows, "table-iterations",
                             "Iterations (the numbers behind figure 6-12)."))
     else:
         parts.append("<p>No iteration is stored yet.</p>")

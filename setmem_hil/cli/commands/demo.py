@@ -57,7 +57,7 @@ def demo(args: argparse.Namespace) -> int:
     if args.seed is not None:
         procedure = dataclasses.replace(procedure, seed=int(args.seed))
     console.print("setmem-hil demo: thesis section 6.3.2 on the simulated cantilever beam", highlight=False)
-    outcome = start_run(procedure, out, seed=args.seed, console=console)
+    outcome = start_run(procedure, out, seed=args.seed, console=console, report_follows=True)
     from setmem_hil.report.document import write_report
 
     console.print(f"report: {write_report(outcome.run_dir)}", highlight=False)

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
             console.print(f"{args.procedure}: OK", highlight=False)
             return 0
         out = Path(args.out) if args.out else default_run_dir(procedure)
-        outcome = start_run(procedure, out, seed=args.seed, strategy=args.strategy, console=console)
+        outcome = start_run(procedure, out, seed=args.seed, strategy=args.strategy, console=console, report_follows=bool(args.report))
     if args.report:
         from setmem_hil.report.document import write_report
 
@@ -90,11 +90,13 @@ def open_backend(procedure: Procedure, seed: int):
 
 
 def start_run(procedure: Procedure, run_dir: str | os.PathLike, *, seed: int | None = None, strategy: str | None = None,
-              console: Console | None = None) -> RunOutcome:
-    """:func:`setmem_hil.campaign.session.start_run` with the terminal display."""
+              console: Console | None = None, report_follows: bool = False) -> RunOutcome:
+    """:func:`setmem_hil.campaign.session.start_run` with the terminal display (``report_follows``:
+    the caller writes the report, so no hint how to)."""
     console = console or Console()
     return session.start_run(procedure, run_dir, seed=seed, strategy=strategy, console=console,
-                             opener=lambda p, s: open_backend(p, s), display=terminal_display(console))
+                             opener=lambda p, s: open_backend(p, s), display=terminal_display(console),
+                             quiet_report_hint=report_follows)
 
 
 def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, procedure_path=None) -> RunOutcome:
