@@ -133,3 +133,27 @@ def test_first_mode_key_is_read_and_refused_for_loopback_fakes(tmp_path):
         serial = serial.replace("[backend.simulation]", "[backend.simulation]\nfirst_mode_rad_s = 2.0", 1)
     with pytest.raises(ProcedureError, match="first_mode_rad_s"):
         parse_procedure_text(serial, "x.toml")
+
+
+def _mass_line_report(S: float, m: float):
+    from setmem_hil.discrepancy.workflow import discrepancy_from_prior
+    from setmem_hil.io.procedure import thesis_beam_prior
+    from setmem_hil.model.frequency_data import FrequencyData
+
+    w1 = np.geomspace(0.3, 30.0, 80)
+    g = TRUTH.frequency_response(w1) - 0.3 / w1**2  # a hidden mass line
+    bound = 0.01 * np.abs(g) + 1e-3
+    rng = np.random.default_rng(1)
+    g = g + 0.5 * bound * np.sqrt(rng.uniform(size=w1.size)) * np.exp(2j * np.pi * rng.uniform(size=w1.size))
+    prior = thesis_beam_prior() if S == 1.0 else thesis_beam_prior().time_scaled(S)
+    return discrepancy_from_prior(FrequencyData(w1 * S, g * m, bound * m), prior).to_document()
+
+
+@pytest.mark.parametrize("S, m", [(314.159, 1.0), (1.0, 1e-6), (1e-2, 1e6)])
+def test_discrepancy_is_scale_invariant(S, m):
+    ref, doc = _mass_line_report(1.0, 1.0), _mass_line_report(S, m)
+    assert [e["name"] for e in doc["effects"]] == [e["name"] for e in ref["effects"]] == ["residual_mass"]
+    assert doc["before"]["max_normalized_residual"] == pytest.approx(ref["before"]["max_normalized_residual"], rel=1e-6)
+    assert doc["after"]["max_normalized_residual"] == pytest.approx(ref["after"]["max_normalized_residual"], rel=1e-6)
+    r, r_ref = doc["effects"][0]["params"]["r"], ref["effects"][0]["params"]["r"]
+    assert r == pytest.approx(r_ref * S * S * m, rel=1e-6)  # G + r/s^2: r scales like a0 b0 / a0
