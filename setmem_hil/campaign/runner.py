@@ -165,8 +165,9 @@ def candidate_noise_bound(experiment: Any, omega_rad_s: np.ndarray, measured: li
 class _Replay:
     """Measurement source that serves stored journal measurements first (REPLAY resume)."""
 
-    def __init__(self, experiment: Experiment, journal, emit: ProgressFn, total: int):
+    def __init__(self, experiment: Experiment, journal, emit: ProgressFn, total: int, control=None):
         self.experiment = experiment
+        self.control = control
         self.journal = journal
         self.emit = emit
         self.total = total
@@ -188,6 +189,8 @@ class _Replay:
                 )
             self.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=True)
             return m
+        if self.control is not None:
+            self.control.checkpoint()  # may wait (paused) or raise CampaignAborted, between dwells
         if not self._synced:
             if self.stored and isinstance(self.experiment, ResumableExperiment):
                 self.experiment.n_measured = len(self.stored)
@@ -260,6 +263,7 @@ def run_campaign(
     strategy: str | None = None,
     progress: ProgressFn | None = None,
     continue_stored: bool = False,
+    control=None,
 ) -> CampaignSummary:
     """Run Algorithm 5.1 on ``experiment`` until mu-bar < goal or the budget is spent.
 
@@ -290,6 +294,8 @@ def run_campaign(
         every measurement stored in ``journal`` is data from the start (none is measured again,
         no replay check), iterations continue after the last stored one, and the bounds are not
         intersected with the old ones (the prior may have changed).
+    control : setmem_hil.model.experiment.CampaignControl, optional
+        ``checkpoint()`` before every new dwell (pause, abort; the live view).
 
     Returns
     -------
@@ -320,7 +326,7 @@ def run_campaign(
         stored_iterations = {rec.k: rec for rec in journal.iterations()}
         already_finished = bool(journal.run_info().get("finished"))
     total = len(procedure.initial_omegas_rad_s) + int(goal.max_experiments)
-    source = _Replay(experiment, journal, emit, total)
+    source = _Replay(experiment, journal, emit, total, control)
     replayed_before = len(source.stored)
 
     def analyze(model, controller):

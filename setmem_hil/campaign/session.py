@@ -30,7 +30,7 @@ from rich.console import Console
 from setmem_hil import __version__
 from setmem_hil.campaign.observers import Observer, broadcast, standard_observers
 from setmem_hil.campaign.runner import CampaignSummary, run_campaign
-from setmem_hil.errors import DeviceError, InputFormatError, RunInterrupted, SetmemError
+from setmem_hil.errors import CampaignAborted, DeviceError, InputFormatError, RunInterrupted, SetmemError
 from setmem_hil.io.atomic_file import write_json_atomic, write_text_atomic
 from setmem_hil.io.journal import JOURNAL_FILENAME, Journal
 from setmem_hil.io.procedure import STRATEGIES, Procedure
@@ -133,11 +133,11 @@ def preflight(procedure: Procedure) -> None:
 
 
 def run_journaled_campaign(procedure: Procedure, experiment: Any, journal: Journal, *, seed: int, strategy: str,
-                           observers: Sequence[Observer] = (), continue_stored: bool = False) -> CampaignSummary:
+                           observers: Sequence[Observer] = (), continue_stored: bool = False, control=None) -> CampaignSummary:
     """Algorithm 5.1 on ``experiment`` into ``journal`` with the standard subscribers plus ``observers``."""
     subscribers = [*observers, *standard_observers(procedure, experiment, journal)]
     return run_campaign(procedure, experiment, journal, seed=seed, strategy=strategy, progress=broadcast(subscribers),
-                        continue_stored=continue_stored)
+                        continue_stored=continue_stored, control=control)
 
 
 PROCEDURE_CHANGED = "procedure-changed"
@@ -177,6 +177,8 @@ def start_run(
     opener: ExperimentOpener,
     display: Display | None = None,
     quiet_report_hint: bool = False,
+    control=None,
+    observers: Sequence[Observer] = (),
 ) -> RunOutcome:
     """Create ``run_dir`` with a new journal and run the campaign (see the module docstring).
 
@@ -221,11 +223,13 @@ def start_run(
         console.print(f"run directory: {run_dir}", highlight=False)
         describe_procedure(procedure, console)
         return _run_with_journal(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console,
-                                 experiment=experiment, opener=opener, display=display, quiet_report_hint=quiet_report_hint)
+                                 experiment=experiment, opener=opener, display=display, quiet_report_hint=quiet_report_hint,
+                                 control=control, observers=observers)
 
 
 def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, opener: ExperimentOpener,
-               display: Display | None = None, procedure_path: str | os.PathLike | None = None) -> RunOutcome:
+               display: Display | None = None, procedure_path: str | os.PathLike | None = None, control=None,
+               observers: Sequence[Observer] = ()) -> RunOutcome:
     """Continue the run in ``run_dir`` from its journal (REPLAY; see the module docstring).
 
     With ``procedure_path`` the run continues with that (corrected) procedure: every stored
@@ -281,7 +285,8 @@ def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, op
             console.print(f"continuing {run_dir} with {procedure_path}: the {stored} stored measurements are reused", highlight=False)
         console.print(f"resuming {run_dir}: {stored} measurements stored, seed {info['seed']}, strategy {info['strategy']}", highlight=False)
         return _run_with_journal(procedure, journal, run_dir, seed=int(info["seed"]), strategy=str(info["strategy"]), console=console,
-                                 opener=opener, display=display, continue_stored=continue_stored)
+                                 opener=opener, display=display, continue_stored=continue_stored, control=control,
+                                 observers=observers)
 
 
 @contextmanager
@@ -323,22 +328,25 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
                       opener: ExperimentOpener, display: Display | None, experiment: Any = None,
-                      continue_stored: bool = False, quiet_report_hint: bool = False) -> RunOutcome:
+                      continue_stored: bool = False, quiet_report_hint: bool = False, control=None,
+                      observers: Sequence[Observer] = ()) -> RunOutcome:
     with _sigterm_as_interrupt():
         return _run_campaign_in(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console,
                                 opener=opener, display=display, experiment=experiment, continue_stored=continue_stored,
-                                quiet_report_hint=quiet_report_hint)
+                                quiet_report_hint=quiet_report_hint, control=control, observers=observers)
 
 
 def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
                      opener: ExperimentOpener, display: Display | None, experiment: Any = None,
-                     continue_stored: bool = False, quiet_report_hint: bool = False) -> RunOutcome:
+                     continue_stored: bool = False, quiet_report_hint: bool = False, control=None,
+                     observers: Sequence[Observer] = ()) -> RunOutcome:
     try:
         if experiment is None:
             experiment = opener(procedure, seed)
         with (display(experiment) if display is not None else contextlib.nullcontext(None)) as shown:
             summary = run_journaled_campaign(procedure, experiment, journal, seed=seed, strategy=strategy,
-                                             observers=[shown] if shown is not None else [], continue_stored=continue_stored)
+                                             observers=([shown] if shown is not None else []) + list(observers),
+                                             continue_stored=continue_stored, control=control)
         doc = summary.to_document()
     except KeyboardInterrupt as exc:
         why = "SIGTERM: stopped by a signal" if isinstance(exc, _Terminated) else "Ctrl-C: stopped by the operator"
@@ -347,6 +355,11 @@ def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, s
         # one line says what was made safe, what is kept and how to go on (the CLI prints it)
         raise RunInterrupted(f"interrupted ({why.split(':')[0]}); exciter at zero, journal closed with "
                              f"{_stored(journal)} measurements; continue with `setmem-hil run --resume {run_dir}`") from exc
+    except CampaignAborted as exc:
+        with _sigint_deferred():
+            _shutdown(experiment, journal, "aborted", f"aborted: {exc}")
+        raise CampaignAborted(f"aborted ({exc}); exciter at zero, journal closed with {_stored(journal)} measurements; "
+                              f"continue with `setmem-hil run --resume {run_dir}`") from exc
     except DeviceError as exc:
         with _sigint_deferred():
             _shutdown(experiment, journal, "device-fault", str(exc))

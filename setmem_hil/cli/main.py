@@ -62,7 +62,7 @@ def exit_code_and_message(exc: BaseException, interrupted: str = "interrupted") 
     if isinstance(exc, DeviceError):
         hint = getattr(exc, "resume_hint", "")
         return EXIT_DEVICE, f"device fault: {exc} (exciter commanded to zero){'; ' + hint if hint else ''}"
-    if isinstance(exc, RunInterrupted) and exc.args:
+    if isinstance(exc, (RunInterrupted, CampaignAborted)) and exc.args:
         return EXIT_INTERRUPTED, str(exc)
     if isinstance(exc, (KeyboardInterrupt, CampaignAborted)):
         return EXIT_INTERRUPTED, interrupted

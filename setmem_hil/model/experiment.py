@@ -78,3 +78,14 @@ class PlanningExperiment(Protocol):
     """Can say beforehand how long a dwell at ``omega`` will take (``plan(w).skip_s + .window_s``)."""
 
     def plan(self, omega_rad_s: float) -> Any: ...
+
+
+@runtime_checkable
+class CampaignControl(Protocol):
+    """Steers a running campaign between dwells (the live view's Pause/Resume/Abort).
+
+    ``checkpoint()`` is called before every new dwell: it returns at once to go on, blocks while
+    paused (the exciter is at zero between dwells), or raises
+    :class:`setmem_hil.errors.CampaignAborted` to stop (journal closed, resumable)."""
+
+    def checkpoint(self) -> None: ...

@@ -254,8 +254,9 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     else:
         parts.append("<p>No discrepancy check was run.</p>")
     parts.append("<h2 id='events'>Events</h2>")
-    parts.append(_table(["time (UTC)", "kind", "message"], [[e["utc"], e["kind"], e["message"]] for e in run.events], "table-events")
-                 if run.events else "<p>None.</p>")
+    shown = [e for e in run.events if e["kind"] != "exact-resolve"]  # data of figure 6-14, not news
+    parts.append(_table(["time (UTC)", "kind", "message"], [[e["utc"], e["kind"], e["message"]] for e in shown], "table-events")
+                 if shown else "<p>None.</p>")
     parts.append("<h2 id='measurements'>Measurements</h2>")
     mrows = [[r["seq"], r["iteration"], r["role"], _num(r["omega_rad_s"], 6), _num(abs(complex(r["re"], r["im"]))),
               _num(math.degrees(math.atan2(r["im"], r["re"])), 4), _num(r["bound"]), r["utc"]] for r in run.rows]

@@ -15,6 +15,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from rich.console import Console
+from setmem_hil.cli.live_options import add_live_options, live_view
 from setmem_hil.cli.main import SAFE_STOP
 
 
@@ -28,6 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="DIR", help="output directory (default ./setmem-hil-demo-<UTC time>)")
     p.add_argument("--seed", type=int, help="seed of the simulated noise (default: the procedure's)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_live_options(p)
     p.set_defaults(func=demo, interrupted=SAFE_STOP)
 
 
@@ -57,7 +59,8 @@ def demo(args: argparse.Namespace) -> int:
     if args.seed is not None:
         procedure = dataclasses.replace(procedure, seed=int(args.seed))
     console.print("setmem-hil demo: thesis section 6.3.2 on the simulated cantilever beam", highlight=False)
-    outcome = start_run(procedure, out, seed=args.seed, console=console, report_follows=True)
+    with live_view(args, out) as live:
+        outcome = start_run(procedure, out, seed=args.seed, console=console, report_follows=True, **live)
     from setmem_hil.report.document import write_report
 
     console.print(f"report: {write_report(outcome.run_dir)}", highlight=False)

@@ -19,6 +19,7 @@ from rich.console import Console
 
 from setmem_hil.campaign import session
 from setmem_hil.campaign.session import RunOutcome, default_run_dir, describe_procedure
+from setmem_hil.cli.live_options import add_live_options, live_view
 from setmem_hil.cli.progress import terminal_display
 from setmem_hil.errors import InputFormatError
 from setmem_hil.experiment_factory import open_experiment
@@ -49,6 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--check", action="store_true", help="validate the procedure and exit")
     p.add_argument("--report", action="store_true", help="write DIR/report.html when the run finishes")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_live_options(p)
     p.set_defaults(func=run, interrupted=SAFE_STOP)
 
 
@@ -62,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
         if args.procedure or args.out or args.seed is not None or args.strategy or args.check:
             raise _arguments_error("--resume DIR takes no procedure argument, --out, --seed, --strategy or --check: the run's own "
                                    "are stored in its journal (a corrected procedure goes in --procedure FIXED.toml)")
-        outcome = resume_run(args.resume, console=console, procedure_path=args.fixed_procedure)
+        with live_view(args, Path(args.resume)) as live:
+            outcome = resume_run(args.resume, console=console, procedure_path=args.fixed_procedure, **live)
     else:
         if not args.procedure:
             raise _arguments_error("give a procedure file, or --resume DIR")
@@ -75,7 +78,9 @@ def run(args: argparse.Namespace) -> int:
             console.print(f"{args.procedure}: OK", highlight=False)
             return 0
         out = Path(args.out) if args.out else default_run_dir(procedure)
-        outcome = start_run(procedure, out, seed=args.seed, strategy=args.strategy, console=console, report_follows=bool(args.report))
+        with live_view(args, out) as live:
+            outcome = start_run(procedure, out, seed=args.seed, strategy=args.strategy, console=console,
+                                report_follows=bool(args.report), **live)
     if args.report:
         from setmem_hil.report.document import write_report
 
@@ -90,17 +95,17 @@ def open_backend(procedure: Procedure, seed: int):
 
 
 def start_run(procedure: Procedure, run_dir: str | os.PathLike, *, seed: int | None = None, strategy: str | None = None,
-              console: Console | None = None, report_follows: bool = False) -> RunOutcome:
+              console: Console | None = None, report_follows: bool = False, **live) -> RunOutcome:
     """:func:`setmem_hil.campaign.session.start_run` with the terminal display (``report_follows``:
     the caller writes the report, so no hint how to)."""
     console = console or Console()
     return session.start_run(procedure, run_dir, seed=seed, strategy=strategy, console=console,
                              opener=lambda p, s: open_backend(p, s), display=terminal_display(console),
-                             quiet_report_hint=report_follows)
+                             quiet_report_hint=report_follows, **live)
 
 
-def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, procedure_path=None) -> RunOutcome:
+def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, procedure_path=None, **live) -> RunOutcome:
     """:func:`setmem_hil.campaign.session.resume_run` with the terminal display."""
     console = console or Console()
     return session.resume_run(run_dir, console=console, opener=lambda p, s: open_backend(p, s),
-                              display=terminal_display(console), procedure_path=procedure_path)
+                              display=terminal_display(console), procedure_path=procedure_path, **live)

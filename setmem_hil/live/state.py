@@ -1,0 +1,82 @@
+"""What the live view shows, read from the journal (one truth for every viewer and reload)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from setmem_hil.io.journal import Journal
+from setmem_hil.model.modal_model import IntervalModel
+
+__all__ = ["journal_state"]
+
+BAND_POINTS = 300
+
+
+def _num(x):
+    return None if x is None or not math.isfinite(float(x)) else float(x)
+
+
+def _model_band(rec, omega_lo: float, omega_hi: float) -> dict:
+    """|G| range of the current interval model over a frequency grid: the 3^p corners are too
+    many, so the envelope of the thesis's Table 6-6 samples plus the midpoint (an illustration,
+    as in the report, not a bound)."""
+    from setmem_hil.report.figures import table_6_6_offsets
+
+    model = IntervalModel(rec.lower, rec.upper)
+    if not (np.all(np.isfinite(model.lower)) and np.all(np.isfinite(model.upper))):
+        return {}
+    w = np.geomspace(omega_lo, omega_hi, BAND_POINTS)
+    mags = np.array([np.abs(model.sample(x).frequency_response(w)) for x in table_6_6_offsets(model.n_modes)])
+    return {"omega": w.tolist(), "lo": mags.min(axis=0).tolist(), "hi": mags.max(axis=0).tolist(),
+            "mid": np.abs(model.midpoint.frequency_response(w)).tolist()}
+
+
+def journal_state(run_dir: str | Path, live: dict | None = None) -> dict:
+    """The API's state document (``GET /api/state``); ``live`` adds what only the running process
+    knows (status from the buttons, the current dwell)."""
+    live = dict(live or {})
+    j = Journal.open(run_dir)
+    try:
+        info = j.run_info()
+        rows = j.measurement_rows()
+        iterations = j.iterations()
+        events = j.events()
+    finally:
+        j.close()
+    kinds = [e["kind"] for e in events]
+    if info["finished"]:
+        status = "finished"
+    elif live.get("status"):
+        status = live["status"]
+    elif kinds and kinds[-1] in ("interrupted", "aborted", "device-fault", "error"):
+        status = "aborted"
+    else:
+        status = "running"
+    last = iterations[-1] if iterations else None
+    omegas = [r["omega_rad_s"] for r in rows]
+    band = _model_band(last, min(omegas) / 2, max(omegas) * 2) if last is not None and omegas else {}
+    started = info.get("created_utc")
+    return {
+        "status": status,
+        "procedure": info.get("procedure_name"),
+        "backend": info.get("backend"),
+        "started_utc": started,
+        "iteration": last.k if last else 0,
+        "n_points": len(rows),
+        "mu_peak": _num(last.mu_peak) if last else None,
+        "rig_s": live.get("rig_s"),
+        "dwell": live.get("dwell"),
+        "measurements": [{"omega": r["omega_rad_s"], "re": r["re"], "im": r["im"], "bound": r["bound"], "role": r["role"],
+                          "iteration": r["iteration"]} for r in rows],
+        "iterations": [{"k": it.k, "n_points": it.n_points, "mu_peak": _num(it.mu_peak), "mu_peak_omega": _num(it.mu_peak_omega),
+                        "next_omega": _num(it.next_omega), "omega": [float(w) for w in it.omega],
+                        "mu": [_num(m) for m in it.mu], "lower": it.lower.tolist(), "upper": it.upper.tolist(),
+                        "sensitivities": it.sensitivities} for it in iterations],
+        "model_band": band,
+        "events": [{"utc": e["utc"], "kind": e["kind"], "message": e["message"][:300]}
+                   for e in events if e["kind"] != "exact-resolve"][-50:],  # that one is data for figure 6-14
+        "summary": info.get("summary"),
+    }

@@ -1,0 +1,138 @@
+"""Issue 16: the live view of a campaign, through its HTTP API and in a real browser (headless Chromium).
+
+A loopback campaign runs in a child process (``setmem-hil run ... --live``) exactly as a technician
+starts it; the test reads the printed URL, then uses the API (urllib) and the page (Playwright
+driving Debian's Chromium; skipped with a reason where no browser is installed).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from setmem_hil.io.journal import Journal
+
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+SCREENSHOTS = Path(os.environ.get("SETMEM_SCREENSHOTS", "")) if os.environ.get("SETMEM_SCREENSHOTS") else None
+
+
+def _procedure(tmp_path: Path, max_experiments: int = 3) -> Path:
+    text = (REPO / "procedures" / "serial_loopback.toml").read_text().replace("max_experiments = 2", f"max_experiments = {max_experiments}")
+    path = tmp_path / "live.toml"
+    path.write_text(text)
+    return path
+
+
+def _start(procedure: Path, run_dir: Path):
+    child = subprocess.Popen([sys.executable, "-m", "setmem_hil.cli.main", "run", str(procedure), "--out", str(run_dir), "--live", "--quiet"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = child.stdout.readline()
+    assert line.startswith("live view: http://127.0.0.1:"), line
+    url = line.strip().removeprefix("live view: ")
+    return child, url, url.split("/?token=")[0], url.split("token=")[1]
+
+
+def _call(base: str, path: str, token: str | None = None, method: str = "GET"):
+    req = urllib.request.Request(base + path, method=method, headers={"X-Token": token} if token else {})
+    if method == "POST":
+        req.data = b""
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return r.status, json.loads(r.read() or b"null")
+    except urllib.error.HTTPError as exc:
+        return exc.code, None
+
+
+def _wait_for(predicate, timeout_s: float = 60.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError("condition not met in time")
+
+
+def test_api_token_pause_resume_abort_then_resume_equals_uninterrupted(tmp_path):
+    procedure = _procedure(tmp_path)
+    run_dir = tmp_path / "live"
+    child, url, base, token = _start(procedure, run_dir)
+    try:
+        assert _call(base, "/api/state")[0] in (401, 403)
+        assert _call(base, "/api/state", "wrong")[0] in (401, 403)
+        assert _call(base, "/api/pause", None, "POST")[0] in (401, 403)
+        status, state = _call(base, "/api/state", token)
+        assert status == 200 and {"status", "iteration", "n_points", "mu_peak", "rig_s"} <= set(state)
+        assert _call(base, "/api/pause", token, "GET")[0] == 405  # no state change on GET
+        assert _call(base, "/api/pause", token, "POST") == (200, {"status": "paused"})
+        paused_at = _call(base, "/api/state", token)[1]["n_points"]
+        time.sleep(1.5)
+        assert _call(base, "/api/state", token)[1]["n_points"] <= paused_at + 1  # at most the dwell under way finishes
+        assert _call(base, "/api/resume", token, "POST") == (200, {"status": "running"})
+        assert _call(base, "/api/abort", token, "POST")[0] == 200
+        _, err = child.communicate(timeout=120)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == 130, err
+    assert "exciter at zero" in err and "run --resume" in err
+    j = Journal.open(run_dir)
+    kinds = [e["kind"] for e in j.events()]
+    j.close()
+    assert "aborted" in kinds
+    from setmem_hil.cli.main import main
+
+    assert main(["run", "--resume", str(run_dir), "--quiet"]) == 0
+    assert main(["run", str(procedure), "--out", str(tmp_path / "straight"), "--quiet"]) == 0
+    resumed, straight = Journal.open(run_dir), Journal.open(tmp_path / "straight")
+    try:
+        assert resumed.measurements() == straight.measurements()
+    finally:
+        resumed.close()
+        straight.close()
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian package chromium; .ci/run installs it)")
+def test_page_in_a_real_browser_shows_points_and_its_buttons_steer_the_run(tmp_path):
+    pytest.importorskip("playwright", reason="playwright (pip) drives the browser")
+    from playwright.sync_api import sync_playwright
+
+    shots = SCREENSHOTS or tmp_path
+    shots.mkdir(parents=True, exist_ok=True)
+    child, url, base, token = _start(_procedure(tmp_path, max_experiments=20), tmp_path / "live")
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=[
+                "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--no-first-run",
+                "--disable-component-update", "--disable-sync"])
+            page = browser.new_page(viewport={"width": 1280, "height": 1000})
+            page.goto(url)
+            page.wait_for_function("document.querySelectorAll('#mag circle.point').length >= 1", timeout=60_000)
+            first = page.eval_on_selector_all("#mag circle.point", "els => els.length")
+            page.wait_for_function(f"document.querySelectorAll('#mag circle.point').length > {first}", timeout=60_000)
+            page.click("#pause")
+            page.wait_for_function("document.getElementById('status').textContent === 'paused'", timeout=60_000)
+            page.screenshot(path=str(shots / "live-view-paused.png"), full_page=True)
+            page.click("#resume")
+            page.wait_for_function("document.getElementById('status').textContent === 'running'", timeout=60_000)
+            page.wait_for_function("document.getElementById('iteration').textContent.includes('mu-bar 1') || "
+                                   "document.getElementById('iteration').textContent.includes('mu-bar 0')", timeout=60_000)
+            page.screenshot(path=str(shots / "live-view-running.png"), full_page=True)
+            page.click("#abort")
+            child.wait(timeout=120)
+            browser.close()
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == 130
+    assert (shots / "live-view-paused.png").stat().st_size > 10_000
