@@ -30,7 +30,7 @@ from rich.console import Console
 from setmem_hil import __version__
 from setmem_hil.campaign.observers import Observer, broadcast, standard_observers
 from setmem_hil.campaign.runner import CampaignSummary, run_campaign
-from setmem_hil.errors import CampaignAborted, DeviceError, InputFormatError, RunInterrupted, SetmemError
+from setmem_hil.errors import CampaignAborted, DeviceError, InconsistentDataError, InputFormatError, RunInterrupted, SetmemError
 from setmem_hil.io.atomic_file import write_json_atomic, write_text_atomic
 from setmem_hil.io.journal import JOURNAL_FILENAME, Journal
 from setmem_hil.io.procedure import STRATEGIES, Procedure
@@ -368,6 +368,10 @@ def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, s
     except BaseException as exc:
         with _sigint_deferred():
             _shutdown(experiment, journal, "error", f"{type(exc).__name__}: {exc}")
+        if isinstance(exc, Exception):
+            fix = " --procedure FIXED.toml" if isinstance(exc, (InconsistentDataError, InputFormatError)) else ""
+            exc.resume_hint = (f"exciter at zero, journal closed with {_stored(journal)} measurements; continue with "
+                               f"`setmem-hil run --resume {run_dir}{fix}`")
         raise
     with _sigint_deferred():
         _shutdown(experiment, journal, None, "")

@@ -117,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - every failure becomes one line and an exit code
         code, message = exit_code_and_message(exc, getattr(args, "interrupted", "interrupted"))
+        hint = getattr(exc, "resume_hint", "")
+        if hint and hint not in message:  # what a stopped run left safe, and how to go on
+            message = f"{message}; {hint}"
         if debug:
             traceback.print_exc()
         print(f"setmem-hil: {one_line(message)}", file=sys.stderr)
