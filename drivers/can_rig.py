@@ -32,8 +32,8 @@ import numpy as np
 
 from setmem_hil.drivers import can_protocol as cp
 from setmem_hil.drivers.can_link import CanLink, CanSettings
-from setmem_hil.drivers.safety import check_dwell, check_sine_command
-from setmem_hil.drivers.transport import Closeable, RigLifecycle, SafeShutdown
+from setmem_hil.drivers.safety import check_sine_command
+from setmem_hil.drivers.transport import ChunkedSensor, Closeable, RigLifecycle, SafeShutdown
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.errors import DeviceError
 
@@ -61,49 +61,28 @@ class CanExciter:
         self._rig.output_on = False
 
 
-class CanSensor:
+class CanSensor(ChunkedSensor):
     """Sensor over a :class:`CanLink`: timestamps, force and response of every sample."""
 
-    def __init__(self, rig: "CanRig"):
-        self._rig = rig
+    @property
+    def max_block_samples(self) -> int:
+        return self._rig.link.settings.max_block_samples
 
-    def set_sample_rate(self, rate_hz: float) -> None:
-        rig = self._rig
-        with rig.guard.armed():
-            rate = float(rate_hz)
-            if not (np.isfinite(rate) and rate > 0):
-                raise ValueError(f"rate_hz: expected a finite positive rate, found {rate_hz!r}")
-            rig.link.request(cp.Opcode.SET_SAMPLE_RATE, cp.float_to_u32(rate), what="SET_SAMPLE_RATE")
-            rig.refresh_metadata()
+    def _send_rate(self, rate_hz: float) -> None:
+        self._rig.link.request(cp.Opcode.SET_SAMPLE_RATE, cp.float_to_u32(rate_hz), what="SET_SAMPLE_RATE")
 
-    def wait(self, duration_s: float) -> None:
-        """Let ``duration_s`` pass on the device with the excitation on (settling), no samples."""
-        rig = self._rig
-        if duration_s == 0:
-            return
-        check_dwell(rig.limits, duration_s, rig.link.where)
-        with rig.guard.armed():
-            rig.link.request(cp.Opcode.WAIT, cp.scale_unsigned(duration_s, cp.WAIT_LSB_S, "duration_s"), what="WAIT")
+    def _send_wait(self, duration_s: float) -> None:
+        self._rig.link.request(cp.Opcode.WAIT, cp.scale_unsigned(duration_s, cp.WAIT_LSB_S, "duration_s"), what="WAIT")
 
-    def acquire(self, duration_s: float) -> SampleBlock:
-        rig = self._rig
-        check_dwell(rig.limits, duration_s, rig.link.where)
-        with rig.guard.armed():
-            rig.check_output()
-            md = rig.metadata
-            n_total = max(1, int(round(duration_s * md.sample_rate_hz)))
-            t_parts, f_parts, r_parts = [], [], []
-            done = 0
-            while done < n_total:
-                n = min(rig.link.settings.max_block_samples, n_total - done)
-                start_s, counts = rig.link.acquire_block(n)
-                t = start_s + np.arange(n) / md.sample_rate_hz + counts["time"] * cp.TIME_OFFSET_LSB_S
-                t[counts["time"] == cp.INVALID_SAMPLE] = np.nan
-                t_parts.append(t)
-                f_parts.append(_to_units(counts["force"], md.force_range_n))
-                r_parts.append(_to_units(counts["response"], md.response_range))
-                done += n
-            return SampleBlock(np.concatenate(t_parts), np.concatenate(f_parts), np.concatenate(r_parts))
+    def _before_acquire(self) -> None:
+        self._rig.check_output()
+
+    def _read_block(self, n: int) -> SampleBlock:
+        md = self._rig.metadata
+        start_s, counts = self._rig.link.acquire_block(n)
+        t = start_s + np.arange(n) / md.sample_rate_hz + counts["time"] * cp.TIME_OFFSET_LSB_S
+        t[counts["time"] == cp.INVALID_SAMPLE] = np.nan
+        return SampleBlock(t, _to_units(counts["force"], md.force_range_n), _to_units(counts["response"], md.response_range))
 
 
 def _to_units(counts: np.ndarray, full_range: float) -> np.ndarray:

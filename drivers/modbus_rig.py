@@ -41,8 +41,8 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.framer import FramerType
 
 from setmem_hil.drivers import modbus_registers as mr
-from setmem_hil.drivers.safety import check_dwell, check_sine_command
-from setmem_hil.drivers.transport import Closeable, RetryPolicy, RigLifecycle, SafeShutdown, TransportStats, sleep_s
+from setmem_hil.drivers.safety import check_sine_command
+from setmem_hil.drivers.transport import ChunkedSensor, Closeable, RetryPolicy, RigLifecycle, SafeShutdown, TransportStats, sleep_s
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.errors import DeviceError, DeviceTimeoutError, FrameError
 
@@ -181,42 +181,24 @@ class ModbusExciter:
         self._rig.output_on = False
 
 
-class ModbusSensor:
-    def __init__(self, rig: "ModbusRig"):
-        self._rig = rig
+class ModbusSensor(ChunkedSensor):
+    """Sensor over a :class:`ModbusLink`: samples read page by page (every page CRC-checked)."""
 
-    def set_sample_rate(self, rate_hz: float) -> None:
-        rig = self._rig
-        rate = float(rate_hz)
-        if not (np.isfinite(rate) and rate > 0):
-            raise ValueError(f"rate_hz: expected a finite positive rate, found {rate_hz!r}")
-        with rig.guard.armed():
-            rig.link.write(mr.REG_SAMPLE_RATE, mr.float32_to_registers(rate), "write sample rate")
-            rig.refresh_metadata()
+    @property
+    def max_block_samples(self) -> int:
+        return self._rig.max_block_samples
 
-    def wait(self, duration_s: float) -> None:
-        """Let ``duration_s`` pass on the device with the excitation on (settling), no samples."""
-        rig = self._rig
-        if duration_s == 0:
-            return
-        check_dwell(rig.limits, duration_s, rig.link.where)
-        with rig.guard.armed():
-            rig.next_request_id()
-            counts = mr.scale_unsigned(duration_s, mr.WAIT_LSB_S, "duration_s")
-            rig.link.write(mr.REG_WAIT, mr.u32_to_registers(counts) + [rig.request_id], "write wait")
+    def _send_rate(self, rate_hz: float) -> None:
+        self._rig.link.write(mr.REG_SAMPLE_RATE, mr.float32_to_registers(rate_hz), "write sample rate")
 
-    def acquire(self, duration_s: float) -> SampleBlock:
+    def _send_wait(self, duration_s: float) -> None:
         rig = self._rig
-        check_dwell(rig.limits, duration_s, rig.link.where)
-        with rig.guard.armed():
-            n_total = max(1, int(round(duration_s * rig.metadata.sample_rate_hz)))
-            parts = []
-            done = 0
-            while done < n_total:
-                n = min(rig.max_block_samples, n_total - done)
-                parts.append(rig.acquire_block(n))
-                done += n
-            return SampleBlock(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("t_s", "force", "response")))
+        rig.next_request_id()
+        counts = mr.scale_unsigned(duration_s, mr.WAIT_LSB_S, "duration_s")
+        rig.link.write(mr.REG_WAIT, mr.u32_to_registers(counts) + [rig.request_id], "write wait")
+
+    def _read_block(self, n: int) -> SampleBlock:
+        return self._rig.acquire_block(n)
 
 
 class ModbusRig(RigLifecycle):

@@ -17,9 +17,14 @@ import atexit
 import contextlib
 import dataclasses
 import logging
+import math
 import time
 from collections import Counter
-from typing import Callable, Iterator, Protocol, Sequence, TypeVar
+from typing import Any, Callable, Iterator, Protocol, Sequence, TypeVar
+
+import numpy as np
+
+from setmem_hil.drivers.safety import check_dwell
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -195,3 +200,62 @@ class RigLifecycle:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class ChunkedSensor:
+    """The sensor side every block-transfer rig shares (CAN, Modbus): rate, settle wait, acquire.
+
+    Limits (:func:`setmem_hil.drivers.safety.check_dwell`) are checked before anything is sent,
+    every command runs under the rig's :class:`SafeShutdown` guard, and an acquisition longer
+    than one device block is read as consecutive blocks (the device clock runs on). Subclasses
+    give the wire commands: :meth:`_send_rate`, :meth:`_send_wait`, :meth:`_read_block` and
+    :attr:`max_block_samples`.
+    """
+
+    def __init__(self, rig: Any):
+        self._rig = rig
+
+    max_block_samples: int = 1
+
+    def _send_rate(self, rate_hz: float) -> None:
+        raise NotImplementedError
+
+    def _send_wait(self, duration_s: float) -> None:
+        raise NotImplementedError
+
+    def _read_block(self, n: int):
+        """``n`` samples as a SampleBlock (timestamps, force, response in physical units)."""
+        raise NotImplementedError
+
+    def _before_acquire(self) -> None:
+        """Checks before an acquisition (e.g. the exciter output is still on)."""
+
+    def set_sample_rate(self, rate_hz: float) -> None:
+        rate = float(rate_hz)
+        if not (math.isfinite(rate) and rate > 0):
+            raise ValueError(f"rate_hz: expected a finite positive rate, found {rate_hz!r}")
+        with self._rig.guard.armed():
+            self._send_rate(rate)
+            self._rig.refresh_metadata()
+
+    def wait(self, duration_s: float) -> None:
+        """Let ``duration_s`` pass on the device with the excitation on (settling), no samples."""
+        if duration_s == 0:
+            return
+        check_dwell(self._rig.limits, duration_s, self._rig.link.where)
+        with self._rig.guard.armed():
+            self._send_wait(duration_s)
+
+    def acquire(self, duration_s: float):
+        rig = self._rig
+        check_dwell(rig.limits, duration_s, rig.link.where)
+        with rig.guard.armed():
+            self._before_acquire()
+            n_total = max(1, int(round(duration_s * rig.metadata.sample_rate_hz)))
+            parts = []
+            done = 0
+            while done < n_total:
+                n = min(self.max_block_samples, n_total - done)
+                parts.append(self._read_block(n))
+                done += n
+            return type(parts[0])(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("t_s", "force", "response")))

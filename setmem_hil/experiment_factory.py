@@ -118,6 +118,7 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
             noise_scale=sim.noise_scale,
             w1_num=tuple(procedure.weights.w1_num),
             w1_den=tuple(procedure.weights.w1_den),
+            first_mode_rad_s=sim.first_mode_rad_s,
         )
     if kind not in LOOPBACK_RIGS:
         raise ProcedureError(source, "[backend] key 'kind'", f"expected one of {list(BACKENDS)}, found {kind!r}")

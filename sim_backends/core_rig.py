@@ -7,7 +7,6 @@ numerics can be exercised without any wire format.
 
 from __future__ import annotations
 
-import math
 
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore

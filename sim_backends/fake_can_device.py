@@ -36,12 +36,12 @@ from setmem_hil.drivers import can_protocol as cp
 from setmem_hil.errors import FrameError
 from setmem_hil.errors import DeviceRejectedError
 from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
-from setmem_hil.sim_backends.transport_faults import TransportFaults, injected_counts
+from setmem_hil.sim_backends.transport_faults import BackgroundFakeDevice, TransportFaults
 
 FLAG_WATCHDOG_TRIPPED = 0x01
 
 
-class FakeCanDevice:
+class FakeCanDevice(BackgroundFakeDevice):
     """The fake device on ``can.Bus(interface="virtual", channel=channel)``.
 
     Parameters
@@ -102,10 +102,6 @@ class FakeCanDevice:
         self._thread.start()
         return self
 
-    def close(self) -> None:
-        """Stop the device (the rig's owned-resource interface)."""
-        self.stop()
-
     def stop(self) -> None:
         """Zero the output, stop the thread and shut the bus down (idempotent)."""
         self._stop.set()
@@ -116,17 +112,6 @@ class FakeCanDevice:
         if self._bus is not None:
             self._bus.shutdown()
             self._bus = None
-
-    def __enter__(self) -> "FakeCanDevice":
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
-    @property
-    def injected(self) -> dict[str, int]:
-        """Faults injected so far, per kind (core and CAN kinds)."""
-        return injected_counts(self.core.faults, self.transport_faults)
 
     # -- main loop -----------------------------------------------------------------------------
     def _run(self) -> None:

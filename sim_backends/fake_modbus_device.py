@@ -49,7 +49,7 @@ from pymodbus.simulator.simdata import DataType
 from setmem_hil.drivers import modbus_registers as mr
 from setmem_hil.errors import DeviceRejectedError
 from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
-from setmem_hil.sim_backends.transport_faults import TransportFaults, injected_counts
+from setmem_hil.sim_backends.transport_faults import BackgroundFakeDevice, TransportFaults
 
 N_REGISTERS = mr.BUFFER_BASE + mr.n_pages(mr.MAX_SAMPLES) * mr.PAGE_REGISTERS
 WRITABLE = {
@@ -67,7 +67,7 @@ def free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
-class FakeModbusDevice:
+class FakeModbusDevice(BackgroundFakeDevice):
     """The fake device as a pymodbus server on ``127.0.0.1:port``.
 
     Parameters
@@ -186,18 +186,6 @@ class FakeModbusDevice:
             if not loop.is_running():
                 loop.close()
             self.core.stop()
-
-    close = stop
-
-    def __enter__(self) -> "FakeModbusDevice":
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
-    @property
-    def injected(self) -> dict[str, int]:
-        return injected_counts(self.core.faults, self.transport_faults)
 
     async def _watchdog_loop(self) -> None:
         while True:

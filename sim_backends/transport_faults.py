@@ -119,3 +119,32 @@ def injected_counts(core_faults, transport_faults: "TransportFaults | None" = No
     if transport_faults is not None:
         counts.update({k: v for k, v in transport_faults.injected.items() if v})
     return counts
+
+
+class BackgroundFakeDevice:
+    """Lifecycle every background fake device shares (CAN, Modbus): ``start()`` returns the
+    device, ``stop()`` ends it, ``close()`` is ``stop()`` (the interface a rig's owned resources
+    have), a context manager, and ``injected`` counts the faults injected so far per kind.
+
+    Needs ``self.core`` (the fake device core) and ``self.transport_faults``.
+    """
+
+    def start(self):
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self.stop()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def injected(self) -> dict[str, int]:
+        """Faults injected so far, per kind (core and transport kinds)."""
+        return injected_counts(self.core.faults, self.transport_faults)

@@ -171,7 +171,11 @@ def test_minimal_procedure_takes_documented_defaults():
     p = parse_procedure_text("[[mode]]\nomega_min = 1\nomega_max = 2\nzeta_max = 0.1\n[initial]\nomega_rad_s = [1.5]\n", "procedures/mini.toml")
     assert p.name == "mini"  # the file name stem
     d = default_procedure()
-    assert (p.seed, p.backend, p.safety, p.goal, p.input_design, p.weights) == (d.seed, d.backend, d.safety, d.goal, d.input_design, d.weights)
+    assert (p.seed, p.backend, p.safety, p.goal, p.weights) == (d.seed, d.backend, d.safety, d.goal, d.weights)
+    # the candidate band is derived from the weights' reference frequency (issue 18): for the
+    # thesis weights it is the thesis's 0.1-1000 rad/s
+    assert p.input_design.candidate_omega_min_rad_s is None
+    assert p.input_design.resolved(p.weights.reference_frequency_rad_s(), p.safety) == d.input_design
     assert p.prior.modes[0].b1_fixed is False
 
 

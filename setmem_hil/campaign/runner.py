@@ -216,7 +216,7 @@ def next_frequency(
     seed: int | None,
 ) -> InputChoice:
     """Algorithm 5.1 steps 5-7 for one strategy (see :mod:`setmem_hil.design.strategies`)."""
-    settings = procedure.input_design
+    settings = procedure.input_design.resolved(procedure.weights.reference_frequency_rad_s(), procedure.safety)
     empty = np.zeros(0)
     if strategy == "log-sweep":
         return InputChoice(log_sweep_frequency(n_added, settings), empty, empty, "sweep")

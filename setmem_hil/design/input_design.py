@@ -85,6 +85,7 @@ def candidate_frequencies(k: int, settings: InputDesignSettings = InputDesignSet
     Growing the count every iteration makes the union of the candidate sets dense in the band,
     as section 5.4.2 requires.
     """
+    settings = settings.resolved()  # the thesis band when none is given (the runner resolves it)
     lo = float(settings.candidate_omega_min_rad_s)
     hi = float(settings.candidate_omega_max_rad_s)
     if not (0 < lo < hi and np.isfinite(hi)):

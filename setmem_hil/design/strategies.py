@@ -49,6 +49,7 @@ def van_der_corput(n: int, base: int = 2) -> float:
 
 def log_sweep_frequency(n_added: int, settings: InputDesignSettings = InputDesignSettings()) -> float:
     """Frequency of the ``n_added``-th added point (0-based) of the ``"log-sweep"`` baseline."""
+    settings = settings.resolved()  # the thesis band when none is given (the runner resolves it)
     lo = float(settings.candidate_omega_min_rad_s)
     hi = float(settings.candidate_omega_max_rad_s)
     return float(lo * (hi / lo) ** van_der_corput(n_added + 1))
@@ -57,6 +58,7 @@ def log_sweep_frequency(n_added: int, settings: InputDesignSettings = InputDesig
 def random_frequency(seed: int | None, k: int, settings: InputDesignSettings = InputDesignSettings()) -> float:
     """Frequency of the ``"random"`` baseline at iteration ``k``: log-uniform in the band."""
     rng = np.random.default_rng((0 if seed is None else int(seed), int(k), RANDOM_STREAM))
+    settings = settings.resolved()  # the thesis band when none is given (the runner resolves it)
     lo = np.log(float(settings.candidate_omega_min_rad_s))
     hi = np.log(float(settings.candidate_omega_max_rad_s))
     return float(np.exp(rng.uniform(lo, hi)))

@@ -11,7 +11,7 @@ Loading and validation (messages naming file, table and key) live in
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping
 
 
@@ -40,6 +40,7 @@ class SimulationSettings:
     noise_profile: str = "fully_damped"
     noise_scale: float = 1.0
     unmodelled_dynamics: bool = True
+    first_mode_rad_s: float = 1.0  # the beam's first natural frequency; modes and residues scale with it
 
 
 @dataclass(frozen=True)
@@ -61,9 +62,25 @@ class InputDesignSettings:
     strategy: str = "mu"
     candidates_base: int = 500  # 500 + 25 k candidates at iteration k (section 6.3.2)
     candidates_per_iteration: int = 25
-    candidate_omega_min_rad_s: float = 0.1
-    candidate_omega_max_rad_s: float = 1000.0
+    candidate_omega_min_rad_s: float | None = None  # None: 0.1 x the reference frequency
+    candidate_omega_max_rad_s: float | None = None  # None: 1000 x the reference frequency
     exact_resolve_top: int = 5  # candidates re-identified exactly before choosing
+
+    def resolved(self, reference_rad_s: float = 1.0, safety: "SafetyLimits | None" = None) -> "InputDesignSettings":
+        """These settings with a concrete candidate band: the given one, or ``[0.1, 1000] x
+        reference_rad_s`` (the weights' reference frequency,
+        :meth:`setmem_hil.model.weights.Weights.reference_frequency_rad_s`; 0.1-1000 rad/s for the
+        thesis weights, section 6.3.2) clipped to the safety range, so the candidates follow the
+        structure's frequency scale."""
+        lo, hi = self.candidate_omega_min_rad_s, self.candidate_omega_max_rad_s
+        if lo is not None and hi is not None:
+            return self
+        r = float(reference_rad_s)
+        lo_d, hi_d = 0.1 * r, 1000.0 * r
+        if safety is not None:
+            lo_d, hi_d = max(lo_d, safety.omega_min_rad_s), min(hi_d, safety.omega_max_rad_s)
+        return replace(self, candidate_omega_min_rad_s=lo_d if lo is None else lo,
+                       candidate_omega_max_rad_s=hi_d if hi is None else hi)
 
 
 @dataclass(frozen=True)
@@ -81,6 +98,27 @@ class Procedure:
     description: str = ""
     source_text: str = ""  # the file's text, stored in the journal with the run
     source_path: str = ""
+
+    def time_scaled(self, factor: float) -> "Procedure":
+        """The same campaign for the structure with every frequency times ``factor`` (issue 18's
+        rescaling rule): prior bands, initial frequencies, safety frequency limits, an explicit
+        candidate band and the simulated beam's first mode times ``factor``, the weights
+        time-scaled (``W(s) -> W(s / factor)``). Noise and amplitudes are unchanged."""
+        f = float(factor)
+        d = self.input_design
+        design = replace(d, **{k: getattr(d, k) * f for k in ("candidate_omega_min_rad_s", "candidate_omega_max_rad_s")
+                               if getattr(d, k) is not None})
+        sim = replace(self.backend.simulation, first_mode_rad_s=self.backend.simulation.first_mode_rad_s * f)
+        return replace(
+            self,
+            prior=self.prior.time_scaled(f),
+            initial_omegas_rad_s=tuple(w * f for w in self.initial_omegas_rad_s),
+            backend=replace(self.backend, simulation=sim),
+            safety=replace(self.safety, omega_min_rad_s=self.safety.omega_min_rad_s * f, omega_max_rad_s=self.safety.omega_max_rad_s * f),
+            input_design=design,
+            weights=self.weights.time_scaled(f),
+            source_text="",
+        )
 
 
 def thesis_beam_prior(b1_fixed: bool = True, b1_limit: float = 1.0) -> Prior:
@@ -114,4 +152,6 @@ def default_procedure() -> Procedure:
         description="Thesis section 6.3.2: simulated cantilever, fully damped noise bound plus W1, b1 = 0.",
         prior=thesis_beam_prior(),
         initial_omegas_rad_s=thesis_6_3_2_initial_omegas(),
+        # the thesis's candidate band (section 6.3.2), stated explicitly as in beam_6_3_2.toml
+        input_design=InputDesignSettings(candidate_omega_min_rad_s=0.1, candidate_omega_max_rad_s=1000.0),
     )

@@ -110,6 +110,7 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("backend", "faults", "table", "", "", "Fault injection of the fake devices (issue 8). Not allowed with kind = \"sim\"."),
     KeySpec("backend.simulation", "noise_profile", "choice", "", _SIM.noise_profile, "Additive-noise bound R(omega) of section 6.2: fully damped model (6.3.2), SNR 10 (6.3.3), resonance noise (6.3.4) or none.", choices=NOISE_PROFILES),
     KeySpec("backend.simulation", "noise_scale", "number", "", _SIM.noise_scale, "Multiplies the noise bound.", ge=0.0),
+    KeySpec("backend.simulation", "first_mode_rad_s", "number", "rad/s", _SIM.first_mode_rad_s, "First natural frequency of the simulated beam; all its modes scale with it, its residues with its square, and the simulated noise bounds follow the response (time-scale [weights] with it).", gt=0.0, le=1e9),
     KeySpec("backend.simulation", "unmodelled_dynamics", "bool", "", _SIM.unmodelled_dynamics, "Keep modes 4-8 in the simulated truth and add |W1| to each point's bound."),
     # [backend.transport]: one schema per backend kind, the same limits for every transport
     *(spec for kind in BACKENDS[1:] for spec in (
@@ -160,8 +161,8 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("input_design", "strategy", "choice", "", _ID.strategy, "mu: the thesis's mu-sensitivity design (chapter 5); log-sweep, random, max-reduction: comparison strategies.", choices=STRATEGIES),
     KeySpec("input_design", "candidates_base", "integer", "", _ID.candidates_base, "Number of candidate frequencies at the first iteration (section 6.3.2: 500).", ge=1, le=10**7),
     KeySpec("input_design", "candidates_per_iteration", "integer", "", _ID.candidates_per_iteration, "Candidates added per iteration (section 6.3.2: 500 + 25 k).", ge=0, le=10**6),
-    KeySpec("input_design", "candidate_omega_min_rad_s", "number", "rad/s", _ID.candidate_omega_min_rad_s, "Lowest candidate frequency (inside the safety range).", gt=0.0),
-    KeySpec("input_design", "candidate_omega_max_rad_s", "number", "rad/s", _ID.candidate_omega_max_rad_s, "Highest candidate frequency (inside the safety range).", gt=0.0),
+    KeySpec("input_design", "candidate_omega_min_rad_s", "number", "rad/s", "0.1 T", "Lowest candidate frequency (inside the safety range). Default 0.1 T, T the weights' reference frequency (half W2's pole frequency: 1 rad/s for the thesis weights), clipped to the safety range.", gt=0.0),
+    KeySpec("input_design", "candidate_omega_max_rad_s", "number", "rad/s", "1000 T", "Highest candidate frequency (inside the safety range). Default 1000 T, clipped to the safety range.", gt=0.0),
     KeySpec("input_design", "exact_resolve_top", "integer", "", _ID.exact_resolve_top, "The best candidates re-identified exactly before choosing.", ge=0, le=10**6),
     # [weights]
     KeySpec("weights", "w1_num", "numbers", "", "thesis eq. 6.1", "W1 numerator coefficients, highest power of s first."),
@@ -275,6 +276,7 @@ def _backend(top: _Table) -> BackendSettings:
         noise_profile=s.get("noise_profile", _SIM.noise_profile),
         noise_scale=s.get("noise_scale", _SIM.noise_scale),
         unmodelled_dynamics=s.get("unmodelled_dynamics", _SIM.unmodelled_dynamics),
+        first_mode_rad_s=s.get("first_mode_rad_s", _SIM.first_mode_rad_s),
     )
     transport = _transport_options(top, t, kind)
     faults: dict[str, Any] = {}
@@ -301,6 +303,9 @@ def _backend(top: _Table) -> BackendSettings:
                 if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 <= float(r) <= 1.0:
                     raise ProcedureError(top.source, where, f"{k}: expected a probability in [0, 1], found {_fmt(r)}")
             faults["rates"] = {str(k): float(r) for k, r in rates.items()}
+    if kind != "sim" and sim.first_mode_rad_s != 1.0:
+        raise ProcedureError(top.source, "[backend.simulation] key 'first_mode_rad_s'",
+                             f"only the frequency-domain simulation (kind = \"sim\") scales the beam; the {kind} fake device simulates it at 1 rad/s")
     if kind == "sim":
         for key in ("transport", "faults"):
             if t.has(key):
@@ -405,12 +410,13 @@ def _input_design(top: _Table, safety: SafetyLimits) -> InputDesignSettings:
         candidate_omega_max_rad_s=t.get("candidate_omega_max_rad_s", _ID.candidate_omega_max_rad_s),
         exact_resolve_top=t.get("exact_resolve_top", _ID.exact_resolve_top),
     )
-    if s.candidate_omega_min_rad_s >= s.candidate_omega_max_rad_s:
-        raise t.error(f"candidate_omega_min_rad_s {_fmt(s.candidate_omega_min_rad_s)} must be < candidate_omega_max_rad_s {_fmt(s.candidate_omega_max_rad_s)}")
-    if s.candidate_omega_min_rad_s < safety.omega_min_rad_s:
-        raise t.error(f"candidate_omega_min_rad_s {_fmt(s.candidate_omega_min_rad_s)} is below [safety] omega_min_rad_s {_fmt(safety.omega_min_rad_s)}")
-    if s.candidate_omega_max_rad_s > safety.omega_max_rad_s:
-        raise t.error(f"candidate_omega_max_rad_s {_fmt(s.candidate_omega_max_rad_s)} exceeds [safety] omega_max_rad_s {_fmt(safety.omega_max_rad_s)}")
+    lo, hi = s.candidate_omega_min_rad_s, s.candidate_omega_max_rad_s
+    if lo is not None and hi is not None and lo >= hi:
+        raise t.error(f"candidate_omega_min_rad_s {_fmt(lo)} must be < candidate_omega_max_rad_s {_fmt(hi)}")
+    if lo is not None and lo < safety.omega_min_rad_s:
+        raise t.error(f"candidate_omega_min_rad_s {_fmt(lo)} is below [safety] omega_min_rad_s {_fmt(safety.omega_min_rad_s)}")
+    if hi is not None and hi > safety.omega_max_rad_s:
+        raise t.error(f"candidate_omega_max_rad_s {_fmt(hi)} exceeds [safety] omega_max_rad_s {_fmt(safety.omega_max_rad_s)}")
     return s
 
 

@@ -61,7 +61,8 @@ def format_procedure(procedure: Procedure) -> str:
     b, s = p.backend, p.backend.simulation
     out += ["[backend]", f"kind = {_toml_value(b.kind)}", "", "[backend.simulation]",
             f"noise_profile = {_toml_value(s.noise_profile)}", f"noise_scale = {_toml_value(float(s.noise_scale))}",
-            f"unmodelled_dynamics = {_toml_value(bool(s.unmodelled_dynamics))}", ""]
+            f"unmodelled_dynamics = {_toml_value(bool(s.unmodelled_dynamics))}",
+            *([f"first_mode_rad_s = {_toml_value(float(s.first_mode_rad_s))}"] if s.first_mode_rad_s != 1.0 else []), ""]
     if b.transport:
         out += ["[backend.transport]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in b.transport.items()] + [""]
     if b.faults:
@@ -83,8 +84,8 @@ def format_procedure(procedure: Procedure) -> str:
     d = p.input_design
     out += ["[input_design]", f"strategy = {_toml_value(d.strategy)}", f"candidates_base = {int(d.candidates_base)}",
             f"candidates_per_iteration = {int(d.candidates_per_iteration)}",
-            f"candidate_omega_min_rad_s = {_toml_value(float(d.candidate_omega_min_rad_s))}",
-            f"candidate_omega_max_rad_s = {_toml_value(float(d.candidate_omega_max_rad_s))}",
+            *(f"{key} = {_toml_value(float(getattr(d, key)))}" for key in ("candidate_omega_min_rad_s", "candidate_omega_max_rad_s")
+              if getattr(d, key) is not None),
             f"exact_resolve_top = {int(d.exact_resolve_top)}", ""]
     w = p.weights
     out += ["[weights]"] + [f"{k} = {_toml_value([float(c) for c in getattr(w, k)])}" for k in ("w1_num", "w1_den", "w2_num", "w2_den")]

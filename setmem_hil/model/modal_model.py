@@ -183,6 +183,19 @@ class IntervalModel:
         mid = 0.5 * (self.lower + self.upper)
         return ModalParameters(mid + x * (self.upper - mid))
 
+    def time_scaled(self, factor: float) -> "IntervalModel":
+        """The model of the time-scaled structure ``G'(s) = G(s / factor)``: every frequency times
+        ``factor`` (``a1, b1`` times ``factor``, ``a0, b0`` times ``factor**2``)."""
+        f = float(factor)
+        scale = np.array([f, f * f, f, f * f])
+        return IntervalModel(self.lower * scale, self.upper * scale)
+
+    def magnitude_scaled(self, factor: float) -> "IntervalModel":
+        """The model of ``factor G`` (``factor > 0``): ``b1, b0`` times ``factor``."""
+        f = float(factor)
+        scale = np.array([1.0, 1.0, f, f])
+        return IntervalModel(self.lower * scale, self.upper * scale)
+
     def named_intervals(self) -> list[dict[str, list[float]]]:
         """``[{"a1": [lo, hi], ...}, ...]``: the identify result format's ``modes``."""
         return [

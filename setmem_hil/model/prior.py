@@ -21,7 +21,7 @@ import difflib
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -85,6 +85,14 @@ class Prior:
     max_partitions: int = 200
     extra: Mapping[str, Any] = field(default_factory=dict)
     residuals: ResidualPrior = field(default_factory=ResidualPrior)
+
+    def time_scaled(self, factor: float) -> "Prior":
+        """The prior of the time-scaled structure ``G(s / factor)``: frequencies and ``b1`` times
+        ``factor``, ``b0`` times ``factor**2``, damping bounds unchanged."""
+        f = float(factor)
+        modes = tuple(replace(m, omega_min=m.omega_min * f, omega_max=m.omega_max * f, b1_min=m.b1_min * f,
+                              b1_max=m.b1_max * f, b0_min=m.b0_min * f * f, b0_max=m.b0_max * f * f) for m in self.modes)
+        return replace(self, modes=modes)
 
     @property
     def n_modes(self) -> int:

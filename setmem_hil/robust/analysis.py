@@ -153,7 +153,68 @@ def analyze_robust_performance(
     >>> r = analyze_robust_performance(IntervalModel.point(beam_parameters().truncated(3)))
     >>> 0.85 < r.mu_peak < 1.0
     True
+
+    Notes
+    -----
+    **Any frequency scale.** The problem is solved in normalised time ``s_n = s / T`` with
+    ``T = weights.reference_frequency_rad_s()`` (model, weights, grid and controller scaled;
+    frequencies scaled back on return), and in normalised magnitude (plant and W1 divided by
+    ``M = weights.reference_magnitude()``, the controller multiplied back). Rescaling time changes nothing physical, so a structure
+    at 50 Hz with time-scaled weights gets the mu-bar, sensitivities and peak frequency (times
+    ``S``) of the same structure at 1 rad/s; without it the H2 Riccati equations and the mu
+    solver meet matrices with entries 1e8 apart. For the thesis weights ``T = 1`` exactly and
+    nothing is scaled. The default grid is 200 log-spaced points over ``[0.1, 1000] T``, plus 25
+    points around every modelled mode outside that range (so no mode is ever off the grid).
     """
+    T = weights.reference_frequency_rad_s()
+    M = weights.reference_magnitude()
+    if not (math.isfinite(T) and T > 0.0 and math.isfinite(M) and M > 0.0):
+        raise ValueError(f"weights: reference frequency {T!r} rad/s (from W2) and magnitude {M!r} (from W1) must be positive")
+    if T == 1.0 and M == 1.0:
+        return _analyze_normalised(model, weights, omega_rad_s, controller)
+    if controller is not None and not hasattr(controller, "A"):
+        import control
+
+        controller = control.ss(controller)
+    result = _analyze_normalised(
+        model.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
+        weights.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
+        None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float) / T,
+        None if controller is None else _time_scaled_controller(controller, 1.0 / T, M),
+    )
+    return RobustAnalysis(
+        mu_peak=result.mu_peak,
+        mu_peak_omega=result.mu_peak_omega * T,
+        mu_lower_peak=result.mu_lower_peak,
+        omega=result.omega * T,
+        mu=result.mu,
+        mu_lower=result.mu_lower,
+        sensitivities=result.sensitivities,
+        controller=_time_scaled_controller(result.controller, T, 1.0 / M),
+        controller_order=result.controller_order,
+    )
+
+
+def _time_scaled_controller(K, factor: float, gain: float = 1.0):
+    """``K'(s) = gain K(s / factor)``: state space ``(factor A, factor B, gain C, gain D)``."""
+    import control
+
+    return control.ss(np.asarray(K.A) * factor, np.asarray(K.B) * factor, np.asarray(K.C) * gain, np.asarray(K.D) * gain)
+
+
+def default_grid_for(model: IntervalModel) -> np.ndarray:
+    """:func:`default_omega_grid` plus 25 points around each mode outside it (normalised units)."""
+    grid = default_omega_grid()
+    wn = np.sqrt(np.maximum(0.5 * (model.lower[:, 1] + model.upper[:, 1]), 0.0))
+    outside = wn[(wn > 0) & ((wn < grid[0]) | (wn > grid[-1]))]
+    if outside.size == 0:
+        return grid
+    extra = [np.geomspace(w / 1.5, w * 1.5, 25) for w in outside]
+    return np.unique(np.concatenate([grid, *extra]))
+
+
+def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, controller) -> RobustAnalysis:
+    """:func:`analyze_robust_performance` of a problem already in normalised time."""
     plant = augmented_plant(uncertain_plant(model), weights, design_w2=True)
     if controller is not None and not hasattr(controller, "A"):
         import control
@@ -161,7 +222,7 @@ def analyze_robust_performance(
         controller = control.ss(controller)  # e.g. a TransferFunction
     K = h2_controller_for_plant(plant) if controller is None else controller
     order = int(np.asarray(K.A).shape[0]) if np.asarray(K.A).size else 0
-    omega = default_omega_grid() if omega_rad_s is None else np.sort(np.asarray(omega_rad_s, dtype=float).ravel())
+    omega = default_grid_for(model) if omega_rad_s is None else np.sort(np.asarray(omega_rad_s, dtype=float).ravel())
     if omega.size == 0 or np.any(~np.isfinite(omega)) or np.any(omega < 0):
         raise ValueError("omega_rad_s: expected finite non-negative frequencies")
     structure = MuStructure(plant.n_real, plant.n_complex)

@@ -26,13 +26,16 @@ from setmem_hil.cli.main import SAFE_STOP
 
 __all__ = ["register", "campaign", "print_iteration_table"]
 
+CAMPAIGN_HELP = (
+    "Run the campaign (thesis Algorithm 5.1) of a procedure file into DIR and print the figure-6-12 table. "
+    "The same run as 'setmem-hil run', for scripts and sweeps of backends: --out is required, --backend "
+    "overrides the procedure's backend kind. Resume a stopped campaign with 'setmem-hil run --resume DIR'."
+)
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        "campaign",
-        help="run the Algorithm 5.1 campaign of a procedure file into DIR",
-        description=__doc__.split("\n\n")[0],
-    )
+    p = subparsers.add_parser("campaign", help="run a procedure's campaign into DIR, with a backend override (scripts)",
+                              description=CAMPAIGN_HELP)
     p.add_argument("--procedure", required=True, metavar="FILE.toml", help="procedure file")
     p.add_argument("--backend", choices=BACKENDS, help="override the procedure's backend kind")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created; must not hold a journal)")

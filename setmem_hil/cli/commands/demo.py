@@ -22,11 +22,9 @@ __all__ = ["register", "demo", "default_demo_dir"]
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        "demo",
-        help="run the thesis section 6.3.2 campaign on the simulated beam",
-        description=__doc__.split("\n\n")[0],
-    )
+    p = subparsers.add_parser("demo", help="run the thesis section 6.3.2 campaign on the simulated beam", description=(
+        "Run the thesis section 6.3.2 campaign on the simulated cantilever beam until mu-bar < 1, with progress, "
+        "and write the journal, summary.json and report.html into DIR."))
     p.add_argument("--out", metavar="DIR", help="output directory (default ./setmem-hil-demo-<UTC time>)")
     p.add_argument("--seed", type=int, help="seed of the simulated noise (default: the procedure's)")
     p.add_argument("--quiet", action="store_true", help="no progress output")

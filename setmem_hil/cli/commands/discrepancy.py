@@ -13,13 +13,15 @@ from __future__ import annotations
 import argparse
 import sys
 
-from setmem_hil.io.data_file import read_data_csv
+from setmem_hil.cli.data_options import add_data_options, load_data
 from setmem_hil.io.result_file import write_json
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("discrepancy", help="find and name what the model lacks, add it, show the gap shrink")
-    p.add_argument("--data", required=True, metavar="DATA.csv", help="CSV with header omega,re,im,bound")
+    p = subparsers.add_parser("discrepancy", help="find and name what the model lacks, add it, show the gap shrink",
+                              description="Find where a model and measured data disagree, name the missing effect (or none / "
+                              "unexplained), add it, re-identify and show the gap shrink (REPORT.json, optional figure).")
+    add_data_options(p)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--prior", metavar="PRIOR.toml", help="identify the model from this prior first")
     src.add_argument("--model", metavar="MODEL.json", help="a model in the identify result format")
@@ -31,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from setmem_hil.discrepancy.workflow import check_discrepancy, discrepancy_from_prior
 
-    data = read_data_csv(args.data)
+    data = load_data(args)
     if args.prior:
         from setmem_hil.model.prior import read_prior
 

@@ -10,15 +10,17 @@ from __future__ import annotations
 import argparse
 import sys
 
-from setmem_hil.io.data_file import read_data_csv
+from setmem_hil.cli.data_options import add_data_options, load_data
 from setmem_hil.identification.algorithm import identify
 from setmem_hil.model.prior import read_prior
 from setmem_hil.io.result_file import write_json
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("identify", help="guaranteed interval bounds of a modal model from frequency data")
-    p.add_argument("--data", required=True, metavar="DATA.csv", help="CSV with header omega,re,im,bound")
+    p = subparsers.add_parser("identify", help="guaranteed interval bounds of a modal model from frequency data",
+                              description="Set-membership identification (thesis chapter 3): guaranteed intervals of every "
+                              "modal parameter consistent with the data, its error bounds and the prior (RESULT.json).")
+    add_data_options(p)
     p.add_argument("--prior", required=True, metavar="PRIOR.toml", help="one [[mode]] table per mode")
     p.add_argument("--out", required=True, metavar="RESULT.json", help="where to write the intervals")
     p.add_argument("--reject-outliers", action="store_true",
@@ -27,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    data = read_data_csv(args.data)
+    data = load_data(args)
     prior = read_prior(args.prior)
     if args.reject_outliers:
         from setmem_hil.identification.outlier_rejection import identify_rejecting_outliers

@@ -1,0 +1,59 @@
+"""``setmem-hil prior --data DATA(.csv|.uff) --modes N [--band LO_HZ HI_HZ] --out PRIOR.toml``."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from setmem_hil.cli.data_options import add_data_options, load_data
+from setmem_hil.errors import InputFormatError
+
+__all__ = ["register", "run"]
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "prior", help="propose a prior (PRIOR.toml) from a measured FRF",
+        description="Estimate poles (LSCF, sdypy-EMA) and residues (least squares) of N modes from a measured FRF and "
+        "write them, widened into brackets, as PRIOR.toml, with a stability diagram (PRIOR-stability.png). The file "
+        "names every assumption; identification is guaranteed relative to this prior.")
+    add_data_options(p)
+    p.add_argument("--modes", required=True, type=int, metavar="N", help="number of [[mode]] tables (a low pseudo-mode for what lies below the band counts as one)")
+    p.add_argument("--band", nargs=2, type=float, metavar=("LO_HZ", "HI_HZ"), help="frequency band in Hz (default: the whole file)")
+    p.add_argument("--residuals", choices=("none", "lower", "upper", "both"), default="none", help="add a [residuals] table")
+    p.add_argument("--out", required=True, metavar="PRIOR.toml", help="where to write the prior")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from setmem_hil.estimation.modal_estimate import estimate_modes
+    from setmem_hil.io.atomic_file import write_text_atomic
+    from setmem_hil.io.prior_proposal import format_prior_proposal
+    from setmem_hil.report.stability_diagram import plot_stability_diagram
+
+    out = Path(args.out)
+    if not out.parent.exists():
+        raise InputFormatError(str(out), "--out", f"folder {out.parent} does not exist")
+    if args.modes < 1:
+        raise InputFormatError("setmem-hil prior", "--modes", f"expected at least 1, found {args.modes}")
+    data = load_data(args)
+    band = None
+    if args.band:
+        lo, hi = args.band
+        if not (0 < lo < hi and math.isfinite(hi)):
+            raise InputFormatError("setmem-hil prior", "--band", f"expected 0 < LO_HZ < HI_HZ, found {lo:g} {hi:g}")
+        band = (2 * math.pi * lo, 2 * math.pi * hi)
+    try:
+        estimate = estimate_modes(data, args.modes, band)
+    except ValueError as exc:
+        raise InputFormatError(str(args.data), "--modes/--band", str(exc)) from None
+    residuals = {"none": (), "lower": ("lower",), "upper": ("upper",), "both": ("lower", "upper")}[args.residuals]
+    write_text_atomic(out, format_prior_proposal(estimate, Path(args.data).name, residuals))
+    figure = plot_stability_diagram(estimate, data, out.with_name(out.stem + "-stability.png"))
+    for m in estimate.modes:
+        kind = "low pseudo-mode" if m.low_pseudo_mode else f"{m.omega_n_rad_s / (2 * math.pi):.6g} Hz, zeta {m.zeta:.3g}"
+        print(f"  mode: {kind}, b0 {m.b0:.4g}")
+    print(f"prior: {out} ({len(estimate.modes)} modes; worst normalised residual of the estimate "
+          f"{estimate.max_normalized_residual:.3g}); stability diagram: {figure}")
+    return 0

@@ -1,0 +1,180 @@
+"""Initial modal estimates from a measured FRF: poles by LSCF (sdypy-EMA), residues by least squares.
+
+This is what a lab does before any set-membership identification: a pole estimate per resonance
+and the residues at those poles. :func:`estimate_modes` gives them for ``setmem-hil prior``, which
+widens them into the brackets of a prior (``setmem_hil.io.prior_proposal``).
+
+1. Poles: the least-squares complex-frequency method (LSCF, Guillaume et al. 2003) of sdypy-EMA
+   (``sdypy.EMA.Model``, ``get_poles``) over the model orders up to ``max_order``; the physical
+   poles are the stable poles closest to the largest peaks of ``|G|`` in the band
+   (``select_closest_poles``). sdypy-EMA is the maintained continuation of pyEMA (LADISK).
+2. Residues: with the poles fixed, the real residues ``b0`` (``b1 = 0``: receptance) are the
+   weighted least-squares solution (weights ``1 / bound``) of ``sum_i b0_i / (s^2 + 2 zeta_i
+   omega_i s + omega_i^2)`` plus, when chosen, a low pseudo-mode (what lies below the band:
+   ``b0 / (s^2 + a1 s + a0)`` with its pole below the band, in band a mass line ``b0 / s^2``).
+3. The low pseudo-mode is used when it fits the data better than one more in-band resonance
+   (smaller worst normalised residual); either way there are ``n_modes`` modes.
+
+The estimate carries no guarantee: it only places the prior. The intervals ``identify`` then
+computes are guaranteed relative to that prior.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import find_peaks
+
+from setmem_hil.model.frequency_data import FrequencyData
+
+__all__ = ["ModeEstimate", "ModalEstimate", "estimate_modes"]
+
+LOW_MODE_FRACTION = 0.1
+"""The low pseudo-mode's natural frequency as a fraction of the band's lowest frequency."""
+
+
+@dataclass(frozen=True)
+class ModeEstimate:
+    omega_n_rad_s: float
+    zeta: float
+    b0: float
+    low_pseudo_mode: bool = False
+
+
+@dataclass(frozen=True)
+class ModalEstimate:
+    """Modes in ascending frequency, the fit's worst normalised residual, and the pole history
+    (frequency in rad/s and damping per model order) for the stability diagram."""
+
+    modes: tuple[ModeEstimate, ...]
+    max_normalized_residual: float
+    band_rad_s: tuple[float, float]
+    orders: tuple[np.ndarray, ...]
+    pole_omegas: tuple[np.ndarray, ...]
+    pole_zetas: tuple[np.ndarray, ...]
+
+
+def _lscf_poles(data: FrequencyData, max_order: int):
+    from sdypy import EMA
+
+    f_hz = data.omega_rad_s / (2 * np.pi)
+    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        warnings.simplefilter("ignore")
+        model = EMA.Model(frf=data.response[None, :], freq=f_hz, lower=float(f_hz[0]), upper=float(f_hz[-1]),
+                          pol_order_high=max_order, frf_form="receptance")
+        model.get_poles(method="lscf", show_progress=False)
+    return model
+
+
+def _peaks(data: FrequencyData, count: int) -> np.ndarray:
+    mag = np.abs(data.response)
+    idx, props = find_peaks(np.log(mag + 1e-300), prominence=0.0)
+    if idx.size == 0:
+        return np.zeros(0)
+    order = np.argsort(props["prominences"])[::-1][:count]
+    return np.sort(data.omega_rad_s[idx[order]])
+
+
+def _refine_pole(data: FrequencyData, wn: float, zeta: float) -> tuple[float, float]:
+    """Local refinement of one pole: a single mode plus a complex constant (the other modes)
+    fitted by nonlinear least squares to the lines within 3% of ``wn`` (weights ``1 / bound``).
+    Lightly damped poles must be placed to a fraction of their half-power width, which the
+    global polynomial fit does not always reach on coarse spectral lines."""
+    from scipy.optimize import least_squares
+
+    w = data.omega_rad_s
+    near = np.abs(w - wn) <= 0.03 * wn
+    if near.sum() < 5:
+        return wn, zeta
+    ww, gg, rr = w[near], data.response[near], np.maximum(data.bound[near], 1e-300)
+    s = 1j * ww
+    scale = float(np.max(np.abs(gg)))
+
+    def residual(x):
+        w0, z = wn * (1.0 + x[0]), np.exp(x[1])
+        model = scale * wn * wn * (x[2] + 1j * x[3]) / (s * s + 2 * z * w0 * s + w0 * w0) + scale * (x[4] + 1j * x[5])
+        r = (gg - model) / rr
+        return np.concatenate([r.real, r.imag])
+
+    k = int(np.argmax(np.abs(gg)))
+    x0 = np.array([ww[k] / wn - 1.0, np.log(max(zeta, 1e-5)), 2 * max(zeta, 1e-5) * 0.0, 2 * max(zeta, 1e-5), 0.0, 0.0])
+    try:
+        fit = least_squares(residual, x0, bounds=([-0.03, np.log(1e-7), -np.inf, -np.inf, -np.inf, -np.inf],
+                                                  [0.03, np.log(0.5), np.inf, np.inf, np.inf, np.inf]))
+    except ValueError:
+        return wn, zeta
+    return float(wn * (1.0 + fit.x[0])), float(np.exp(fit.x[1]))
+
+
+def _fit_residues(data: FrequencyData, wn: np.ndarray, zeta: np.ndarray):
+    s = 1j * data.omega_rad_s
+    cols = 1.0 / (s[:, None] ** 2 + 2 * zeta[None, :] * wn[None, :] * s[:, None] + wn[None, :] ** 2)
+    wt = 1.0 / np.maximum(data.bound, 1e-300 * np.max(np.abs(data.response)))
+    A = np.vstack([(cols * wt[:, None]).real, (cols * wt[:, None]).imag])
+    b = np.concatenate([(data.response * wt).real, (data.response * wt).imag])
+    col_scale = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+    x = np.linalg.lstsq(A / col_scale, b, rcond=None)[0] / col_scale
+    fit = cols @ x
+    normalized = np.abs(data.response - fit) / np.maximum(data.bound, 1e-300)
+    # the median chooses between candidate structures (a worst point near a resonance says more
+    # about a pole placed a line off than about the structure); the worst is reported
+    return x, float(np.median(normalized)), float(np.max(normalized))
+
+
+def estimate_modes(data: FrequencyData, n_modes: int, band_rad_s: tuple[float, float] | None = None,
+                   max_order: int | None = None) -> ModalEstimate:
+    """Pole and residue estimates of ``n_modes`` modes (see the module docstring).
+
+    Raises
+    ------
+    ValueError
+        Fewer than 8 lines in the band, or no resonance found.
+    """
+    if n_modes < 1:
+        raise ValueError(f"n_modes: expected at least 1, found {n_modes}")
+    w = data.omega_rad_s
+    lo, hi = band_rad_s if band_rad_s is not None else (float(w.min()), float(w.max()))
+    inside = (w >= lo) & (w <= hi)
+    if inside.sum() < 8:
+        raise ValueError(f"band [{lo:g}, {hi:g}] rad/s holds {int(inside.sum())} lines; need at least 8")
+    band = data.subset(np.flatnonzero(inside)) if hasattr(data, "subset") else FrequencyData(w[inside], data.response[inside], data.bound[inside])
+    order = max_order or int(min(80, max(20, 4 * n_modes + 10)))
+    model = _lscf_poles(band, order)
+    candidates = []
+    for n_in_band in (n_modes, n_modes - 1):  # all in band, or one low pseudo-mode below the band
+        if n_in_band < 0:
+            continue
+        peaks = _peaks(band, n_in_band)
+        if peaks.size < n_in_band:
+            continue
+        wn, zeta = [], []
+        if n_in_band:
+            with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                warnings.simplefilter("ignore")
+                model.select_closest_poles(list(peaks / (2 * np.pi)), f_window=max(2.0, 0.05 * float(np.median(peaks)) / (2 * np.pi)))
+            wn = list(2 * np.pi * np.asarray(model.nat_freq, dtype=float))
+            zeta = list(np.clip(np.asarray(model.nat_xi, dtype=float), 1e-6, 0.5))
+            for i, peak in enumerate(peaks):
+                if abs(wn[i] - peak) > 0.02 * peak:  # LSCF settled on another pole: start at the peak
+                    wn[i], zeta[i] = float(peak), 1e-3
+                wn[i], zeta[i] = _refine_pole(band, wn[i], zeta[i])
+        low = n_in_band < n_modes
+        if low:
+            wn, zeta = [LOW_MODE_FRACTION * lo] + wn, [0.1] + zeta
+        b0, typical, worst = _fit_residues(band, np.asarray(wn), np.asarray(zeta))
+        modes = tuple(ModeEstimate(float(a), float(z), float(b), low and i == 0) for i, (a, z, b) in enumerate(zip(wn, zeta, b0)))
+        candidates.append((typical, worst, modes))
+    if not candidates:
+        raise ValueError(f"no {n_modes} resonances found in [{lo:g}, {hi:g}] rad/s")
+    _, residual, modes = min(candidates, key=lambda c: c[0])
+    modes = tuple(sorted(modes, key=lambda m: m.omega_n_rad_s))
+    orders = tuple(np.full(len(p), k + 1) for k, p in enumerate(model.pole_freq))
+    return ModalEstimate(
+        modes=modes, max_normalized_residual=residual, band_rad_s=(float(lo), float(hi)), orders=orders,
+        pole_omegas=tuple(2 * np.pi * np.asarray(p, dtype=float) for p in model.pole_freq),
+        pole_zetas=tuple(np.asarray(z, dtype=float) for z in model.pole_xi),
+    )

@@ -1,0 +1,77 @@
+"""PRIOR.toml proposed from modal estimates (``setmem-hil prior``), with every assumption named.
+
+The brackets (choices where a lab has no other information; each is written as a comment in
+the file):
+
+* natural frequency: the estimate +-``WIDTH`` (5 %), narrowed to half the gap to a neighbour so
+  the bands never overlap;
+* damping: ``zeta_max = max(0.01, 10 zeta_estimate)``, at most 0.5;
+* residue: ``b0`` within +-100 % of its least-squares estimate (the sign is kept), ``b1 = 0``
+  (receptance of a displacement sensor);
+* the low pseudo-mode (what lies below the band): natural frequency in ``[0.01, 0.8]`` times the
+  band's lowest frequency, ``zeta_max = 0.1``, ``b0`` within ``[0.1, 10]`` times its estimate.
+
+Identification is guaranteed *relative to the prior*: if a bracket excludes the truth, the
+intervals are those of the prior's world, not of the structure. Widen a bracket when in doubt.
+"""
+
+from __future__ import annotations
+
+import math
+
+from setmem_hil.estimation.modal_estimate import ModalEstimate
+
+__all__ = ["format_prior_proposal", "WIDTH"]
+
+WIDTH = 0.05
+
+
+def _num(x: float) -> str:
+    return repr(float(f"{x:.8g}"))
+
+
+def _bands(estimate: ModalEstimate) -> list[tuple[float, float]]:
+    lo_band = estimate.band_rad_s[0]
+    wn = [m.omega_n_rad_s for m in estimate.modes]
+    out = []
+    for i, m in enumerate(estimate.modes):
+        if m.low_pseudo_mode:
+            out.append((0.01 * lo_band, 0.8 * lo_band))
+            continue
+        lo, hi = wn[i] * (1 - WIDTH), wn[i] * (1 + WIDTH)
+        if i > 0 and not estimate.modes[i - 1].low_pseudo_mode:
+            lo = max(lo, math.sqrt(wn[i - 1] * wn[i]) * (1 + 1e-6))
+        if i + 1 < len(wn):
+            hi = min(hi, math.sqrt(wn[i] * wn[i + 1]) * (1 - 1e-6))
+        out.append((lo, hi))
+    return out
+
+
+def format_prior_proposal(estimate: ModalEstimate, source: str, residuals: tuple[str, ...] = ()) -> str:
+    """The PRIOR.toml text for ``estimate`` (see the module docstring for the rules)."""
+    lo_hz, hi_hz = (w / (2 * math.pi) for w in estimate.band_rad_s)
+    lines = [
+        f"# Prior proposed by `setmem-hil prior` from {source}, band {lo_hz:.6g}-{hi_hz:.6g} Hz.",
+        "# ASSUMPTIONS (edit them if you know better): natural frequency = estimate +-5 % (no overlaps);",
+        "# zeta_max = max(0.01, 10 x estimate); b0 = estimate +-100 %; b1 = 0 (receptance).",
+        "# Identification is guaranteed RELATIVE TO THIS PRIOR: a bracket that excludes the truth",
+        f"# gives intervals of the prior's world. Worst normalised residual of the estimate: {estimate.max_normalized_residual:.3g}.",
+        "",
+    ]
+    for m, (lo, hi) in zip(estimate.modes, _bands(estimate)):
+        lines.append("[[mode]]")
+        if m.low_pseudo_mode:
+            lines.append("# low pseudo-mode: stands for what lies below the band (rigid-body mass line, lower modes);")
+            lines.append("# ASSUMED: omega_n in [0.01, 0.8] x the band's lowest frequency, zeta_max 0.1, b0 in [0.1, 10] x estimate")
+            b_lo, b_hi = sorted((0.1 * m.b0, 10.0 * m.b0))
+            zeta_max = 0.1
+        else:
+            lines.append(f"# estimate: {m.omega_n_rad_s / (2 * math.pi):.6g} Hz = {m.omega_n_rad_s:.6g} rad/s, zeta {m.zeta:.3g}, b0 {m.b0:.4g}")
+            b_lo, b_hi = sorted((m.b0 - abs(m.b0), m.b0 + abs(m.b0)))
+            zeta_max = min(0.5, max(0.01, 10.0 * m.zeta))
+        lines += [f"omega_min = {_num(lo)}", f"omega_max = {_num(hi)}", f"zeta_max = {_num(zeta_max)}", "b1 = 0.0",
+                  f"b0_min = {_num(b_lo)}", f"b0_max = {_num(b_hi)}", ""]
+    if residuals:
+        lines += ["[residuals]", "# residual terms for modes outside the band (mass line below, flexibility above)",
+                  f"lower = {'true' if 'lower' in residuals else 'false'}", f"upper = {'true' if 'upper' in residuals else 'false'}", ""]
+    return "\n".join(lines)
