@@ -136,3 +136,24 @@ def test_page_in_a_real_browser_shows_points_and_its_buttons_steer_the_run(tmp_p
             child.kill()
     assert child.returncode == 130
     assert (shots / "live-view-paused.png").stat().st_size > 10_000
+
+
+def test_view_serves_a_finished_run_read_only(tmp_path):
+    from setmem_hil.cli.main import main
+
+    procedure = _procedure(tmp_path, max_experiments=1)
+    assert main(["run", str(procedure), "--out", str(tmp_path / "done"), "--quiet"]) == 0
+    child = subprocess.Popen([sys.executable, "-m", "setmem_hil.cli.main", "view", str(tmp_path / "done")],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = child.stdout.readline()
+        assert line.startswith("live view: http://127.0.0.1:"), line
+        url = line.strip().removeprefix("live view: ")
+        base, token = url.split("/?token=")[0], url.split("token=")[1]
+        assert _call(base, "/api/state")[0] in (401, 403)
+        status, state = _call(base, "/api/state", token)
+        assert status == 200 and state["status"] == "finished" and state["n_points"] == 16 and state["mu_peak"] is not None
+        assert _call(base, "/api/pause", token, "POST")[0] == 409  # a viewer cannot steer another process's run
+    finally:
+        child.terminate()
+        child.wait(timeout=30)
