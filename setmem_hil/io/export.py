@@ -37,7 +37,7 @@ from typing import Iterable, Sequence
 
 from setmem_hil.io.atomic_file import write_text_atomic
 from setmem_hil.model.frequency_data import FrequencyData
-from setmem_hil.io.journal import Journal
+from setmem_hil.io.journal import read_snapshot
 from setmem_hil.model.modal_model import PARAM_NAMES
 
 __all__ = ["export_csv", "EXPORT_FILES"]
@@ -90,14 +90,8 @@ def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[P
     InputFormatError
         If ``run_dir`` holds no journal.
     """
-    journal = Journal.open(run_dir)
-    try:
-        rows = journal.measurement_rows()
-        measurements = journal.measurements()
-        iterations = journal.iterations()
-        events = journal.events()
-    finally:
-        journal.close()
+    snap = read_snapshot(run_dir)
+    rows, measurements, iterations, events = snap.rows, snap.measurements, snap.iterations, snap.events
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}

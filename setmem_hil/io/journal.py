@@ -58,7 +58,7 @@ import numpy as np
 from setmem_hil.errors import InputFormatError, JournalError
 from setmem_hil.model.experiment import Measurement
 
-__all__ = ["Journal", "IterationRecord", "JournalError", "JOURNAL_FILENAME", "journal_path", "ROLES"]
+__all__ = ["Journal", "IterationRecord", "JournalError", "JournalSnapshot", "read_snapshot", "JOURNAL_FILENAME", "journal_path", "ROLES"]
 
 JOURNAL_FILENAME = "journal.sqlite"
 APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
@@ -534,3 +534,24 @@ class Journal:
         if ks != list(range(1, len(ks) + 1)):
             problems.append(f"iterations are not 1..{len(ks)} without gaps")
         return problems
+
+
+@dataclass(frozen=True)
+class JournalSnapshot:
+    """Everything a journal holds, read in one go (report, export and live view all need it whole)."""
+
+    info: dict
+    measurements: list
+    rows: list
+    iterations: list
+    discrepancies: list
+    events: list
+
+
+def read_snapshot(run_dir: str | os.PathLike) -> JournalSnapshot:
+    """Open the journal of ``run_dir`` (or the file), read everything, close it."""
+    j = Journal.open(run_dir)
+    try:
+        return JournalSnapshot(j.run_info(), j.measurements(), j.measurement_rows(), j.iterations(), j.discrepancies(), j.events())
+    finally:
+        j.close()

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from setmem_hil.io.journal import Journal
+from setmem_hil.io.journal import read_snapshot
 from setmem_hil.model.modal_model import IntervalModel
 
 __all__ = ["journal_state"]
@@ -38,14 +38,8 @@ def journal_state(run_dir: str | Path, live: dict | None = None) -> dict:
     """The API's state document (``GET /api/state``); ``live`` adds what only the running process
     knows (status from the buttons, the current dwell)."""
     live = dict(live or {})
-    j = Journal.open(run_dir)
-    try:
-        info = j.run_info()
-        rows = j.measurement_rows()
-        iterations = j.iterations()
-        events = j.events()
-    finally:
-        j.close()
+    snap = read_snapshot(run_dir)
+    info, rows, iterations, events = snap.info, snap.rows, snap.iterations, snap.events
     kinds = [e["kind"] for e in events]
     if info["finished"]:
         status = "finished"

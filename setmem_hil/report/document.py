@@ -22,7 +22,6 @@ import html
 import json
 import math
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -30,7 +29,7 @@ import numpy as np
 
 from setmem_hil.errors import SetmemError
 from setmem_hil.io.atomic_file import write_text_atomic
-from setmem_hil.io.journal import IterationRecord, Journal, journal_path
+from setmem_hil.io.journal import IterationRecord, journal_path, read_snapshot
 from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel
 
 __all__ = ["write_report", "REPORT_FILENAME", "FIGURE_FILES", "figure_iterations"]
@@ -58,16 +57,6 @@ def _exact_resolves(events) -> dict:
     return out
 
 
-@dataclass(frozen=True)
-class _Run:
-    info: dict
-    measurements: list
-    rows: list
-    iterations: list[IterationRecord]
-    discrepancies: list
-    events: list
-
-
 def figure_iterations(iterations: Sequence[IterationRecord]) -> list[int]:
     """Iterations that get sample-transfer-function and pole-zero figures.
 
@@ -88,14 +77,6 @@ def _mu_target(procedure_text: str) -> float:
         return float(parse_procedure_text(procedure_text, "<journal>").goal.mu_target)
     except SetmemError:
         return 1.0
-
-
-def _read(run_dir: Path) -> _Run:
-    j = Journal.open(run_dir)
-    try:
-        return _Run(j.run_info(), j.measurements(), j.measurement_rows(), j.iterations(), j.discrepancies(), j.events())
-    finally:
-        j.close()
 
 
 def _e(x: Any) -> str:
@@ -164,7 +145,7 @@ def write_report(run_dir: str | os.PathLike) -> Path:
 
     jp = journal_path(run_dir)
     out_dir = jp.parent
-    run = _read(out_dir)
+    run = read_snapshot(out_dir)
     info, its = run.info, run.iterations
     target = _mu_target(info["procedure_text"])
     parts: list[str] = []
