@@ -197,3 +197,37 @@ def test_analyze_takes_a_weights_only_file_and_prints_a_summary(tmp_path, capsys
     (tmp_path / "w.toml").write_text("[weights]\n" + "\n".join(f"{k} = {list(getattr(THESIS_WEIGHTS, k))}" for k in ("w1_num", "w1_den", "w2_num", "w2_den")) + "\n")
     assert main(["analyze", "--model", str(tmp_path / "m.json"), "--procedure", str(tmp_path / "w.toml"), "--out", str(tmp_path / "a.json")]) == 0
     assert "mu-bar peak" in capsys.readouterr().out
+
+
+def test_empty_files_and_wrong_types_are_named(tmp_path, capsys):
+    (tmp_path / "empty.csv").write_text("")
+    (tmp_path / "header_only.csv").write_text("omega,re,im,bound\n")
+    (tmp_path / "typed.toml").write_text('[[mode]]\nomega_min = 0.9\nomega_max = 1.1\nzeta_max = "small"\nb1 = 0\n')
+    prior = REPO / "procedures" / "beam_6_3_2.toml"
+    for data, where in (("empty.csv", "empty file"), ("header_only.csv", "no data rows")):
+        assert main(["identify", "--data", str(tmp_path / data), "--prior", str(prior), "--out", str(tmp_path / "r.json")]) == 2
+        assert where in capsys.readouterr().err
+    rows = _beam_rows()
+    (tmp_path / "good.csv").write_text("omega,re,im,bound\n" + "\n".join(",".join(r) for r in rows) + "\n")
+    assert main(["identify", "--data", str(tmp_path / "good.csv"), "--prior", str(tmp_path / "typed.toml"), "--out", str(tmp_path / "r.json")]) == 2
+    assert "zeta_max" in capsys.readouterr().err
+
+
+def test_duplicated_and_unsorted_rows_are_data_and_keep_the_guarantee(tmp_path, capsys):
+    """Repeated measurements at one frequency and any row order are legitimate: exit 0, truth inside."""
+    import json
+
+    import numpy as np
+
+    from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
+
+    rows = _beam_rows()
+    shuffled = [rows[i] for i in np.random.default_rng(2).permutation(len(rows))] + rows[:3]
+    (tmp_path / "d.csv").write_text("omega,re,im,bound\n" + "\n".join(",".join(r) for r in shuffled) + "\n")
+    out = tmp_path / "r.json"
+    assert main(["identify", "--data", str(tmp_path / "d.csv"), "--prior", str(REPO / "procedures" / "beam_6_3_2.toml"), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    truth = SimulatedBeamExperiment(seed=1).modelled_truth.values
+    lo = np.array([[m[k][0] for k in ("a1", "a0", "b1", "b0")] for m in doc["modes"]])
+    hi = np.array([[m[k][1] for k in ("a1", "a0", "b1", "b0")] for m in doc["modes"]])
+    assert np.all((lo <= truth) & (truth <= hi))
