@@ -6,7 +6,7 @@ import json
 import pytest
 
 from setmem_hil.cli.main import main
-from setmem_hil.cli.commands.analyze import _weights_from_table
+from setmem_hil.io.analysis_inputs import read_weights_table as _weights_from_table
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.io.result_file import result_document, write_json
 from setmem_hil.sim_backends.beam import beam_parameters
