@@ -128,3 +128,24 @@ def test_real_beam_prior_then_identify_relaxed_and_honest(tmp_path, capsys):
     code = main(["identify", "--data", str(beam / "frf_displacement.csv"), "--prior", str(prior), "--out", str(tmp_path / "h.json")])
     err = capsys.readouterr().err
     assert code == 3 and "rad/s" in err and not (tmp_path / "h.json").exists()  # the modal model misses the honest bound
+
+
+def test_prior_with_residual_terms_brackets_them_and_identify_contains_the_truth(tmp_path):
+    """A lower residual (mass line of a mode below the band): estimated, bracketed, identified."""
+    w = 2 * np.pi * F_HZ
+    r_true = -0.5  # G + r/s^2: a rigid-body-like mass line, -r/omega^2 = +0.5/omega^2
+    g = _receptance() + r_true / (1j * w) ** 2
+    rng = np.random.default_rng(7)
+    bound = 0.02 * np.abs(g)
+    g_meas = g + 0.9 * bound * np.sqrt(rng.uniform(size=g.size)) * np.exp(2j * np.pi * rng.uniform(size=g.size))
+    lines = ["omega,re,im,bound"] + [f"{float(a)!r},{float(b.real)!r},{float(b.imag)!r},{float(c)!r}" for a, b, c in zip(w, g_meas, bound)]
+    (tmp_path / "frf.csv").write_text("\n".join(lines) + "\n")
+    assert main(["prior", "--data", str(tmp_path / "frf.csv"), "--modes", "3", "--residuals", "lower", "--out", str(tmp_path / "p.toml")]) == 0
+    text = (tmp_path / "p.toml").read_text()
+    assert "[residuals]" in text and "lower_min" in text and "lower_max" in text
+    assert main(["identify", "--data", str(tmp_path / "frf.csv"), "--prior", str(tmp_path / "p.toml"), "--out", str(tmp_path / "r.json")]) == 0
+    doc = json.loads((tmp_path / "r.json").read_text())
+    lo, hi = doc["residuals"]["lower"]
+    assert lo <= r_true <= hi
+    modes = np.array([[m[k][0] for k in ("a1", "a0", "b1", "b0")] for m in doc["modes"]]), np.array([[m[k][1] for k in ("a1", "a0", "b1", "b0")] for m in doc["modes"]])
+    assert np.all((modes[0] <= TRUTH.values) & (TRUTH.values <= modes[1]))

@@ -56,6 +56,7 @@ class ModalEstimate:
     orders: tuple[np.ndarray, ...]
     pole_omegas: tuple[np.ndarray, ...]
     pole_zetas: tuple[np.ndarray, ...]
+    residuals: dict = None  # fitted residual terms: {"lower": r (of r/s^2), "upper": r (constant)}
 
 
 def _lscf_poles(data: FrequencyData, max_order: int):
@@ -110,9 +111,13 @@ def _refine_pole(data: FrequencyData, wn: float, zeta: float) -> tuple[float, fl
     return float(wn * (1.0 + fit.x[0])), float(np.exp(fit.x[1]))
 
 
-def _fit_residues(data: FrequencyData, wn: np.ndarray, zeta: np.ndarray):
+def _fit_residues(data: FrequencyData, wn: np.ndarray, zeta: np.ndarray, residuals: tuple[str, ...] = ()):
+    """Weighted least-squares residues (and residual terms: ``lower`` r/s^2, ``upper`` constant)."""
     s = 1j * data.omega_rad_s
     cols = 1.0 / (s[:, None] ** 2 + 2 * zeta[None, :] * wn[None, :] * s[:, None] + wn[None, :] ** 2)
+    extra = [{"lower": 1.0 / s**2, "upper": np.ones_like(s)}[name] for name in residuals]
+    if extra:
+        cols = np.column_stack([cols, *extra])
     wt = 1.0 / np.maximum(data.bound, 1e-300 * np.max(np.abs(data.response)))
     A = np.vstack([(cols * wt[:, None]).real, (cols * wt[:, None]).imag])
     b = np.concatenate([(data.response * wt).real, (data.response * wt).imag])
@@ -126,7 +131,7 @@ def _fit_residues(data: FrequencyData, wn: np.ndarray, zeta: np.ndarray):
 
 
 def estimate_modes(data: FrequencyData, n_modes: int, band_rad_s: tuple[float, float] | None = None,
-                   max_order: int | None = None) -> ModalEstimate:
+                   max_order: int | None = None, residuals: tuple[str, ...] = ()) -> ModalEstimate:
     """Pole and residue estimates of ``n_modes`` modes (see the module docstring).
 
     Raises
@@ -165,16 +170,18 @@ def estimate_modes(data: FrequencyData, n_modes: int, band_rad_s: tuple[float, f
         low = n_in_band < n_modes
         if low:
             wn, zeta = [LOW_MODE_FRACTION * lo] + wn, [0.1] + zeta
-        b0, typical, worst = _fit_residues(band, np.asarray(wn), np.asarray(zeta))
+        coef, typical, worst = _fit_residues(band, np.asarray(wn), np.asarray(zeta), residuals)
+        b0, fitted = coef[: len(wn)], dict(zip(residuals, (float(c) for c in coef[len(wn):])))
         modes = tuple(ModeEstimate(float(a), float(z), float(b), low and i == 0) for i, (a, z, b) in enumerate(zip(wn, zeta, b0)))
-        candidates.append((typical, worst, modes))
+        candidates.append((typical, worst, modes, fitted))
     if not candidates:
         raise ValueError(f"no {n_modes} resonances found in [{lo:g}, {hi:g}] rad/s")
-    _, residual, modes = min(candidates, key=lambda c: c[0])
+    _, residual, modes, fitted = min(candidates, key=lambda c: c[0])
     modes = tuple(sorted(modes, key=lambda m: m.omega_n_rad_s))
     orders = tuple(np.full(len(p), k + 1) for k, p in enumerate(model.pole_freq))
     return ModalEstimate(
         modes=modes, max_normalized_residual=residual, band_rad_s=(float(lo), float(hi)), orders=orders,
         pole_omegas=tuple(2 * np.pi * np.asarray(p, dtype=float) for p in model.pole_freq),
         pole_zetas=tuple(np.asarray(z, dtype=float) for z in model.pole_xi),
+        residuals=fitted,
     )

@@ -71,6 +71,13 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
         lines += [f"omega_min = {_num(lo)}", f"omega_max = {_num(hi)}", f"zeta_max = {_num(zeta_max)}", "b1 = 0.0",
                   f"b0_min = {_num(b_lo)}", f"b0_max = {_num(b_hi)}", ""]
     if residuals:
-        lines += ["[residuals]", "# residual terms for modes outside the band (mass line below, flexibility above)",
-                  f"lower = {'true' if 'lower' in residuals else 'false'}", f"upper = {'true' if 'upper' in residuals else 'false'}", ""]
+        lines += ["[residuals]", "# residual terms for modes outside the band (lower: mass line r/s^2, upper: flexibility r)",
+                  "# ASSUMED: each within +-100 % of its least-squares estimate (+- the same for a zero estimate)",
+                  f"lower = {'true' if 'lower' in residuals else 'false'}", f"upper = {'true' if 'upper' in residuals else 'false'}"]
+        for name in residuals:
+            r = (estimate.residuals or {}).get(name)
+            if r is not None and r != 0.0:
+                lo, hi = sorted((r - abs(r), r + abs(r)))
+                lines += [f"{name}_min = {_num(lo)}", f"{name}_max = {_num(hi)}"]
+        lines.append("")
     return "\n".join(lines)

@@ -42,11 +42,11 @@ def run(args: argparse.Namespace) -> int:
         if not (0 < lo < hi and math.isfinite(hi)):
             raise InputFormatError("setmem-hil prior", "--band", f"expected 0 < LO_HZ < HI_HZ, found {lo:g} {hi:g}")
         band = (2 * math.pi * lo, 2 * math.pi * hi)
+    residuals = {"none": (), "lower": ("lower",), "upper": ("upper",), "both": ("lower", "upper")}[args.residuals]
     try:
-        estimate = estimate_modes(data, args.modes, band)
+        estimate = estimate_modes(data, args.modes, band, residuals=residuals)
     except ValueError as exc:
         raise InputFormatError(str(args.data), "--modes/--band", str(exc)) from None
-    residuals = {"none": (), "lower": ("lower",), "upper": ("upper",), "both": ("lower", "upper")}[args.residuals]
     write_text_atomic(out, format_prior_proposal(estimate, Path(args.data).name, residuals))
     figure = plot_stability_diagram(estimate, data, out.with_name(out.stem + "-stability.png"))
     for m in estimate.modes:
