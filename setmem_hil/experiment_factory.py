@@ -44,6 +44,8 @@ from setmem_hil.model.experiment import Experiment
 from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import BACKENDS, Procedure
+from setmem_hil.drivers.instruments.instrument_set import open_instrument_experiment
+from setmem_hil.loopback.instrument_emulation import open_emulated_instruments
 from setmem_hil.loopback.rigs import open_can_virtual_rig, open_modbus_loopback_rig, open_serial_loopback_rig
 from setmem_hil.sim_backends.beam import BEAM_N_MODES
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
@@ -86,14 +88,34 @@ def dwell_experiment(procedure: Procedure, rig, settings: DwellSettings | None =
     sim = procedure.backend.simulation
     n_modelled = procedure.prior.n_modes
     extra = None
-    if sim.unmodelled_dynamics and n_modelled < BEAM_N_MODES:
-        weights = procedure.weights
-
-        def extra(omega_rad_s: float) -> float:
-            return float(weights.w1_magnitude(omega_rad_s))
+    if procedure.unmodelled_bound is not None:  # stated in [identification]: it decides
+        extra = unmodelled_bound(procedure)
+    elif sim.unmodelled_dynamics and n_modelled < BEAM_N_MODES:
+        extra = unmodelled_bound(procedure)
 
     settings = settings or dwell_settings(procedure)
     return SineDwellExperiment(rig, procedure.safety, settings, model=procedure.prior.initial_bounds(), extra_bound=extra)
+
+
+def unmodelled_bound(procedure: Procedure):
+    """``|W1(j omega)|`` as a function when ``[identification] unmodelled_bound`` is ``"w1"``
+    (the default on instrument backends), else None."""
+    if (procedure.unmodelled_bound or "w1") != "w1":
+        return None
+    weights = procedure.weights
+
+    def extra(omega_rad_s: float) -> float:
+        return float(weights.w1_magnitude(omega_rad_s))
+
+    return extra
+
+
+def open_instruments(procedure: Procedure, seed: int):
+    """Real instruments, or their emulators when the procedure has ``[backend.emulation]``."""
+    extra = unmodelled_bound(procedure)
+    if procedure.backend.emulation is not None:
+        return open_emulated_instruments(procedure, seed, extra_bound=extra)
+    return open_instrument_experiment(procedure, extra_bound=extra)
 
 
 def open_experiment(procedure: Procedure, seed: int) -> Experiment:
@@ -120,6 +142,8 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
             w1_den=tuple(procedure.weights.w1_den),
             first_mode_rad_s=sim.first_mode_rad_s,
         )
+    if kind == "instruments":
+        return open_instruments(procedure, seed)
     if kind not in LOOPBACK_RIGS:
         raise ProcedureError(source, "[backend] key 'kind'", f"expected one of {list(BACKENDS)}, found {kind!r}")
     settings = dwell_settings(procedure)  # validated before any device is started

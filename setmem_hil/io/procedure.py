@@ -18,7 +18,10 @@ from typing import Any, Mapping
 from setmem_hil.model.prior import ModePrior, Prior
 from setmem_hil.model.weights import THESIS_WEIGHTS, Weights
 
-BACKENDS = ("sim", "serial-loopback", "can-virtual", "modbus-loopback")
+LOOPBACK_BACKENDS = ("serial-loopback", "can-virtual", "modbus-loopback")  # the project's own wire formats, fake devices only
+BACKENDS = ("sim", *LOOPBACK_BACKENDS, "instruments")
+SENSOR_QUANTITIES = ("force", "displacement", "velocity", "acceleration")
+UNMODELLED_BOUNDS = ("w1", "none")
 STRATEGIES = ("mu", "log-sweep", "random", "max-reduction")
 NOISE_PROFILES = ("fully_damped", "snr10", "resonance", "none")
 
@@ -31,6 +34,7 @@ class SafetyLimits:
     omega_min_rad_s: float = 0.05
     omega_max_rad_s: float = 2000.0
     max_dwell_s: float = 3600.0
+    max_response: float | None = None  # abort limit on the measured response amplitude (instrument backends)
 
 
 @dataclass(frozen=True)
@@ -44,11 +48,40 @@ class SimulationSettings:
 
 
 @dataclass(frozen=True)
+class InstrumentSettings:
+    """One ``[instruments.<name>]`` table: which profile, where, and its calibration."""
+
+    name: str
+    profile: str  # a shipped profile name or a path (relative to the procedure file)
+    resource: str  # PyVISA resource string, or tcp://HOST:PORT / rtu:///dev/X?baudrate=... for Modbus
+    channel: int = 1
+    newton_per_volt: float | None = None  # exciters: nominal force per volt of drive (planning only)
+    max_drive_v: float | None = None
+    load_ohms: float | None = None  # generator output load; None: high impedance
+    volt_per_unit: float | None = None  # sensors: sensitivity
+    calibration_uncertainty: float = 0.0
+    quantity: str | None = None  # sensors: None -> force for the force role, displacement for the response role
+    visa_library: str = "@py"
+
+
+@dataclass(frozen=True)
+class EmulationSettings:
+    """``[backend.emulation]``: run the instrument backend against the emulated instruments."""
+
+    drive_gain_ratio: float = 1.0  # true drive gain / the declared newton_per_volt
+    noise_v_per_rthz: float = 2e-6  # lock-in input noise density
+
+
+@dataclass(frozen=True)
 class BackendSettings:
     kind: str = "sim"
     simulation: SimulationSettings = SimulationSettings()
     transport: Mapping[str, Any] = field(default_factory=dict)  # per-transport options (url, channel, ...)
     faults: Mapping[str, Any] = field(default_factory=dict)  # fault injection of fake devices
+    exciter: str = ""  # kind = "instruments": names of [instruments.<name>] tables
+    force: str = ""
+    response: str = ""
+    emulation: EmulationSettings | None = None
 
 
 @dataclass(frozen=True)
@@ -95,6 +128,8 @@ class Procedure:
     input_design: InputDesignSettings = InputDesignSettings()
     weights: Weights = THESIS_WEIGHTS
     discrepancy_check: bool = False
+    instruments: Mapping[str, InstrumentSettings] = field(default_factory=dict)
+    unmodelled_bound: str | None = None  # "w1" | "none"; None: the backend's default (see procedure_file)
     description: str = ""
     source_text: str = ""  # the file's text, stored in the journal with the run
     source_path: str = ""

@@ -44,6 +44,11 @@ from setmem_hil.errors import InputFormatError, ProcedureError
 from setmem_hil.model.prior import ModePrior, Prior, parse_mode_table, parse_toml_text
 from setmem_hil.io.procedure import (
     BACKENDS,
+    LOOPBACK_BACKENDS,
+    SENSOR_QUANTITIES,
+    UNMODELLED_BOUNDS,
+    EmulationSettings,
+    InstrumentSettings,
     NOISE_PROFILES,
     STRATEGIES,
     BackendSettings,
@@ -103,17 +108,24 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("", "input_design", "table", "", "", "How the next frequency is chosen (chapter 5)."),
     KeySpec("", "weights", "table", "", "", "Control-design weights W1 (unmodelled dynamics bound) and W2 (performance)."),
     KeySpec("", "discrepancy", "table", "", "", "Model-discrepancy checks."),
+    KeySpec("", "instruments", "instrument-tables", "", "{}", "The real instruments, one [instruments.<name>] table each (kind = \"instruments\"); the names are what [backend] exciter, force and response refer to."),
     # [backend]
     KeySpec("backend", "kind", "choice", "", "sim", "Backend: the frequency-domain simulated beam or a fake device behind a loopback transport.", choices=BACKENDS),
     KeySpec("backend", "simulation", "table", "", "", "The simulated structure (behind every backend, including the fake devices)."),
     KeySpec("backend", "transport", "table", "", "{}", "Options of the loopback transport (timeouts, retries, CAN channel, Modbus framing...); the keys depend on kind, see below. Not allowed with kind = \"sim\"."),
     KeySpec("backend", "faults", "table", "", "", "Fault injection of the fake devices (issue 8). Not allowed with kind = \"sim\"."),
+    KeySpec("backend", "exciter", "string", "", "required with kind = \"instruments\"", "The [instruments.<name>] that drives the shaker (a generator or a Modbus controller)."),
+    KeySpec("backend", "force", "string", "", "required with kind = \"instruments\"", "The [instruments.<name>] lock-in reading the force sensor."),
+    KeySpec("backend", "response", "string", "", "required with kind = \"instruments\"", "The [instruments.<name>] lock-in reading the response sensor."),
+    KeySpec("backend", "emulation", "table", "", "absent: real instruments", "kind = \"instruments\" only: start emulators of the named instruments on their 127.0.0.1 resources, backed by the simulated beam on a virtual clock (CI, demos, rehearsals)."),
+    KeySpec("backend.emulation", "drive_gain_ratio", "number", "", 1.0, "True drive gain of the emulated amplifier over the declared newton_per_volt.", gt=0.0, le=10.0),
+    KeySpec("backend.emulation", "noise_v_per_rthz", "number", "V/sqrt(Hz)", 2e-6, "Noise density at the emulated lock-ins' inputs.", ge=0.0, le=1.0),
     KeySpec("backend.simulation", "noise_profile", "choice", "", _SIM.noise_profile, "Additive-noise bound R(omega) of section 6.2: fully damped model (6.3.2), SNR 10 (6.3.3), resonance noise (6.3.4) or none.", choices=NOISE_PROFILES),
     KeySpec("backend.simulation", "noise_scale", "number", "", _SIM.noise_scale, "Multiplies the noise bound.", ge=0.0),
     KeySpec("backend.simulation", "first_mode_rad_s", "number", "rad/s", _SIM.first_mode_rad_s, "First natural frequency of the simulated beam; all its modes scale with it, its residues with its square, and the simulated noise bounds follow the response (time-scale [weights] with it).", gt=0.0, le=1e9),
     KeySpec("backend.simulation", "unmodelled_dynamics", "bool", "", _SIM.unmodelled_dynamics, "Keep modes 4-8 in the simulated truth and add |W1| to each point's bound."),
     # [backend.transport]: one schema per backend kind, the same limits for every transport
-    *(spec for kind in BACKENDS[1:] for spec in (
+    *(spec for kind in LOOPBACK_BACKENDS for spec in (
         KeySpec(f"transport:{kind}", "reply_timeout_s", "number", "s", "per transport", "Wait for one device reply before retrying (serial 0.2, CAN/Modbus 0.1).", ge=1e-3, le=60.0),
         KeySpec(f"transport:{kind}", "max_attempts", "integer", "", "per transport", "Tries per command before a device fault is declared (serial 6, CAN/Modbus 7).", ge=1, le=100),
         KeySpec(f"transport:{kind}", "backoff_s", "number", "s", "per transport", "First wait between retries, doubling (0 = retry at once; serial 0.002, CAN/Modbus 0.01).", ge=0.0, le=10.0),
@@ -131,11 +143,23 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("backend.faults", "kinds", "strings", "", "all", "Enabled fault kinds: " + ", ".join(FAULT_KINDS) + "; with can-virtual also " + ", ".join(CAN_FAULT_KINDS) + "; with modbus-loopback also " + ", ".join(MODBUS_FAULT_KINDS) + "."),
     KeySpec("backend.faults", "seed", "integer", "", 0, "Seed of the fault draws.", ge=0, le=SEED_MAX),
     KeySpec("backend.faults", "rates", "kind-rates", "", "{}", "Per-kind probabilities overriding rate, e.g. rates = { timeout = 0.1, corrupt = 0.02 }."),
+    # [instruments.<name>]
+    KeySpec("instrument", "profile", "string", "", _REQUIRED, "Instrument profile: a shipped name (keysight-33500b, rigol-dg800, srs-sr830, srs-sr860, modbus-shaker-controller) or the path of a profile file, relative to the procedure."),
+    KeySpec("instrument", "resource", "string", "", _REQUIRED, "Where it is: a PyVISA resource string (TCPIP::HOST::5025::SOCKET, USB0::...::INSTR, ASRL/dev/ttyUSB0::INSTR); Modbus: tcp://HOST:PORT or rtu:///dev/ttyUSB0?baudrate=19200&parity=E."),
+    KeySpec("instrument", "channel", "integer", "", 1, "Output channel of a generator.", ge=1, le=16),
+    KeySpec("instrument", "newton_per_volt", "number", "N/V", "required for the exciter", "Nominal force amplitude per volt of drive amplitude (peak); for planning only: the measured force sets the level.", gt=0.0),
+    KeySpec("instrument", "max_drive_v", "number", "V", "the instrument's limit", "Never command more than this peak drive voltage.", gt=0.0),
+    KeySpec("instrument", "load_ohms", "number", "ohm", "high impedance", "Generator output load setting (the amplifier's input impedance).", gt=0.0),
+    KeySpec("instrument", "volt_per_unit", "number", "V/unit", "required for sensors", "Sensor sensitivity: volts per newton (force), per metre, per m/s or per m/s^2 (response).", gt=0.0),
+    KeySpec("instrument", "calibration_uncertainty", "number", "", 0.0, "Relative uncertainty of volt_per_unit; part of every point's bound and of the force limit.", ge=0.0, le=0.5),
+    KeySpec("instrument", "quantity", "choice", "", "force (force role) / displacement (response role)", "What the sensor measures; the point is converted to receptance.", choices=SENSOR_QUANTITIES),
+    KeySpec("instrument", "visa_library", "string", "", "@py", "PyVISA library: @py (pyvisa-py, pure Python), @ivi (a vendor VISA) or FILE.yaml@sim (pyvisa-sim)."),
     # [safety]
     KeySpec("safety", "max_amplitude_n", "number", "N", _S.max_amplitude_n, "Largest exciter amplitude ever commanded.", gt=0.0),
     KeySpec("safety", "omega_min_rad_s", "number", "rad/s", _S.omega_min_rad_s, "Lowest excitation frequency allowed.", gt=0.0),
     KeySpec("safety", "omega_max_rad_s", "number", "rad/s", _S.omega_max_rad_s, "Highest excitation frequency allowed (must exceed omega_min_rad_s).", gt=0.0),
     KeySpec("safety", "max_dwell_s", "number", "s", _S.max_dwell_s, "Longest single sine dwell (settling plus averaging).", gt=0.0),
+    KeySpec("safety", "max_response", "number", "response unit", "none", "Instrument backends: switch the output off and stop when the measured response amplitude exceeds this (in the response sensor's quantity).", gt=0.0),
     # [[mode]] (validated by setmem_hil.model.prior.parse_mode_table)
     KeySpec("mode", "omega_min", "number", "rad/s", _REQUIRED, "Lower bound of the natural frequency.", gt=0.0),
     KeySpec("mode", "omega_max", "number", "rad/s", _REQUIRED, "Upper bound of the natural frequency (>= omega_min)."),
@@ -148,6 +172,7 @@ SCHEMA: tuple[KeySpec, ...] = (
     # [identification]
     KeySpec("identification", "gamma", "number", "", 1.1, "Target embedding conservatism ratio of the partitioning (section 3.2.3); > 1.", gt=1.0),
     KeySpec("identification", "max_partitions", "integer", "", 200, "Largest number of frequency partitions per mode.", ge=1),
+    KeySpec("identification", "unmodelled_bound", "choice", "", "w1", "Add |W1(j omega)| from [weights] to every measured point's bound (\"w1\"), or nothing (\"none\"). Default \"w1\" on instrument backends; simulated backends add it when they simulate unmodelled modes.", choices=UNMODELLED_BOUNDS),
     # [initial]
     KeySpec("initial", "omega_rad_s", "numbers", "rad/s", _REQUIRED, "Initial frequencies, measured in this order (give this or log_spaced).", gt=0.0),
     KeySpec("initial", "log_spaced", "table", "", "", "Initial frequencies log-spaced: numpy.geomspace(min, max, n) (give this or omega_rad_s)."),
@@ -309,8 +334,56 @@ def _backend(top: _Table) -> BackendSettings:
     if kind == "sim":
         for key in ("transport", "faults"):
             if t.has(key):
-                raise ProcedureError(top.source, f"[backend.{key}]", f"only used by transport backends ({', '.join(BACKENDS[1:])}); kind is 'sim'")
-    return BackendSettings(kind=kind, simulation=sim, transport=transport, faults=faults)
+                raise ProcedureError(top.source, f"[backend.{key}]", f"only used by transport backends ({', '.join(LOOPBACK_BACKENDS)}); kind is 'sim'")
+    roles = {role: t.get(role, "") for role in ("exciter", "force", "response")}
+    emulation = None
+    if t.has("emulation"):
+        e = t.sub("emulation")
+        emulation = EmulationSettings(drive_gain_ratio=e.get("drive_gain_ratio", 1.0), noise_v_per_rthz=e.get("noise_v_per_rthz", 2e-6))
+    if kind != "instruments":
+        given = [k for k in ("exciter", "force", "response", "emulation") if t.has(k)]
+        if given:
+            raise ProcedureError(top.source, f"[backend] key '{given[0]}'", f"only used with kind = \"instruments\"; kind is {kind!r}")
+    return BackendSettings(kind=kind, simulation=sim, transport=transport, faults=faults, emulation=emulation, **roles)
+
+
+def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentSettings]:
+    """``[instruments.<name>]`` tables, and the [backend] roles checked against them."""
+    raw = top.mapping.get("instruments", {})
+    if not isinstance(raw, Mapping):
+        raise ProcedureError(top.source, "[instruments]", f"expected tables [instruments.<name>], found {_type_name(raw)} {_fmt(raw)}")
+    if raw and backend.kind != "instruments":
+        raise ProcedureError(top.source, "[instruments]", f"only used with [backend] kind = \"instruments\"; kind is {backend.kind!r}")
+    found: dict[str, InstrumentSettings] = {}
+    for name, table in raw.items():
+        t = _Table(top.source, "instrument", table, location=f"[instruments.{name}]")
+        found[name] = InstrumentSettings(
+            name=str(name), profile=t.get("profile"), resource=t.get("resource"), channel=t.get("channel", 1),
+            newton_per_volt=t.get("newton_per_volt"), max_drive_v=t.get("max_drive_v"), load_ohms=t.get("load_ohms"),
+            volt_per_unit=t.get("volt_per_unit"), calibration_uncertainty=t.get("calibration_uncertainty", 0.0),
+            quantity=t.get("quantity"), visa_library=t.get("visa_library", "@py"),
+        )
+    if backend.kind != "instruments":
+        return found
+    for role, needs in (("exciter", "newton_per_volt"), ("force", "volt_per_unit"), ("response", "volt_per_unit")):
+        name = getattr(backend, role)
+        where = f"[backend] key '{role}'"
+        if not name:
+            raise ProcedureError(top.source, where, f"missing: name the [instruments.<name>] table of the {role} (kind = \"instruments\")")
+        if name not in found:
+            close = difflib.get_close_matches(name, list(found), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise ProcedureError(top.source, where, f"no [instruments.{name}] table{hint} (tables: {', '.join(found) or 'none'})")
+        if getattr(found[name], needs) is None:
+            raise ProcedureError(top.source, f"[instruments.{name}]", f"missing key {needs!r} (the {role} needs it)")
+    force, response = found[backend.force], found[backend.response]
+    if (force.quantity or "force") != "force":
+        raise ProcedureError(top.source, f"[instruments.{force.name}] key 'quantity'", f"the force role's sensor must measure force, found {force.quantity!r}")
+    if response.quantity == "force":
+        raise ProcedureError(top.source, f"[instruments.{response.name}] key 'quantity'", "the response role's sensor must measure displacement, velocity or acceleration")
+    if backend.force == backend.response:
+        raise ProcedureError(top.source, "[backend] key 'response'", f"force and response name the same instrument {backend.force!r}; a lock-in reads one signal")
+    return found
 
 
 def _transport_options(top: _Table, backend: _Table, kind: str) -> dict[str, Any]:
@@ -318,7 +391,7 @@ def _transport_options(top: _Table, backend: _Table, kind: str) -> dict[str, Any
     did-you-mean), wrong types and out-of-range values are errors naming the key. Only the keys
     given are returned (the drivers own the defaults)."""
     raw = backend.mapping.get("transport", {})
-    if kind not in BACKENDS[1:]:
+    if kind not in LOOPBACK_BACKENDS:
         if not isinstance(raw, Mapping):
             raise ProcedureError(top.source, "[backend.transport]", f"expected a table, found {_type_name(raw)} {_fmt(raw)}")
         return dict(raw)  # kind 'sim' refuses the table below; an unknown kind is refused by kind
@@ -333,6 +406,7 @@ def _safety(top: _Table) -> SafetyLimits:
         omega_min_rad_s=t.get("omega_min_rad_s", _S.omega_min_rad_s),
         omega_max_rad_s=t.get("omega_max_rad_s", _S.omega_max_rad_s),
         max_dwell_s=t.get("max_dwell_s", _S.max_dwell_s),
+        max_response=t.get("max_response"),
     )
     if limits.omega_min_rad_s >= limits.omega_max_rad_s:
         raise t.error(f"omega_min_rad_s {_fmt(limits.omega_min_rad_s)} must be < omega_max_rad_s {_fmt(limits.omega_max_rad_s)}")
@@ -497,6 +571,8 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
     design = _input_design(top, safety)
     weights = _weights(top)
     discrepancy = top.sub("discrepancy").get("check_each_iteration", False)
+    instruments = _instruments(top, backend)
+    unmodelled_bound = top.sub("identification").get("unmodelled_bound")
     return Procedure(
         name=name,
         prior=prior,
@@ -508,6 +584,8 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
         input_design=design,
         weights=weights,
         discrepancy_check=discrepancy,
+        instruments=instruments,
+        unmodelled_bound=unmodelled_bound,
         description=description,
         source_text=text,
     )

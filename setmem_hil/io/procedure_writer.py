@@ -59,7 +59,8 @@ def format_procedure(procedure: Procedure) -> str:
     p = procedure
     out = [f"name = {_toml_value(p.name)}", f"description = {_toml_value(p.description)}", f"seed = {int(p.seed)}", ""]
     b, s = p.backend, p.backend.simulation
-    out += ["[backend]", f"kind = {_toml_value(b.kind)}", "", "[backend.simulation]",
+    roles = [f"{role} = {_toml_value(getattr(b, role))}" for role in ("exciter", "force", "response") if getattr(b, role)]
+    out += ["[backend]", f"kind = {_toml_value(b.kind)}", *roles, "", "[backend.simulation]",
             f"noise_profile = {_toml_value(s.noise_profile)}", f"noise_scale = {_toml_value(float(s.noise_scale))}",
             f"unmodelled_dynamics = {_toml_value(bool(s.unmodelled_dynamics))}",
             *([f"first_mode_rad_s = {_toml_value(float(s.first_mode_rad_s))}"] if s.first_mode_rad_s != 1.0 else []), ""]
@@ -67,8 +68,21 @@ def format_procedure(procedure: Procedure) -> str:
         out += ["[backend.transport]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in b.transport.items()] + [""]
     if b.faults:
         out += ["[backend.faults]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in b.faults.items()] + [""]
+    if b.emulation is not None:
+        out += ["[backend.emulation]", f"drive_gain_ratio = {_toml_value(float(b.emulation.drive_gain_ratio))}",
+                f"noise_v_per_rthz = {_toml_value(float(b.emulation.noise_v_per_rthz))}", ""]
+    for name, inst in p.instruments.items():
+        out.append(f"[instruments.{_toml_key(name)}]")
+        for key in ("profile", "resource", "channel", "newton_per_volt", "max_drive_v", "load_ohms", "volt_per_unit",
+                    "calibration_uncertainty", "quantity", "visa_library"):
+            value = getattr(inst, key)
+            if value is not None:
+                out.append(f"{key} = {_toml_value(value)}")
+        out.append("")
     sf = p.safety
-    out += ["[safety]"] + [f"{k} = {_toml_value(float(getattr(sf, k)))}" for k in ("max_amplitude_n", "omega_min_rad_s", "omega_max_rad_s", "max_dwell_s")] + [""]
+    out += ["[safety]"] + [f"{k} = {_toml_value(float(getattr(sf, k)))}" for k in ("max_amplitude_n", "omega_min_rad_s", "omega_max_rad_s", "max_dwell_s")]
+    out += [f"max_response = {_toml_value(float(sf.max_response))}"] if sf.max_response is not None else []
+    out += [""]
     for m in p.prior.modes:
         out += ["[[mode]]", f"omega_min = {_toml_value(float(m.omega_min))}", f"omega_max = {_toml_value(float(m.omega_max))}",
                 f"zeta_max = {_toml_value(float(m.zeta_max))}"]
@@ -78,7 +92,8 @@ def format_procedure(procedure: Procedure) -> str:
             out += [f"{k} = {_toml_value(float(getattr(m, k)))}" for k in ("b1_min", "b1_max") if math.isfinite(getattr(m, k))]
         out += [f"{k} = {_toml_value(float(getattr(m, k)))}" for k in ("b0_min", "b0_max") if math.isfinite(getattr(m, k))]
         out.append("")
-    out += ["[identification]", f"gamma = {_toml_value(float(p.prior.gamma))}", f"max_partitions = {int(p.prior.max_partitions)}", ""]
+    out += ["[identification]", f"gamma = {_toml_value(float(p.prior.gamma))}", f"max_partitions = {int(p.prior.max_partitions)}",
+            *([f"unmodelled_bound = {_toml_value(p.unmodelled_bound)}"] if p.unmodelled_bound is not None else []), ""]
     out += ["[initial]", f"omega_rad_s = {_toml_value([float(w) for w in p.initial_omegas_rad_s])}", ""]
     out += ["[goal]", f"mu_target = {_toml_value(float(p.goal.mu_target))}", f"max_experiments = {int(p.goal.max_experiments)}", ""]
     d = p.input_design

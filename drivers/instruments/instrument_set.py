@@ -1,0 +1,157 @@
+"""The instruments a procedure names: profiles checked, instruments opened, identities probed.
+
+``[backend] kind = "instruments"`` names three ``[instruments.<name>]`` tables: the exciter (a
+SCPI generator or a Modbus controller), and the force and response lock-ins. This module
+
+* :func:`check_instruments`: loads every profile and checks it fits its role (``run --check``,
+  ``probe`` and the run all start here; nothing is opened);
+* :func:`probe_instruments`: connects to each instrument, checks its identity, reads its status
+  and error queue, and never switches an output on (``setmem-hil probe``);
+* :func:`open_instrument_experiment`: opens everything, checks every identity *before* any
+  output is touched, forces the exciter's output off during its init, and returns the
+  :class:`~setmem_hil.drivers.instruments.phasor_dwell.PhasorDwellExperiment`.
+
+The clock is the wall clock unless the caller (the emulation in :mod:`setmem_hil.loopback`)
+passes the emulated bench's.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+from setmem_hil.drivers.clock import Clock, WallClock
+from setmem_hil.drivers.instruments.lockin import LockIn
+from setmem_hil.drivers.instruments.modbus_generator import ModbusGenerator, parse_modbus_resource
+from setmem_hil.drivers.instruments.phasor_dwell import DriveChannel, PhasorDwellExperiment, PhasorDwellSettings, SensorChannel
+from setmem_hil.drivers.instruments.profile import LockInProfile, ModbusProfile, Profile, ScpiGeneratorProfile, load_profile
+from setmem_hil.drivers.instruments.scpi_generator import ScpiGenerator
+from setmem_hil.drivers.instruments.visa_link import VisaLink
+from setmem_hil.errors import DeviceError, ProcedureError
+from setmem_hil.io.procedure import InstrumentSettings, Procedure
+
+__all__ = ["ROLES", "check_instruments", "open_instrument", "probe_instruments", "ProbeResult", "open_instrument_experiment"]
+
+log = logging.getLogger(__name__)
+
+ROLES = ("exciter", "force", "response")
+_ROLE_KINDS = {"exciter": ("scpi-generator", "modbus"), "force": ("scpi-lockin",), "response": ("scpi-lockin",)}
+
+
+def _source(procedure: Procedure) -> str:
+    return procedure.source_path or procedure.name
+
+
+def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSettings, Profile, str]]:
+    """``{name: (settings, profile, role)}`` for the backend's three roles; ProcedureError otherwise."""
+    backend = procedure.backend
+    found = {}
+    for role in ROLES:
+        name = getattr(backend, role)
+        settings = procedure.instruments[name]
+        where = f"[instruments.{name}] key 'profile'"
+        try:
+            profile = load_profile(settings.profile, relative_to=procedure.source_path or None)
+        except ProcedureError as exc:
+            if exc.source == settings.profile:  # unknown shipped name: say where it was asked for
+                raise ProcedureError(_source(procedure), where, exc.problem) from None
+            raise
+        if profile.kind not in _ROLE_KINDS[role]:
+            raise ProcedureError(_source(procedure), where, f"profile {settings.profile!r} is a {profile.kind} ({profile.model}); "
+                                 f"the {role} needs a {' or '.join(_ROLE_KINDS[role])} profile")
+        if role == "exciter" and settings.channel not in profile.channels:
+            raise ProcedureError(_source(procedure), f"[instruments.{name}] key 'channel'",
+                                 f"channel {settings.channel} does not exist on a {profile.model} (channels {list(profile.channels)})")
+        if isinstance(profile, ModbusProfile):
+            try:
+                parse_modbus_resource(settings.resource)
+            except ValueError as exc:
+                raise ProcedureError(_source(procedure), f"[instruments.{name}] key 'resource'", str(exc)) from None
+        found[name] = (settings, profile, role)
+    return found
+
+
+def open_instrument(settings: InstrumentSettings, profile: Profile):
+    """Open one instrument (no command sent yet): a ScpiGenerator, ModbusGenerator or LockIn."""
+    if isinstance(profile, ModbusProfile):
+        return ModbusGenerator(settings.name, profile, settings.resource)
+    link = VisaLink(settings.name, settings.resource, visa_library=settings.visa_library,
+                    termination=profile.termination, timeout_s=profile.timeout_s)
+    try:
+        if isinstance(profile, ScpiGeneratorProfile):
+            return ScpiGenerator(settings.name, profile, link, channel=settings.channel, load_ohms=settings.load_ohms)
+        assert isinstance(profile, LockInProfile)
+        return LockIn(settings.name, profile, link)
+    except BaseException:
+        link.close()
+        raise
+
+
+@dataclass(frozen=True)
+class ProbeResult:
+    name: str
+    role: str
+    model: str
+    resource: str
+    ok: bool
+    answer: str  # the identity reply, or the error
+
+
+def probe_instruments(procedure: Procedure) -> list[ProbeResult]:
+    """Connect to each instrument, check identity and error queue; no output is switched on
+    (no command but queries is sent)."""
+    results = []
+    for name, (settings, profile, role) in check_instruments(procedure).items():
+        inst = None
+        try:
+            inst = open_instrument(settings, profile)
+            answer = inst.check_identity()
+            if isinstance(inst, LockIn):
+                answer += f"; reference {inst.reference_frequency_hz():.6g} Hz"
+            results.append(ProbeResult(name, role, profile.model, settings.resource, True, answer))
+        except DeviceError as exc:
+            results.append(ProbeResult(name, role, profile.model, settings.resource, False, str(exc)))
+        finally:
+            if inst is not None:
+                inst.close()
+    return results
+
+
+def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = None, extra_bound: Callable[[float], float] | None = None,
+                               on_measurement: Callable[[int], None] | None = None, owned: tuple = ()) -> PhasorDwellExperiment:
+    """Open, identify (all three before any output is touched) and initialise the instruments."""
+    checked = check_instruments(procedure)
+    opened = {}
+    try:
+        for name, (settings, profile, role) in checked.items():
+            opened[role] = open_instrument(settings, profile)
+        for role in ROLES:  # identities first: a wrong instrument never sees an init command
+            opened[role].check_identity()
+        opened["exciter"].initialise()  # output forced off first
+        opened["force"].initialise()
+        opened["response"].initialise()
+    except BaseException:
+        for inst in opened.values():
+            inst.close()
+        for thing in owned:
+            thing.close()
+        raise
+    backend = procedure.backend
+    exciter = procedure.instruments[backend.exciter]
+    force = procedure.instruments[backend.force]
+    response = procedure.instruments[backend.response]
+    return PhasorDwellExperiment(
+        source=opened["exciter"], force=opened["force"], response=opened["response"],
+        force_sensor=SensorChannel(force.volt_per_unit, force.calibration_uncertainty, force.quantity or "force"),
+        response_sensor=SensorChannel(response.volt_per_unit, response.calibration_uncertainty, response.quantity or "displacement"),
+        drive=DriveChannel(exciter.newton_per_volt, exciter.max_drive_v if exciter.max_drive_v is not None else math.inf),
+        limits=procedure.safety,
+        clock=clock or WallClock(),
+        settings=PhasorDwellSettings(amplitude_n=min(1.0, procedure.safety.max_amplitude_n)),
+        extra_bound=extra_bound,
+        max_response=procedure.safety.max_response,
+        on_measurement=on_measurement,
+        owned=owned,
+    )

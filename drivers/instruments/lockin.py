@@ -1,0 +1,82 @@
+"""A lock-in amplifier driven through its profile (SR830, SR860, ...): phasor readings."""
+
+from __future__ import annotations
+
+from setmem_hil.drivers.instruments.profile import LockInProfile
+from setmem_hil.drivers.instruments.scpi_commands import parse_number, parse_numbers
+from setmem_hil.drivers.instruments.scpi_instrument import ScpiInstrument
+from setmem_hil.drivers.instruments.visa_link import VisaLink
+from setmem_hil.errors import DataQualityError, DeviceRejectedError
+
+__all__ = ["LockIn", "filter_settling_time_constants"]
+
+# Time, in time constants, for the output filter to settle within 1 % after a step, by filter
+# order (SR830 manual, "Time constants and settling": 5, 7, 9 and 10 tau for 6-24 dB/oct).
+_SETTLING_TAUS = {1: 5.0, 2: 7.0, 3: 9.0, 4: 10.0}
+
+
+def filter_settling_time_constants(order: int) -> float:
+    return _SETTLING_TAUS[order]
+
+
+class LockIn(ScpiInstrument):
+    """X, Y (V RMS) of one sensor signal at the reference frequency."""
+
+    profile: LockInProfile
+
+    def __init__(self, name: str, profile: LockInProfile, link: VisaLink):
+        super().__init__(name, profile, link)
+        self.time_constant_s = 0.0
+
+    @property
+    def settling_time_s(self) -> float:
+        """Time after which the output has settled and successive readings are independent."""
+        return filter_settling_time_constants(self.profile.filter_order) * self.time_constant_s
+
+    def initialise(self) -> None:
+        """Init sequence, then select and verify the external reference."""
+        self.run_init()
+        self.set_checked(self.profile.reference)
+
+    def set_time_constant(self, at_least_s: float) -> float:
+        """The shortest time constant of the instrument >= ``at_least_s`` (or its longest); returns it."""
+        values = self.profile.time_constants_s
+        index = next((i for i, v in enumerate(values) if v >= at_least_s), len(values) - 1)
+        if values[index] != self.time_constant_s:
+            command = self.profile.time_constant.set.format(index=index)
+            self.link.write(command)
+            if self.profile.time_constant.query:
+                reply = self.link.query(self.profile.time_constant.query)
+                if int(parse_number(reply)) != index:
+                    raise DeviceRejectedError("instrument", f"{self.where}: time constant index {index} sent, the instrument reads back {reply!r}")
+            self.check_errors(command)
+            self.time_constant_s = values[index]
+        return self.time_constant_s
+
+    def reference_frequency_hz(self) -> float:
+        return parse_number(self.link.query(self.profile.reference_frequency_query))
+
+    def read_xy(self) -> complex:
+        """One reading ``X + jY`` in volts RMS; overload or reference unlock raise."""
+        reply = self.link.query(self.profile.read_xy)
+        try:
+            x, y = parse_numbers(reply, 2)
+        except ValueError as exc:
+            raise DeviceRejectedError("instrument", f"{self.where}: {self.profile.read_xy!r}: {exc}") from None
+        self.check_status()
+        return complex(x, y)
+
+    def check_status(self) -> None:
+        if not self.profile.status_query:
+            return
+        reply = self.link.query(self.profile.status_query)
+        try:
+            status = int(parse_number(reply))
+        except ValueError as exc:
+            raise DeviceRejectedError("instrument", f"{self.where}: {self.profile.status_query!r}: {exc}") from None
+        if status & self.profile.unlock_mask:
+            raise DataQualityError(f"{self.where}: reference unlocked (status {status}): is the generator's sync output "
+                                   "wired to the lock-in's reference input?")
+        if status & self.profile.overload_mask:
+            raise DataQualityError(f"{self.where}: overload (status {status}): the signal exceeds the lock-in's "
+                                   f"{self.profile.full_scale_v:g} V full scale; lower volt_per_unit or the force level")

@@ -1,0 +1,320 @@
+"""The stepped-sine measurement over real instruments: a signal source and two lock-ins.
+
+One :meth:`PhasorDwellExperiment.measure` call (a *dwell*) implements the loop's Experiment
+protocol (:class:`setmem_hil.model.experiment.Experiment`):
+
+1. **Safety, before anything is sent**, in this order: the procedure's ``[safety]`` limits in
+   physical units (rad/s, newtons); then the conversion to instrument units (Hz; peak volts =
+   force / ``newton_per_volt``, never above ``max_drive_v``); then the instrument's own limits
+   from its profile. A command outside any of them raises
+   :class:`~setmem_hil.errors.SafetyLimitError` and nothing is sent.
+2. Frequency set and read back on the source; both lock-ins get the same time constant,
+   ``tau >= time_constant_cycles / omega`` (the 2-omega ripple is then below 1e-4 of the signal at
+   24 dB/oct), and the lock-in's reference frequency is checked against the drive.
+3. **Closed-loop level, ramped up**: the drive gain is only nominal, so the output starts at a
+   tenth of the nominal voltage and each ramp step re-estimates the gain from the *measured*
+   force; the level is then corrected until the measured force is within ``level_tolerance`` of
+   the target. The target is ``min(amplitude, max_amplitude_n / (1 + c_f))`` (``c_f``: the force
+   sensor's calibration uncertainty), so the actual force at the structure stays within the
+   limit; every force reading is checked against ``1.05 max_amplitude_n`` and the output is
+   switched off at once if it is exceeded.
+4. **Settling**: readings of both lock-ins spaced by their settling time (independent
+   readings); the dwell is settled when the two halves of the last ``2 m`` readings agree
+   (:func:`setmem_hil.estimation.phasor_estimate.settling_test`), or ``max_dwell_s`` is reached
+   (the halves' difference then widens the bound).
+5. The point ``g = (R / s_r) / (F / s_f)``, converted from the response sensor's quantity
+   (displacement, velocity or acceleration) to receptance, with the bound of
+   :func:`~setmem_hil.estimation.phasor_estimate.phasor_point` plus ``extra_bound(omega)``
+   (``|W1(j omega)|`` when ``[identification] unmodelled_bound = "w1"``).
+6. **Ramp down and output off**, on every exit path (error, Ctrl-C): the ``finally`` of the
+   dwell switches the output off even when the ramp-down fails.
+
+The clock (:class:`setmem_hil.drivers.clock.Clock`) is the wall clock on a real rig and the
+emulated bench's virtual clock in simulation: the same code runs both.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from setmem_hil.drivers.clock import Clock
+from setmem_hil.drivers.instruments.lockin import LockIn
+from setmem_hil.drivers.instruments.source import SignalSource
+from setmem_hil.drivers.safety import check_sine_command
+from setmem_hil.errors import DeviceRejectedError, SafetyLimitError
+from setmem_hil.estimation.phasor_estimate import phasor_point, settling_test
+from setmem_hil.io.procedure import SafetyLimits
+from setmem_hil.model.experiment import Measurement
+
+__all__ = ["SensorChannel", "DriveChannel", "PhasorDwellSettings", "PhasorDwellExperiment", "to_receptance"]
+
+log = logging.getLogger(__name__)
+
+QUANTITIES = ("force", "displacement", "velocity", "acceleration")
+FORCE_LIMIT_MARGIN = 1.05  # the measured force may never exceed max_amplitude_n by more than 5 %
+
+
+@dataclass(frozen=True)
+class SensorChannel:
+    """A sensor wired to a lock-in: its declared sensitivity and what it measures."""
+
+    volt_per_unit: float
+    calibration_uncertainty: float = 0.0
+    quantity: str = "displacement"
+
+
+@dataclass(frozen=True)
+class DriveChannel:
+    """The drive: nominal force per volt (planning only) and the largest voltage ever commanded."""
+
+    newton_per_volt: float
+    max_drive_v: float = math.inf
+
+
+@dataclass(frozen=True)
+class PhasorDwellSettings:
+    amplitude_n: float = 1.0  # the force level aimed at (capped by the safety limit)
+    time_constant_cycles: float = 5.0  # tau >= cycles / omega
+    readings_per_half: int = 4
+    confidence: float = 0.99
+    ramp_fractions: tuple[float, ...] = (0.1, 0.3, 0.6)
+    level_tolerance: float = 0.05
+    max_level_corrections: int = 4
+    reference_tolerance: float = 1e-3
+
+
+def to_receptance(value: complex, omega_rad_s: float, quantity: str) -> complex:
+    """Response per force in the sensor's quantity to displacement per force (receptance)."""
+    jw = 1j * omega_rad_s
+    return {"displacement": value, "velocity": value / jw, "acceleration": value / (jw * jw)}[quantity]
+
+
+def _receptance_scale(omega_rad_s: float, quantity: str) -> float:
+    return {"displacement": 1.0, "velocity": 1.0 / omega_rad_s, "acceleration": 1.0 / omega_rad_s**2}[quantity]
+
+
+@dataclass
+class PhasorDwellExperiment:
+    """The Experiment over a :class:`SignalSource` and force/response :class:`LockIn` s."""
+
+    source: SignalSource
+    force: LockIn
+    response: LockIn
+    force_sensor: SensorChannel
+    response_sensor: SensorChannel
+    drive: DriveChannel
+    limits: SafetyLimits
+    clock: Clock
+    settings: PhasorDwellSettings = PhasorDwellSettings()
+    extra_bound: Callable[[float], float] | None = None
+    max_response: float | None = None  # abort limit on the response amplitude (its own units)
+    on_measurement: Callable[[int], None] | None = None  # simulation control (noise reseeding)
+    owned: tuple = ()  # closed after the instruments (emulators)
+    n_measured: int = 0
+    counters: dict = field(default_factory=lambda: {"dwells": 0, "level_corrections": 0, "unsettled_dwells": 0})
+    last_dwell_s: float = 0.0
+    rig_s: float = 0.0
+    gain_estimate: float = 0.0
+    closed: bool = False
+
+    def __post_init__(self) -> None:
+        if self.force_sensor.quantity != "force":
+            raise SafetyLimitError(f"the force lock-in's sensor measures {self.force_sensor.quantity!r}; it must measure force")
+        self.gain_estimate = self.drive.newton_per_volt
+
+    # -- the Experiment protocol -----------------------------------------------------------------
+    def measure(self, omega_rad_s: float) -> Measurement:
+        target = self._target_force()
+        frequency_hz = self._check_command(omega_rad_s, target)
+        if self.on_measurement is not None:
+            self.on_measurement(self.n_measured)
+        start = self.clock.now()
+        try:
+            self.source.set_frequency_hz(frequency_hz)
+            tau = self._set_time_constants(omega_rad_s)
+            self._level_up(target)
+            self._check_reference(frequency_hz)
+            force_v, response_v = self._settle_and_read(omega_rad_s, target)
+            self._ramp_down()
+        finally:
+            self._output_off()
+            self.last_dwell_s = self.clock.now() - start
+            self.rig_s += self.last_dwell_s
+        self.counters["dwells"] += 1
+        self.n_measured += 1
+        point = phasor_point(force_v, response_v, self.force_sensor.volt_per_unit, self.response_sensor.volt_per_unit,
+                             self.force_sensor.calibration_uncertainty, self.response_sensor.calibration_uncertainty,
+                             self.settings.confidence)
+        quantity = self.response_sensor.quantity
+        g = to_receptance(point.response, omega_rad_s, quantity)
+        bound = point.bound * _receptance_scale(omega_rad_s, quantity)
+        if self.extra_bound is not None:
+            bound += float(self.extra_bound(omega_rad_s))
+        log.info("dwell at %.6g rad/s: tau %.3g s, %d readings, %.1f s, force %.4g N, |g| %.4g, bound %.3g",
+                 omega_rad_s, tau, point.n_readings, self.last_dwell_s, point.force_amplitude, abs(g), bound)
+        return Measurement(float(omega_rad_s), complex(g), float(bound))
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self._output_off()
+        finally:
+            for inst in (self.source, self.force, self.response, *self.owned):
+                try:
+                    inst.close()
+                except Exception as exc:  # noqa: BLE001 - close everything, report nothing over the cause
+                    log.error("closing %s: %r", getattr(inst, "name", inst), exc)
+
+    def __enter__(self) -> "PhasorDwellExperiment":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- steps ------------------------------------------------------------------------------------
+    def _target_force(self) -> float:
+        cap = self.limits.max_amplitude_n / (1.0 + self.force_sensor.calibration_uncertainty)
+        return min(self.settings.amplitude_n, cap)
+
+    def _check_command(self, omega_rad_s: float, force_n: float) -> float:
+        """Physical limits, then instrument units, then the instrument's limits; returns Hz."""
+        check_sine_command(self.limits, omega_rad_s, force_n, self.source.name)
+        frequency_hz = omega_rad_s / (2 * math.pi)
+        volts = force_n / self.drive.newton_per_volt
+        if volts > self.drive.max_drive_v:
+            raise SafetyLimitError(f"{self.source.name}: {force_n:g} N needs {volts:.4g} V at the nominal {self.drive.newton_per_volt:g} N/V, "
+                                   f"above max_drive_v = {self.drive.max_drive_v:g} V; nothing was sent")
+        lo, hi = self.source.frequency_limits_hz
+        if not lo <= frequency_hz <= hi:
+            raise SafetyLimitError(f"{self.source.name}: {frequency_hz:.6g} Hz outside the {self.source.model}'s range [{lo:g}, {hi:g}] Hz; nothing was sent")
+        vlo, vhi = self.source.amplitude_limits_v
+        if volts > vhi:
+            raise SafetyLimitError(f"{self.source.name}: {volts:.4g} V peak above the {self.source.model}'s {vhi:g} V; nothing was sent")
+        return frequency_hz
+
+    def _set_time_constants(self, omega_rad_s: float) -> float:
+        wanted = self.settings.time_constant_cycles / omega_rad_s
+        tau = self.force.set_time_constant(wanted)
+        tau_r = self.response.set_time_constant(tau)
+        if tau_r != tau:  # different instruments: use the longer for both
+            tau = self.force.set_time_constant(tau_r)
+        return tau
+
+    def _wait(self, duration_s: float) -> None:
+        """Let time pass, refreshing the source's dead-man often enough (a Modbus watchdog)."""
+        step = getattr(self.source, "keepalive_interval_s", math.inf)
+        end = self.clock.now() + duration_s
+        while (left := end - self.clock.now()) > 0:
+            self.clock.sleep(min(left, step))
+            self.source.keepalive()
+
+    def _settle_time(self) -> float:
+        return max(self.force.settling_time_s, self.response.settling_time_s)
+
+    def _drive_volts(self, volts: float) -> float:
+        vlo, vhi = self.source.amplitude_limits_v
+        return float(min(max(volts, vlo), vhi, self.drive.max_drive_v))
+
+    def _read_force(self) -> complex:
+        """One force reading, checked against the force abort limit (output off if exceeded)."""
+        f_v = self.force.read_xy()
+        self.source.keepalive()
+        actual = math.sqrt(2.0) * abs(f_v) / self.force_sensor.volt_per_unit * (1.0 + self.force_sensor.calibration_uncertainty)
+        if actual > FORCE_LIMIT_MARGIN * self.limits.max_amplitude_n:
+            self._output_off()
+            raise SafetyLimitError(f"{self.force.name}: measured force {actual:.4g} N (with its calibration uncertainty) exceeds "
+                                   f"max_amplitude_n {self.limits.max_amplitude_n:g} N by more than 5 %; output switched off")
+        return f_v
+
+    def _force_amplitude(self, f_v: complex) -> float:
+        return math.sqrt(2.0) * abs(f_v) / self.force_sensor.volt_per_unit
+
+    def _level_up(self, target: float) -> None:
+        """Output on at a tenth of the nominal level, ramp up re-estimating the gain from the
+        measured force, then correct the level until the force is on target."""
+        volts = self._drive_volts(self.settings.ramp_fractions[0] * target / self.gain_estimate)
+        self.source.set_amplitude_v(volts)
+        self.source.set_output(True)
+        for fraction in (*self.settings.ramp_fractions[1:], 1.0):
+            self._wait(self._settle_time())
+            self._update_gain(volts)
+            volts = self._drive_volts(fraction * target / self.gain_estimate)
+            self.source.set_amplitude_v(volts)
+        for _ in range(self.settings.max_level_corrections):
+            self._wait(self._settle_time())
+            force = self._update_gain(volts)
+            if abs(force / target - 1.0) <= self.settings.level_tolerance:
+                return
+            volts = self._drive_volts(target / self.gain_estimate)
+            self.source.set_amplitude_v(volts)
+            self.counters["level_corrections"] += 1
+        log.warning("%s: force level not within %.0f %% of %.3g N after %d corrections", self.source.name,
+                    100 * self.settings.level_tolerance, target, self.settings.max_level_corrections)
+
+    def _update_gain(self, volts: float) -> float:
+        force = self._force_amplitude(self._read_force())
+        if force <= 0 or volts <= 0:
+            raise DeviceRejectedError("instrument", f"{self.force.name}: no force measured with {volts:.4g} V of drive: is the amplifier on and the force sensor connected?")
+        self.gain_estimate = force / volts
+        return force
+
+    def _check_reference(self, frequency_hz: float) -> None:
+        for li in (self.force, self.response):
+            ref = li.reference_frequency_hz()
+            if abs(ref / frequency_hz - 1.0) > self.settings.reference_tolerance:
+                raise DeviceRejectedError("instrument", f"{li.where}: reference at {ref:.6g} Hz, the drive at {frequency_hz:.6g} Hz: "
+                                          "is the generator's sync output wired to the reference input?")
+
+    def _settle_and_read(self, omega_rad_s: float, target: float) -> tuple[np.ndarray, np.ndarray]:
+        m = self.settings.readings_per_half
+        spacing = self._settle_time()
+        start = self.clock.now()
+        forces: list[complex] = []
+        responses: list[complex] = []
+        passes = 0
+        while True:
+            forces.append(self._read_force())
+            responses.append(self.response.read_xy())
+            self._check_response(responses[-1], omega_rad_s)
+            if len(forces) >= 2 * m:
+                window_f, window_r = np.array(forces[-2 * m:]), np.array(responses[-2 * m:])
+                ratio = (window_r / self.response_sensor.volt_per_unit) / (window_f / self.force_sensor.volt_per_unit)
+                passes = passes + 1 if settling_test(ratio, self.settings.confidence) else 0
+                if passes >= 2:  # two windows in a row: one lucky draw does not end the dwell
+                    return window_f, window_r
+                if self.clock.now() - start + spacing > self.limits.max_dwell_s:
+                    self.counters["unsettled_dwells"] += 1
+                    log.warning("dwell at %.6g rad/s not settled within max_dwell_s = %g s; the bound includes the drift",
+                                omega_rad_s, self.limits.max_dwell_s)
+                    return window_f, window_r
+            self._wait(spacing)
+
+    def _check_response(self, r_v: complex, omega_rad_s: float) -> None:
+        if self.max_response is None:
+            return
+        amplitude = math.sqrt(2.0) * abs(r_v) / self.response_sensor.volt_per_unit
+        if amplitude > self.max_response:
+            self._output_off()
+            raise SafetyLimitError(f"{self.response.name}: response amplitude {amplitude:.4g} at {omega_rad_s:.6g} rad/s exceeds "
+                                   f"[safety] max_response {self.max_response:g}; output switched off")
+
+    def _ramp_down(self) -> None:
+        volts = self.gain_estimate and self._target_force() / self.gain_estimate
+        for fraction in reversed(self.settings.ramp_fractions):
+            self.source.set_amplitude_v(self._drive_volts(fraction * volts))
+            self._wait(self._settle_time() / 10.0)
+
+    def _output_off(self) -> None:
+        """Switch the output off; a failure is logged, retried once, then raised."""
+        try:
+            self.source.set_output(False)
+        except Exception as first:  # noqa: BLE001
+            log.error("%s: switching the output off failed (%r); retrying", self.source.name, first)
+            self.source.set_output(False)

@@ -1,0 +1,433 @@
+"""Instrument profiles: what a driver needs to know about an instrument model, as a TOML file.
+
+A profile describes one model: how to check its identity, the init sequence (output off first),
+the command templates and how to read them back, the error query, and the instrument's own
+limits. The generic drivers interpret it, so a lab adds an instrument by writing a profile, not
+code. Shipped profiles live in ``profiles/`` beside this module (``keysight-33500b``,
+``rigol-dg800``, ``srs-sr830``, ``srs-sr860``, ``modbus-shaker-controller``); a procedure names
+one, or gives a path to its own file (relative to the procedure file).
+
+Three kinds (``kind = ...``); the keys of each are in :data:`PROFILE_KEYS` and documented in
+``docs/profiles.md``:
+
+``scpi-generator``
+    A function generator driving the shaker amplifier (SCPI over PyVISA).
+``scpi-lockin``
+    A lock-in amplifier returning the phasor (X, Y) of its input at the reference frequency.
+``modbus``
+    A shaker controller or PLC: ``device_id`` and the roles ``identity`` (with ``expect``),
+    ``frequency_hz``, ``amplitude_v`` (peak volts), ``output`` (and optionally ``watchdog_s``),
+    each ``{ table, address, type, scale, word_order }``; physical value = raw x scale.
+
+Every problem raises :class:`setmem_hil.errors.ProcedureError` naming the profile file, the
+table and the key (unknown keys with a did-you-mean), so ``run --check`` and ``probe`` report it
+before anything is opened.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+from setmem_hil.drivers.instruments.scpi_commands import template_fields
+from setmem_hil.errors import ProcedureError
+from setmem_hil.model.prior import parse_toml_text
+
+__all__ = [
+    "SHIPPED_PROFILE_DIR", "shipped_profiles", "load_profile", "parse_profile", "Setting", "ScpiGeneratorProfile",
+    "LockInProfile", "RegisterSpec", "ModbusProfile", "Profile", "REGISTER_TYPES", "REGISTER_TABLES",
+]
+
+SHIPPED_PROFILE_DIR = Path(__file__).with_name("profiles")
+REGISTER_TYPES = ("uint16", "int16", "uint32", "int32", "float32")
+REGISTER_TABLES = ("coil", "discrete", "input", "holding")
+AMPLITUDE_UNITS = ("Vpp", "Vpk", "Vrms")
+SLOPE_ORDERS = {6: 1, 12: 2, 18: 3, 24: 4}
+
+
+def shipped_profiles() -> list[str]:
+    return sorted(p.stem for p in SHIPPED_PROFILE_DIR.glob("*.toml"))
+
+
+@dataclass(frozen=True)
+class Setting:
+    """A command template and how to check it took effect.
+
+    ``query`` reads the value back; a numeric read-back must agree within ``tolerance_rel``
+    (relative), a text one must equal ``expect`` (after stripping, case-insensitive).
+    """
+
+    set: str
+    query: str = ""
+    expect: str = ""
+    tolerance_rel: float = 1e-6
+    unit: str = ""
+
+
+@dataclass(frozen=True)
+class ScpiGeneratorProfile:
+    name: str
+    source: str
+    model: str
+    identity_query: str
+    identity_expect: str  # regular expression searched in the reply
+    error_query: str
+    no_error: str  # regular expression matching an empty error queue
+    init: tuple[str, ...]
+    frequency: Setting
+    amplitude: Setting
+    output_on: Setting
+    output_off: Setting
+    frequency_limits_hz: tuple[float, float]
+    amplitude_limits_v: tuple[float, float]  # peak volts
+    channels: tuple[int, ...] = (1,)
+    termination: str = "\n"
+    timeout_s: float = 2.0
+    kind: str = "scpi-generator"
+    dead_man: str = ""
+
+
+@dataclass(frozen=True)
+class LockInProfile:
+    name: str
+    source: str
+    model: str
+    identity_query: str
+    identity_expect: str
+    error_query: str
+    no_error: str
+    init: tuple[str, ...]
+    reference: Setting  # select / verify the external reference
+    reference_frequency_query: str
+    time_constant: Setting  # template with {index}
+    time_constants_s: tuple[float, ...]
+    filter_order: int  # cascade order of the output filter the init sequence selects
+    read_xy: str  # query answering "X,Y" in volts RMS
+    status_query: str
+    overload_mask: int
+    unlock_mask: int
+    full_scale_v: float
+    termination: str = "\n"
+    timeout_s: float = 2.0
+    kind: str = "scpi-lockin"
+
+
+@dataclass(frozen=True)
+class RegisterSpec:
+    table: str
+    address: int
+    type: str = "uint16"
+    scale: float = 1.0
+    word_order: str = "big"
+    expect: float | None = None
+
+    @property
+    def n_registers(self) -> int:
+        return 0 if self.table in ("coil", "discrete") else (2 if self.type in ("uint32", "int32", "float32") else 1)
+
+
+@dataclass(frozen=True)
+class ModbusProfile:
+    name: str
+    source: str
+    model: str
+    device_id: int
+    identity: RegisterSpec
+    frequency_hz: RegisterSpec
+    amplitude_v: RegisterSpec
+    output: RegisterSpec
+    watchdog_s: RegisterSpec | None
+    watchdog_timeout_s: float
+    frequency_limits_hz: tuple[float, float]
+    amplitude_limits_v: tuple[float, float]
+    timeout_s: float = 1.0
+    kind: str = "modbus"
+    channels: tuple[int, ...] = (1,)
+
+
+Profile = ScpiGeneratorProfile | LockInProfile | ModbusProfile
+
+_COMMON = {"kind", "model", "description"}
+PROFILE_KEYS: dict[str, set[str]] = {
+    "scpi-generator": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "commands", "limits", "dead_man"},
+    "scpi-lockin": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "reference", "time_constant", "read", "status", "filter_slope_db_per_octave", "full_scale_v"},
+    "modbus": _COMMON | {"device_id", "identity", "frequency_hz", "amplitude_v", "output", "watchdog_s", "watchdog_timeout_s", "limits", "timeout_s"},
+}
+_TABLE_KEYS = {
+    "identity": {"query", "expect"},
+    "errors": {"query", "no_error", "error_mask"},
+    "commands": {"frequency_hz", "amplitude", "output_on", "output_off"},
+    "setting": {"set", "query", "expect", "tolerance_rel", "unit"},
+    "limits": {"frequency_hz", "amplitude_v", "channels"},
+    "reference": {"set", "query", "expect", "frequency_query"},
+    "time_constant": {"set", "query", "values_s"},
+    "read": {"xy"},
+    "status": {"query", "overload_mask", "unlock_mask"},
+    "register": {"table", "address", "type", "scale", "word_order", "expect"},
+}
+
+
+class _Reader:
+    """Typed access to one table of a profile, with errors naming file, table and key."""
+
+    def __init__(self, source: str, location: str, mapping: Any, allowed: set[str]):
+        self.source, self.location = source, location
+        if not isinstance(mapping, Mapping):
+            raise self.error(f"expected a table, found {mapping!r}")
+        self.mapping = mapping
+        for key in mapping:
+            if key not in allowed:
+                close = difflib.get_close_matches(str(key), sorted(allowed), n=1)
+                hint = f"; did you mean {close[0]!r}?" if close else ""
+                raise self.error(f"unknown key {key!r}{hint} (allowed: {', '.join(sorted(allowed))})")
+
+    def error(self, problem: str) -> ProcedureError:
+        return ProcedureError(self.source, self.location, problem)
+
+    def sub(self, key: str, allowed_kind: str) -> "_Reader":
+        if key not in self.mapping:
+            raise self.error(f"missing table {key!r}")
+        where = f"{self.location}.{key}" if self.location != "top level" else f"[{key}]"
+        return _Reader(self.source, where, self.mapping[key], _TABLE_KEYS[allowed_kind])
+
+    def string(self, key: str, default: str | None = None) -> str:
+        if key not in self.mapping:
+            if default is None:
+                raise self.error(f"missing key {key!r}")
+            return default
+        v = self.mapping[key]
+        if not isinstance(v, str):
+            raise self.error(f"{key}: expected a string, found {v!r}")
+        return v
+
+    def regex(self, key: str, default: str | None = None) -> str:
+        v = self.string(key, default)
+        try:
+            re.compile(v)
+        except re.error as exc:
+            raise self.error(f"{key}: not a valid regular expression ({exc})") from None
+        return v
+
+    def number(self, key: str, default: float | None = None, *, positive: bool = False) -> float:
+        if key not in self.mapping:
+            if default is None:
+                raise self.error(f"missing key {key!r}")
+            return default
+        v = self.mapping[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or (positive and v <= 0):
+            raise self.error(f"{key}: expected a {'positive ' if positive else ''}finite number, found {v!r}")
+        return float(v)
+
+    def integer(self, key: str, default: int | None = None, lo: int = 0, hi: int = 2**31) -> int:
+        if key not in self.mapping:
+            if default is None:
+                raise self.error(f"missing key {key!r}")
+            return default
+        v = self.mapping[key]
+        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            raise self.error(f"{key}: expected an integer in [{lo}, {hi}], found {v!r}")
+        return v
+
+    def strings(self, key: str) -> tuple[str, ...]:
+        v = self.mapping.get(key, [])
+        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+            raise self.error(f"{key}: expected an array of strings, found {v!r}")
+        return tuple(v)
+
+    def pair(self, key: str, default: tuple[float, float]) -> tuple[float, float]:
+        v = self.mapping.get(key, list(default))
+        if (not isinstance(v, list) or len(v) != 2 or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
+                or not 0 <= v[0] <= v[1]):
+            raise self.error(f"{key}: expected [low, high] with 0 <= low <= high, found {v!r}")
+        return float(v[0]), float(v[1])
+
+    def template(self, key: str, fields: set[str], default: str | None = None) -> str:
+        text = self.string(key, default)
+        unknown = template_fields(text) - fields
+        if unknown:
+            raise self.error(f"{key}: unknown field {{{sorted(unknown)[0]}}} in {text!r} (fields: {', '.join('{' + f + '}' for f in sorted(fields))})")
+        return text
+
+
+_GENERATOR_FIELDS = {"ch", "value", "load"}
+
+
+def _setting(parent: _Reader, key: str, fields: set[str], *, units: bool = False) -> Setting:
+    r = parent.sub(key, "setting")
+    unit = r.string("unit", "") if units else ""
+    if units and unit not in AMPLITUDE_UNITS:
+        raise r.error(f"unit: expected one of {', '.join(AMPLITUDE_UNITS)}, found {unit!r}")
+    if not units and "unit" in r.mapping:
+        raise r.error("unit: only the amplitude setting has a unit")
+    return Setting(
+        set=r.template("set", fields),
+        query=r.template("query", fields - {"value"}, ""),
+        expect=r.string("expect", ""),
+        tolerance_rel=r.number("tolerance_rel", 1e-6),
+        unit=unit,
+    )
+
+
+def _identity_and_errors(top: _Reader) -> tuple[str, str, str, str]:
+    """Identity query and pattern; the error query and what an empty queue answers: a regular
+    expression (``no_error``) or, for a status register, ``error_mask`` (bits that mean an error)."""
+    ident = top.sub("identity", "identity")
+    errors = top.sub("errors", "errors")
+    if ("no_error" in errors.mapping) == ("error_mask" in errors.mapping):
+        raise errors.error("give exactly one of no_error (a regular expression) and error_mask (an integer)")
+    no_error = errors.regex("no_error") if "no_error" in errors.mapping else f"mask:{errors.integer('error_mask', None, 1, 2**16)}"
+    return ident.string("query"), ident.regex("expect"), errors.string("query"), no_error
+
+
+def _generator(name: str, source: str, top: _Reader) -> ScpiGeneratorProfile:
+    identity_query, identity_expect, error_query, no_error = _identity_and_errors(top)
+    commands = top.sub("commands", "commands")
+    limits = top.sub("limits", "limits")
+    channels = limits.mapping.get("channels", [1])
+    if not isinstance(channels, list) or not channels or not all(isinstance(c, int) and not isinstance(c, bool) and c > 0 for c in channels):
+        raise limits.error(f"channels: expected an array of positive integers, found {channels!r}")
+    init = top.strings("init")
+    for i, command in enumerate(init):
+        bad = template_fields(command) - {"ch", "load"}
+        if bad:
+            raise top.error(f"init[{i}]: unknown field {{{sorted(bad)[0]}}} in {command!r} (fields: {{ch}}, {{load}})")
+    return ScpiGeneratorProfile(
+        name=name, source=source, model=top.string("model"),
+        identity_query=identity_query, identity_expect=identity_expect, error_query=error_query, no_error=no_error,
+        init=init,
+        frequency=_setting(commands, "frequency_hz", _GENERATOR_FIELDS),
+        amplitude=_setting(commands, "amplitude", _GENERATOR_FIELDS, units=True),
+        output_on=_setting(commands, "output_on", _GENERATOR_FIELDS),
+        output_off=_setting(commands, "output_off", _GENERATOR_FIELDS),
+        frequency_limits_hz=limits.pair("frequency_hz", (0.0, math.inf)),
+        amplitude_limits_v=limits.pair("amplitude_v", (0.0, math.inf)),
+        channels=tuple(channels),
+        termination=top.string("termination", "\n"),
+        timeout_s=top.number("timeout_s", 2.0, positive=True),
+        dead_man=top.string("dead_man", ""),
+    )
+
+
+def _lockin(name: str, source: str, top: _Reader) -> LockInProfile:
+    identity_query, identity_expect, error_query, no_error = _identity_and_errors(top)
+    ref = top.sub("reference", "reference")
+    tc = top.sub("time_constant", "time_constant")
+    values = tc.mapping.get("values_s")
+    if not isinstance(values, list) or not values or any(isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0 for v in values) \
+            or list(values) != sorted(values):
+        raise tc.error(f"values_s: expected the instrument's time constants in seconds, ascending, found {values!r}")
+    status = top.sub("status", "status")
+    slope = top.integer("filter_slope_db_per_octave", 24, 6, 24)
+    if slope not in SLOPE_ORDERS:
+        raise top.error(f"filter_slope_db_per_octave: expected 6, 12, 18 or 24, found {slope}")
+    return LockInProfile(
+        name=name, source=source, model=top.string("model"),
+        identity_query=identity_query, identity_expect=identity_expect, error_query=error_query, no_error=no_error,
+        init=top.strings("init"),
+        reference=Setting(set=ref.string("set"), query=ref.string("query", ""), expect=ref.string("expect", "")),
+        reference_frequency_query=ref.string("frequency_query"),
+        time_constant=Setting(set=tc.template("set", {"index"}), query=tc.string("query", "")),
+        time_constants_s=tuple(float(v) for v in values),
+        filter_order=SLOPE_ORDERS[slope],
+        read_xy=top.sub("read", "read").string("xy"),
+        status_query=status.string("query", ""),
+        overload_mask=status.integer("overload_mask", 0, 0, 2**16),
+        unlock_mask=status.integer("unlock_mask", 0, 0, 2**16),
+        full_scale_v=top.number("full_scale_v", 1.0, positive=True),
+        termination=top.string("termination", "\n"),
+        timeout_s=top.number("timeout_s", 2.0, positive=True),
+    )
+
+
+def register_spec(parent: _Reader, key: str, *, with_expect: bool = False) -> RegisterSpec:
+    """One ``{ table, address, type, scale, word_order }`` role of a Modbus profile."""
+    if key not in parent.mapping:
+        raise parent.error(f"missing key {key!r} (an inline table {{ table = ..., address = ..., type = ... }})")
+    allowed = _TABLE_KEYS["register"] if with_expect else _TABLE_KEYS["register"] - {"expect"}
+    r = _Reader(parent.source, f"key '{key}'", parent.mapping[key], allowed)
+    table = r.string("table")
+    if table not in REGISTER_TABLES:
+        raise r.error(f"table: expected one of {', '.join(REGISTER_TABLES)}, found {table!r}")
+    bit = table in ("coil", "discrete")
+    if bit and "type" in r.mapping:
+        raise r.error(f"type: a {table} is one bit and takes no type")
+    kind = "bool" if bit else r.string("type", "uint16")
+    if not bit and kind not in REGISTER_TYPES:
+        raise r.error(f"type: expected one of {', '.join(REGISTER_TYPES)}, found {kind!r}")
+    order = r.string("word_order", "big")
+    if order not in ("big", "little"):
+        raise r.error(f"word_order: expected 'big' or 'little', found {order!r}")
+    scale = r.number("scale", 1.0)
+    if scale == 0:
+        raise r.error("scale: must not be 0")
+    expect = r.number("expect") if with_expect else None
+    return RegisterSpec(table=table, address=r.integer("address", None, 0, 65535), type=kind, scale=scale, word_order=order, expect=expect)
+
+
+def _modbus(name: str, source: str, top: _Reader) -> ModbusProfile:
+    limits = top.sub("limits", "limits") if "limits" in top.mapping else _Reader(source, "[limits]", {}, _TABLE_KEYS["limits"])
+    output = register_spec(top, "output")
+    if output.table not in ("coil", "holding"):
+        raise top.error(f"output: expected a coil or a holding register, found table {output.table!r}")
+    for role in ("frequency_hz", "amplitude_v"):
+        if top.mapping.get(role, {}).get("table") not in ("holding", None):
+            raise top.error(f"{role}: expected a holding register (it is written), found table {top.mapping[role].get('table')!r}")
+    watchdog = register_spec(top, "watchdog_s") if "watchdog_s" in top.mapping else None
+    return ModbusProfile(
+        name=name, source=source, model=top.string("model"),
+        device_id=top.integer("device_id", None, 0, 247),
+        identity=register_spec(top, "identity", with_expect=True),
+        frequency_hz=register_spec(top, "frequency_hz"),
+        amplitude_v=register_spec(top, "amplitude_v"),
+        output=output,
+        watchdog_s=watchdog,
+        watchdog_timeout_s=top.number("watchdog_timeout_s", 2.0, positive=True),
+        frequency_limits_hz=limits.pair("frequency_hz", (0.0, math.inf)),
+        amplitude_limits_v=limits.pair("amplitude_v", (0.0, math.inf)),
+        timeout_s=top.number("timeout_s", 1.0, positive=True),
+    )
+
+
+_BUILDERS = {"scpi-generator": _generator, "scpi-lockin": _lockin, "modbus": _modbus}
+
+
+def parse_profile(text: str, source: str, name: str = "") -> Profile:
+    """Validate profile TOML text (``source`` names the file in messages)."""
+    doc = parse_toml_text(text, source)
+    kind = doc.get("kind") if isinstance(doc, Mapping) else None
+    if kind not in PROFILE_KEYS:
+        raise ProcedureError(source, "top level", f"kind: expected one of {', '.join(repr(k) for k in PROFILE_KEYS)}, found {kind!r}")
+    top = _Reader(source, "top level", doc, PROFILE_KEYS[kind])
+    return _BUILDERS[kind](name or Path(source).stem, source, top)
+
+
+def load_profile(spec: str, relative_to: str | Path | None = None) -> Profile:
+    """A shipped profile by name, or a profile file by path (relative to ``relative_to``'s folder).
+
+    Raises
+    ------
+    ProcedureError
+        Unknown name, unreadable file, or a profile that does not validate.
+    """
+    shipped = SHIPPED_PROFILE_DIR / f"{spec}.toml"
+    looks_like_path = "/" in spec or "\\" in spec or spec.endswith(".toml")
+    if not looks_like_path:
+        if not shipped.is_file():
+            close = difflib.get_close_matches(spec, shipped_profiles(), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise ProcedureError(spec, "", f"unknown instrument profile {spec!r}{hint} (shipped: {', '.join(shipped_profiles())}; "
+                                           "or give the path of a profile .toml file)")
+        path = shipped
+    else:
+        path = Path(spec)
+        if not path.is_absolute() and relative_to:
+            path = Path(relative_to).parent / path
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProcedureError(str(path), "", f"cannot read the instrument profile: {exc}") from None
+    return parse_profile(text, str(path), name=spec if not looks_like_path else path.stem)

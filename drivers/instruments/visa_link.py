@@ -1,0 +1,72 @@
+"""A PyVISA session to one instrument, with one-line errors naming the instrument and resource.
+
+The resource string is anything PyVISA opens (``TCPIP::192.168.1.20::INSTR``,
+``TCPIP::10.0.0.5::5025::SOCKET``, ``USB0::0x0957::0x2C07::MY57800001::INSTR``,
+``ASRL/dev/ttyUSB0::INSTR``); the VISA library defaults to ``"@py"`` (pyvisa-py, pure Python:
+nothing to install from the vendor). Tests pass ``"<file>.yaml@sim"`` (pyvisa-sim).
+
+PyVISA is an optional extra (``pip install 'setmem-hil[instruments]'``); without it, opening a
+link raises a :class:`~setmem_hil.errors.DeviceError` that says so.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from setmem_hil.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError
+
+__all__ = ["VisaLink"]
+
+log = logging.getLogger(__name__)
+
+
+class VisaLink:
+    """``write`` / ``query`` to one instrument; every failure is a DeviceError naming it."""
+
+    def __init__(self, name: str, resource: str, *, visa_library: str = "@py", termination: str = "\n", timeout_s: float = 2.0):
+        self.name, self.resource, self.timeout_s = name, resource, timeout_s
+        self.transcript: list[str] = []  # commands sent (for the run log and tests)
+        try:
+            import pyvisa
+        except ImportError:  # pragma: no cover - the [instruments] extra is in [test]
+            raise DeviceError(f"{name}: PyVISA is not installed; install it with pip install 'setmem-hil[instruments]'") from None
+        self._pyvisa = pyvisa
+        try:
+            self._rm = pyvisa.ResourceManager(visa_library)
+            self._inst = self._rm.open_resource(resource, read_termination=termination, write_termination=termination,
+                                                timeout=int(timeout_s * 1000))
+        except Exception as exc:  # noqa: BLE001 - pyvisa raises VisaIOError, ValueError, OSError, LibraryError...
+            raise DeviceDisconnectedError(f"{name}: cannot open {resource!r} ({_reason(exc)})") from None
+
+    def write(self, command: str) -> None:
+        self.transcript.append(command)
+        try:
+            self._inst.write(command)
+        except Exception as exc:  # noqa: BLE001
+            raise self._error(command, exc) from None
+
+    def query(self, command: str) -> str:
+        self.transcript.append(command)
+        try:
+            return str(self._inst.query(command)).strip()
+        except Exception as exc:  # noqa: BLE001
+            raise self._error(command, exc) from None
+
+    def _error(self, command: str, exc: Exception) -> DeviceError:
+        errors = self._pyvisa.errors
+        if isinstance(exc, errors.VisaIOError) and exc.error_code == self._pyvisa.constants.StatusCode.error_timeout:
+            return DeviceTimeoutError(f"{self.name} ({self.resource}): no reply to {command!r} within {self.timeout_s:g} s")
+        return DeviceDisconnectedError(f"{self.name} ({self.resource}): {command!r} failed ({_reason(exc)})")
+
+    def close(self) -> None:
+        for closer in (getattr(self, "_inst", None), getattr(self, "_rm", None)):
+            try:
+                if closer is not None:
+                    closer.close()
+            except Exception as exc:  # noqa: BLE001 - closing must not mask anything
+                log.debug("closing %s: %r", self.name, exc)
+
+
+def _reason(exc: Exception) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) < 200 else text[:197] + "..."

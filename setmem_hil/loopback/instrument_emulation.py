@@ -1,0 +1,94 @@
+"""``kind = "instruments"`` with ``[backend.emulation]``: the real drivers against emulated instruments.
+
+For each instrument a procedure names, an emulator of its model listens on the resource's
+127.0.0.1 port (port 0: a free port, written back into the resource), backed by one
+:class:`~setmem_hil.sim_backends.instrument_bench.EmulatedBench` (the 8-mode beam on a virtual
+clock). The drivers then open the instruments exactly as on a real rig, through PyVISA
+(pyvisa-py) and pymodbus, and share the bench's clock, so a campaign runs in seconds.
+
+Which emulator: SCPI generator profiles whose model names the 33500B (or 33600A) or a DG800,
+lock-in profiles for the SR830 or SR860, and any Modbus profile (the emulated controller
+implements the profile's own register map). The emulated response sensor measures displacement.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+from setmem_hil.drivers.instruments.instrument_set import check_instruments, open_instrument_experiment
+from setmem_hil.drivers.instruments.phasor_dwell import PhasorDwellExperiment
+from setmem_hil.drivers.instruments.profile import LockInProfile, ModbusProfile, ScpiGeneratorProfile
+from setmem_hil.errors import ProcedureError
+from setmem_hil.io.procedure import Procedure
+from setmem_hil.sim_backends.beam import beam_parameters
+from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBench
+from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer, LockInEmulator
+from setmem_hil.sim_backends.modbus_controller_emulator import ModbusControllerEmulator
+
+__all__ = ["open_emulated_instruments", "emulator_model"]
+
+_SOCKET = re.compile(r"^TCPIP0?::(127\.0\.0\.1|localhost)::(\d+)::SOCKET$", re.IGNORECASE)
+_MODBUS_TCP = re.compile(r"^tcp://(127\.0\.0\.1|localhost):(\d+)$")
+
+
+def emulator_model(profile) -> str | None:
+    """The emulator that answers for a profile's model (None: no emulator for it)."""
+    if isinstance(profile, ModbusProfile):
+        return "modbus"
+    for pattern, model in ((r"335\d\d|33500|336\d\d", "33500B"), (r"DG8", "DG800"), (r"SR830", "SR830"), (r"SR860", "SR860")):
+        if re.search(pattern, profile.model):
+            return model
+    return None
+
+
+def open_emulated_instruments(procedure: Procedure, seed: int, extra_bound=None) -> PhasorDwellExperiment:
+    """Start the emulators for the procedure's instruments and open the experiment on them."""
+    source = procedure.source_path or procedure.name
+    emulation = procedure.backend.emulation
+    checked = check_instruments(procedure)
+    backend = procedure.backend
+    exciter, force, response = (procedure.instruments[getattr(backend, r)] for r in ("exciter", "force", "response"))
+    if (response.quantity or "displacement") != "displacement":
+        raise ProcedureError(source, f"[instruments.{response.name}] key 'quantity'", "the emulated response sensor measures displacement")
+    bench = EmulatedBench(beam_parameters(), BenchSettings(
+        newton_per_volt=exciter.newton_per_volt, drive_gain_ratio=emulation.drive_gain_ratio,
+        force_volt_per_unit=force.volt_per_unit, response_volt_per_unit=response.volt_per_unit,
+        noise_v_per_rthz=(emulation.noise_v_per_rthz, emulation.noise_v_per_rthz), seed=seed,
+    ))
+    servers = []
+    resources = {}
+    try:
+        for name, (settings, profile, role) in checked.items():
+            model = emulator_model(profile)
+            if model is None:
+                raise ProcedureError(source, f"[instruments.{name}] key 'profile'", f"no emulator for a {profile.model}; "
+                                     "emulation knows the 33500B, DG800, SR830, SR860 and Modbus register maps")
+            if isinstance(profile, ModbusProfile):
+                m = _MODBUS_TCP.match(settings.resource)
+                if not m:
+                    raise ProcedureError(source, f"[instruments.{name}] key 'resource'", f"emulation listens on tcp://127.0.0.1:PORT, found {settings.resource!r}")
+                server = ModbusControllerEmulator(bench, profile, port=int(m.group(2))).start()
+                resources[name] = f"tcp://127.0.0.1:{server.port}"
+            else:
+                m = _SOCKET.match(settings.resource)
+                if not m:
+                    raise ProcedureError(source, f"[instruments.{name}] key 'resource'", f"emulation listens on TCPIP::127.0.0.1::PORT::SOCKET, found {settings.resource!r}")
+                if isinstance(profile, ScpiGeneratorProfile):
+                    emulator = GeneratorEmulator(bench, model, channel=settings.channel)
+                else:
+                    assert isinstance(profile, LockInProfile)
+                    emulator = LockInEmulator(bench, "force" if role == "force" else "response", model)
+                server = InstrumentServer(emulator, port=int(m.group(2)))
+                resources[name] = server.resource
+            servers.append(server)
+    except BaseException:
+        for server in servers:
+            server.close()
+        raise
+    instruments = {n: dataclasses.replace(s, resource=resources.get(n, s.resource)) for n, s in procedure.instruments.items()}
+    wired = dataclasses.replace(procedure, instruments=instruments)
+    experiment = open_instrument_experiment(wired, clock=bench.clock, extra_bound=extra_bound,
+                                            on_measurement=lambda index: bench.reseed((index,)), owned=tuple(servers))
+    experiment.bench = bench  # tests read the emulated truth and the peak force through it
+    return experiment

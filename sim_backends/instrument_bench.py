@@ -1,0 +1,237 @@
+"""The emulated stepped-sine bench: generator, amplifier, shaker, beam, sensors and lock-ins.
+
+What the instrument emulators (:mod:`setmem_hil.sim_backends.instrument_emulators`) answer from.
+One :class:`EmulatedBench` holds the physics of a classic stepped-sine rig on a *virtual clock*:
+
+* the generator's sine ``v(t) = V sin(phi(t))``, ``phi' = 2 pi f`` (phase-continuous frequency
+  steps, as the 33500B and DG800 do), switched by the output relay;
+* the amplifier and shaker as an ideal force source ``F = k_true v`` (``k_true`` is the nominal
+  ``newton_per_volt`` times ``drive_gain_ratio``: the real gain is never exactly the nominal one);
+* the modal beam (all 8 modes, thesis eq. 2.6-2.8) driven by that force;
+* force and response sensors (volts per unit, each with a true sensitivity that may differ from
+  the declared one by ``sensitivity_error``);
+* two lock-in amplifiers on the external reference: the sensor voltage times
+  ``j sqrt(2) exp(-j phi)`` through a cascade of ``order`` first-order low-pass filters of time
+  constant ``tau`` (6 dB/oct per stage), so ``X + jY`` is the RMS phasor of the signal relative to
+  the reference sine, with the 2-omega ripple and the modal transients of the real instrument.
+
+Exactness. Between two commands the frequency and level are constant and the whole bench is a
+linear autonomous system in the demodulation frame: with ``xh = x exp(-j phi)``,
+
+    xh' = (A - j w I) xh + B (c + r),   c = F/(2j),  r' = -2 j w r,  r(0) = -F/(2j) exp(-2 j phi0)
+    p1' = (d - p1) / tau,  pk' = (p(k-1) - pk) / tau,   d = j sqrt(2) s (C xh  or  c + r)
+
+so one matrix exponential of that system advances the structure and both filters exactly over any
+interval (``x = Re(xh exp(j phi))`` afterwards). The readings' noise is a white voltage noise of
+density ``noise_v_per_rthz`` at each lock-in input through the same filter cascade (simulated in
+steps of ``tau / 8``): longer time constants give quieter, more correlated readings, as on the
+real instrument.
+
+The clock only moves when the driver waits (:meth:`VirtualClock.sleep`), so a 1000 s dwell costs
+milliseconds. No I/O here.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import expm
+
+from setmem_hil.model.modal_model import ModalParameters
+from setmem_hil.numerics.blas_threads import blas_one_thread
+
+__all__ = ["VirtualClock", "LockInState", "EmulatedBench", "BenchSettings"]
+
+
+class VirtualClock:
+    """Simulated seconds; ``sleep`` advances them at once (the drivers' clock in emulation)."""
+
+    def __init__(self) -> None:
+        self._t = 0.0
+        self._lock = threading.Lock()
+
+    def now(self) -> float:
+        with self._lock:
+            return self._t
+
+    def sleep(self, duration_s: float) -> None:
+        if duration_s > 0:
+            with self._lock:
+                self._t += float(duration_s)
+
+
+@dataclass
+class LockInState:
+    """One emulated lock-in: its filter and its noise."""
+
+    volt_per_unit: float  # the sensor's *true* sensitivity
+    tau_s: float = 0.1
+    order: int = 4  # 24 dB/oct
+    noise_v_per_rthz: float = 1e-6
+    sensitivity_v: float = 1.0  # full scale
+    filters: np.ndarray = field(default_factory=lambda: np.zeros(4, complex))
+    noise: np.ndarray = field(default_factory=lambda: np.zeros(4, complex))
+
+    def set_filter(self, tau_s: float, order: int) -> None:
+        """A new time constant keeps the outputs (the real filter does not jump)."""
+        if order != self.order:
+            self.filters = np.resize(self.filters, order)
+            self.noise = np.resize(self.noise, order)
+        self.tau_s, self.order = float(tau_s), int(order)
+
+
+@dataclass(frozen=True)
+class BenchSettings:
+    """What the emulated rig is made of (not what the procedure believes about it)."""
+
+    newton_per_volt: float = 4.0  # the nominal gain the procedure declares
+    drive_gain_ratio: float = 1.0  # true gain / nominal gain
+    force_volt_per_unit: float = 0.0225
+    response_volt_per_unit: float = 1000.0
+    sensitivity_error: tuple[float, float] = (0.0, 0.0)  # true / declared - 1 (force, response)
+    noise_v_per_rthz: tuple[float, float] = (2e-6, 2e-6)  # at the lock-in inputs (force, response)
+    seed: int = 0
+
+
+class EmulatedBench:
+    """The physics behind the emulated instruments (thread-safe; one lock for every command)."""
+
+    def __init__(self, params: ModalParameters, settings: BenchSettings = BenchSettings(), clock: VirtualClock | None = None):
+        self.params = params
+        self.settings = settings
+        self.clock = clock or VirtualClock()
+        A, B, C, _ = params.state_space_matrices()
+        self._A, self._B, self._C = A, B[:, 0], C[0]
+        self.x = np.zeros(A.shape[0])
+        self.frequency_hz = 1000.0
+        self.amplitude_v = 0.0  # peak
+        self.output_on = False
+        self.phase = 0.0
+        self.t = self.clock.now()
+        ef, er = settings.sensitivity_error
+        nf, nr = settings.noise_v_per_rthz
+        self.lockins = {
+            "force": LockInState(settings.force_volt_per_unit * (1 + ef), noise_v_per_rthz=nf),
+            "response": LockInState(settings.response_volt_per_unit * (1 + er), noise_v_per_rthz=nr),
+        }
+        self.rng = np.random.default_rng(settings.seed)
+        self.lock = threading.RLock()
+        self.peak_force_n = 0.0  # the largest force amplitude ever applied (tests check the 5 % rule)
+        self._cache: dict[tuple, np.ndarray] = {}
+
+    # -- what the instruments command ------------------------------------------------------------
+    @property
+    def true_gain(self) -> float:
+        return self.settings.newton_per_volt * self.settings.drive_gain_ratio
+
+    @property
+    def force_amplitude_n(self) -> float:
+        return self.true_gain * self.amplitude_v if self.output_on else 0.0
+
+    def set_generator(self, *, frequency_hz: float | None = None, amplitude_v: float | None = None, output_on: bool | None = None) -> None:
+        with self.lock:
+            self.advance()
+            if frequency_hz is not None:
+                self.frequency_hz = float(frequency_hz)
+            if amplitude_v is not None:
+                self.amplitude_v = float(amplitude_v)
+            if output_on is not None:
+                self.output_on = bool(output_on)
+            self.peak_force_n = max(self.peak_force_n, self.force_amplitude_n)
+
+    def reseed(self, key: tuple[int, ...]) -> None:
+        """Simulation control: the noise from here on depends only on ``key`` (resumable runs)."""
+        with self.lock:
+            self.rng = np.random.default_rng((self.settings.seed, *key))
+
+    def read_lockin(self, name: str) -> complex:
+        """``X + jY`` (V RMS) of lock-in ``name`` now: filter output plus its noise."""
+        with self.lock:
+            self.advance()
+            li = self.lockins[name]
+            return complex(li.filters[-1] + li.noise[-1])
+
+    def true_response(self, omega_rad_s: float) -> complex:
+        return complex(np.ravel(self.params.frequency_response(np.array([float(omega_rad_s)])))[0])
+
+    # -- physics ---------------------------------------------------------------------------------
+    def advance(self) -> None:
+        """Bring the structure, the filters and the noise to the clock's present time."""
+        now = self.clock.now()
+        dt = now - self.t
+        if dt <= 0:
+            return
+        self._advance_signal(dt)
+        for li in self.lockins.values():
+            self._advance_noise(li, dt)
+        self.t = now
+
+    def _system(self, omega: float, dt: float) -> np.ndarray:
+        lf, lr = self.lockins["force"], self.lockins["response"]
+        key = (omega, dt, lf.tau_s, lf.order, lr.tau_s, lr.order, lf.volt_per_unit, lr.volt_per_unit)
+        phi = self._cache.get(key)
+        if phi is not None:
+            return phi
+        n = self._A.shape[0]
+        mf, mr = lf.order, lr.order
+        size = n + 2 + mf + mr
+        M = np.zeros((size, size), complex)
+        ic, ir, i_f, i_r = n, n + 1, n + 2, n + 2 + mf
+        M[:n, :n] = self._A - 1j * omega * np.eye(n)
+        M[:n, ic] = self._B
+        M[:n, ir] = self._B
+        M[ir, ir] = -2j * omega
+        gain = 1j * math.sqrt(2.0)
+        for start, m, li, drive in ((i_f, mf, lf, "force"), (i_r, mr, lr, "response")):
+            k = 1.0 / li.tau_s
+            if drive == "force":
+                M[start, ic] = M[start, ir] = gain * li.volt_per_unit * k
+            else:
+                M[start, :n] = gain * li.volt_per_unit * self._C * k
+            for j in range(m):
+                M[start + j, start + j] = -k
+                if j:
+                    M[start + j, start + j - 1] = k
+        with blas_one_thread():
+            phi = expm(M * dt)
+        if len(self._cache) > 256:
+            self._cache.clear()
+        self._cache[key] = phi
+        return phi
+
+    def _advance_signal(self, dt: float) -> None:
+        omega = 2 * math.pi * self.frequency_hz
+        force = self.force_amplitude_n
+        lf, lr = self.lockins["force"], self.lockins["response"]
+        n = self.x.size
+        c = force / 2j
+        state = np.concatenate([self.x * np.exp(-1j * self.phase), [c, -c * np.exp(-2j * self.phase)], lf.filters, lr.filters])
+        state = self._system(omega, dt) @ state
+        self.phase = (self.phase + omega * dt) % (2 * math.pi)
+        self.x = np.real(state[:n] * np.exp(1j * self.phase))
+        lf.filters = state[n + 2:n + 2 + lf.order].copy()
+        lr.filters = state[n + 2 + lf.order:].copy()
+
+    def _advance_noise(self, li: LockInState, dt: float) -> None:
+        """White input noise through the filter cascade, in steps of tau/8 (only the last 40 tau
+        matter: older noise has decayed below 1e-9 of the output)."""
+        h = li.tau_s / 8.0
+        span = min(dt, 40.0 * li.tau_s)
+        steps = max(1, int(math.ceil(span / h)))
+        h = span / steps
+        if dt > span:
+            li.noise = np.zeros(li.order, complex)
+            steps += 8 * 40  # burn-in from rest, so the restart does not show
+        a = math.exp(-h / li.tau_s)
+        sigma = li.noise_v_per_rthz / math.sqrt(2 * h)  # per quadrature: two-sided density over h
+        w = sigma * (self.rng.standard_normal(steps) + 1j * self.rng.standard_normal(steps))
+        s = li.noise
+        for k in range(steps):
+            prev = w[k]
+            for j in range(li.order):
+                s[j] = a * s[j] + (1 - a) * prev
+                prev = s[j]
+        li.noise = s

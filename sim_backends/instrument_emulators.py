@@ -1,0 +1,381 @@
+"""Emulators of the shipped instrument models on 127.0.0.1 sockets, backed by the emulated bench.
+
+Each emulator speaks its model's published command set over a raw TCP socket (newline
+terminated, what PyVISA opens as ``TCPIP::127.0.0.1::<port>::SOCKET``), so a campaign runs end to
+end through the real-instrument drivers in CI:
+
+* :class:`GeneratorEmulator`: Keysight/Agilent 33500B series (``SOURce<n>:FREQuency``,
+  ``SOURce<n>:VOLTage`` in Vpp, ``OUTPut<n>``, ``OUTPut<n>:LOAD``, ``SYSTem:ERRor?``) and Rigol
+  DG800 (the same tree, commands with a leading colon, ``OUTPut<n>:IMPedance``);
+* :class:`LockInEmulator`: Stanford Research SR830 (``FMOD``, ``OFLT``, ``OFSL``, ``SENS``,
+  ``SNAP? 1,2``, ``LIAS?``, ``ERRS?``) and SR860 (``RSRC``, ``OFLT``, ``OFSL``, ``SCAL``,
+  ``SNAP? 0,1``, ``CUROVLDSTAT?``, ``*ESR?``).
+
+SCPI headers are matched in their canonical short form (long and short forms, any case), as the
+instruments do. An unknown command or a value out of the instrument's range is not executed and
+goes to the error queue (SCPI -113 "Undefined header", -222 "Data out of range"); an unknown
+query gets no reply, so the driver times out, as with the real instrument.
+
+Simulation only: the real-instrument drivers (:mod:`setmem_hil.drivers.instruments`) never
+import this module; :mod:`setmem_hil.loopback.instrument_rigs` starts the emulators.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import socket
+import socketserver
+import threading
+from typing import Callable
+
+from setmem_hil.drivers.instruments.scpi_commands import canonical_header
+from setmem_hil.sim_backends.instrument_bench import EmulatedBench
+
+__all__ = ["GeneratorEmulator", "LockInEmulator", "InstrumentServer", "SR830_TIME_CONSTANTS", "SR860_TIME_CONSTANTS"]
+
+log = logging.getLogger(__name__)
+
+SR830_TIME_CONSTANTS = [10e-6, 30e-6, 100e-6, 300e-6, 1e-3, 3e-3, 10e-3, 30e-3, 100e-3, 300e-3, 1, 3, 10, 30, 100, 300, 1e3, 3e3, 10e3, 30e3]
+SR860_TIME_CONSTANTS = [1e-6, 3e-6] + SR830_TIME_CONSTANTS
+SR830_SENSITIVITIES = [2e-9, 5e-9, 10e-9, 20e-9, 50e-9, 100e-9, 200e-9, 500e-9, 1e-6, 2e-6, 5e-6, 10e-6, 20e-6, 50e-6,
+                       100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3, 10e-3, 20e-3, 50e-3, 100e-3, 200e-3, 500e-3, 1.0]
+SR860_SENSITIVITIES = list(reversed(SR830_SENSITIVITIES)) + [1e-9]  # SCAL 0 = 1 V ... 27 = 1 nV
+
+UNDEFINED_HEADER = '-113,"Undefined header"'
+OUT_OF_RANGE = '-222,"Data out of range"'
+
+
+class _Emulator:
+    """Common part: the error queue and ``;``-separated command lines."""
+
+    idn = ""
+
+    def __init__(self, bench: EmulatedBench):
+        self.bench = bench
+        self.esr = 0  # IEEE 488.2 standard event status register
+        self.errors: list[str] = []
+        self.commands: list[str] = []  # every command received (tests read the transcript)
+
+    def handle_line(self, line: str) -> str | None:
+        replies = []
+        for command in (c.strip() for c in line.split(";")):
+            if not command:
+                continue
+            self.commands.append(command)
+            try:
+                reply = self.handle(command)
+            except ValueError:
+                self.errors.append(OUT_OF_RANGE)
+                self.esr |= 1 << 4  # execution error
+                reply = None
+            if reply is not None:
+                replies.append(reply)
+        return ";".join(replies) if replies else None
+
+    def handle(self, command: str) -> str | None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+
+def _split(command: str) -> tuple[str, str]:
+    head, _, args = command.strip().partition(" ")
+    return head, args.strip()
+
+
+def _number(text: str) -> float:
+    x = float(text)
+    if not math.isfinite(x):
+        raise ValueError(text)
+    return x
+
+
+class GeneratorEmulator(_Emulator):
+    """A 33500B (``model = "33500B"``) or DG800 (``model = "DG800"``) two-channel generator.
+
+    Only the channel wired to the amplifier (``channel``) drives the bench; the other channel's
+    settings are kept but go nowhere.
+    """
+
+    def __init__(self, bench: EmulatedBench, model: str = "33500B", channel: int = 1):
+        super().__init__(bench)
+        if model not in ("33500B", "DG800"):
+            raise ValueError(f"unknown generator model {model!r}")
+        self.model, self.channel = model, channel
+        self.idn = ("Keysight Technologies,33522B,MY57800001,5.02-1.19-2.00-58-00" if model == "33500B"
+                    else "Rigol Technologies,DG812,DG8A224201234,00.01.14")
+        self.settings = {ch: {"FUNC": "SIN", "FREQ": 1000.0, "VOLT": 0.1, "OFFS": 0.0, "OUTP": False, "LOAD": math.inf, "UNIT": "VPP"}
+                         for ch in (1, 2)}
+
+    def handle(self, command: str) -> str | None:
+        head, args = _split(command)
+        query = head.endswith("?")
+        nodes = canonical_header(head.rstrip("?"))
+        if nodes in (("*IDN",), ("*RST",), ("*CLS",), ("*OPC",), ("SYST", "ERR")):
+            return self._common(nodes, query)
+        ch = 1
+        m = re.fullmatch(r"(SOUR|OUTP)(\d?)", nodes[0]) if nodes else None
+        if not m:
+            return self._undefined(query)
+        ch = int(m.group(2) or 1)
+        if ch not in (1, 2):
+            return self._undefined(query)
+        key = self._key(m.group(1), nodes[1:])
+        if key is None:
+            return self._undefined(query)
+        s = self.settings[ch]
+        if query:
+            return self._format(key, s[key])
+        s[key] = self._parse(key, args)
+        self._drive()
+        return None
+
+    @staticmethod
+    def _key(root: str, rest: tuple[str, ...]) -> str | None:
+        table = {
+            ("SOUR", ("FREQ",)): "FREQ", ("SOUR", ("VOLT",)): "VOLT", ("SOUR", ("VOLT", "OFFS")): "OFFS",
+            ("SOUR", ("VOLT", "UNIT")): "UNIT", ("SOUR", ("FUNC",)): "FUNC", ("OUTP", ()): "OUTP",
+            ("OUTP", ("LOAD",)): "LOAD", ("OUTP", ("IMP",)): "LOAD",
+        }
+        return table.get((root, rest))
+
+    def _parse(self, key: str, args: str):
+        a = args.upper()
+        if key == "OUTP":
+            if a in ("ON", "1"):
+                return True
+            if a in ("OFF", "0"):
+                return False
+            raise ValueError(args)
+        if key == "LOAD":
+            if a in ("INF", "INFINITY", "MAX"):
+                return math.inf
+            value = _number(args)
+            if not 1.0 <= value <= 10e3:
+                raise ValueError(args)
+            return value
+        if key == "FUNC":
+            if a not in ("SIN", "SINUSOID", "SQU", "RAMP", "DC", "NOIS"):
+                raise ValueError(args)
+            return a[:3]
+        if key == "UNIT":
+            if a not in ("VPP", "VRMS"):
+                raise ValueError(args)
+            return a
+        value = _number(args)
+        limits = {"FREQ": (1e-6, 20e6), "VOLT": (1e-3, 10.0), "OFFS": (-5.0, 5.0)}[key]
+        if not limits[0] <= value <= limits[1]:
+            raise ValueError(args)
+        return value
+
+    @staticmethod
+    def _format(key: str, value) -> str:
+        if key == "OUTP":
+            return "1" if value else "0"
+        if key in ("FUNC", "UNIT"):
+            return str(value)
+        if key == "LOAD" and math.isinf(value):
+            return "+9.9E+37"
+        return f"{value:+.15E}"
+
+    def _drive(self) -> None:
+        s = self.settings[self.channel]
+        on = s["OUTP"] and s["FUNC"] == "SIN" and s["OFFS"] == 0.0
+        volt = s["VOLT"]
+        peak = volt / 2.0 if s["UNIT"] == "VPP" else volt * math.sqrt(2.0)
+        self.bench.set_generator(frequency_hz=s["FREQ"], amplitude_v=peak, output_on=on)
+
+    def _common(self, nodes: tuple[str, ...], query: bool) -> str | None:
+        if nodes == ("*IDN",) and query:
+            return self.idn
+        if nodes == ("*OPC",) and query:
+            return "1"
+        if nodes == ("SYST", "ERR") and query:
+            return self.errors.pop(0) if self.errors else ('+0,"No error"' if self.model == "33500B" else '0,"No error"')
+        if nodes == ("*RST",) and not query:
+            for ch in (1, 2):
+                self.settings[ch].update(FUNC="SIN", FREQ=1000.0, VOLT=0.1, OFFS=0.0, OUTP=False, UNIT="VPP")
+            self._drive()
+            return None
+        if nodes == ("*CLS",) and not query:
+            self.errors.clear()
+            return None
+        return self._undefined(query)
+
+    def _undefined(self, query: bool) -> None:
+        self.errors.append(UNDEFINED_HEADER)
+        return None
+
+
+class LockInEmulator(_Emulator):
+    """An SR830 (``model = "SR830"``) or SR860 (``model = "SR860"``) reading one bench signal.
+
+    ``signal`` is ``"force"`` or ``"response"`` (which sensor is wired to its input). The
+    reference is locked to the generator when the instrument is set to its external reference;
+    on the internal reference the reading is meaningless and the emulator reports "unlocked".
+    """
+
+    def __init__(self, bench: EmulatedBench, signal: str, model: str = "SR830"):
+        super().__init__(bench)
+        if model not in ("SR830", "SR860"):
+            raise ValueError(f"unknown lock-in model {model!r}")
+        self.model, self.signal = model, signal
+        self.idn = ("Stanford_Research_Systems,SR830,s/n86021,ver1.07" if model == "SR830"
+                    else "Stanford_Research_Systems,SR860,004512,v1.51")
+        self.taus = SR830_TIME_CONSTANTS if model == "SR830" else SR860_TIME_CONSTANTS
+        self.sens = SR830_SENSITIVITIES if model == "SR830" else SR860_SENSITIVITIES
+        self.external = False
+        self.tau_index = self.taus.index(0.1)
+        self.slope_index = 1
+        self.sens_index = self.sens.index(1.0)
+        # input and reference set-up: accepted and read back, no effect on the emulated signal
+        self.config = ({"ISRC": 0, "ICPL": 0, "IGND": 0, "RSLP": 0, "SYNC": 0, "RMOD": 1, "ILIN": 0, "HARM": 1} if model == "SR830"
+                       else {"IVMD": 0, "ISRC": 0, "ICPL": 0, "IGND": 0, "RTRG": 0, "SYNC": 0, "HARM": 1})
+        self._apply_filter()
+
+    @property
+    def state(self):
+        return self.bench.lockins[self.signal]
+
+    def _apply_filter(self) -> None:
+        with self.bench.lock:
+            self.bench.advance()
+            self.state.set_filter(self.taus[self.tau_index], self.slope_index + 1)
+            self.state.sensitivity_v = self.sens[self.sens_index]
+
+    def _reading(self) -> complex:
+        if not self.external:
+            return complex(0.0, 0.0)
+        return self.bench.read_lockin(self.signal)
+
+    def _overloaded(self) -> bool:
+        z = self._reading()
+        return max(abs(z.real), abs(z.imag)) > self.state.sensitivity_v
+
+    def handle(self, command: str) -> str | None:
+        head, args = _split(command)
+        if " " not in command.strip() and "?" in head and not head.endswith("?"):
+            head, args = head[:head.index("?") + 1], head[head.index("?") + 1:]
+        up = head.upper()
+        query = up.endswith("?")
+        name = up.rstrip("?")
+        if name == "*IDN" and query:
+            return self.idn
+        if name == "*CLS" and not query:
+            self.errors.clear()
+            self.esr = 0
+            return None
+        if name == "*ESR" and query:
+            value, self.esr = self.esr, 0
+            return str(value)
+        ref_key = "FMOD" if self.model == "SR830" else "RSRC"
+        ext_code = 0 if self.model == "SR830" else 1
+        if name == ref_key:
+            if query:
+                return str(ext_code if self.external else 1 - ext_code)
+            code = int(_number(args))
+            if code not in (0, 1, 2, 3) or (self.model == "SR830" and code > 1):
+                raise ValueError(args)
+            self.external = code == ext_code
+            return None
+        if name in ("OFLT", "OFSL", "SENS", "SCAL"):
+            attr = {"OFLT": "tau_index", "OFSL": "slope_index", "SENS": "sens_index", "SCAL": "sens_index"}[name]
+            if (name == "SENS") != (self.model == "SR830") and name in ("SENS", "SCAL"):
+                return self._bad(query)
+            if query:
+                return str(getattr(self, attr))
+            index = int(_number(args))
+            size = {"tau_index": len(self.taus), "slope_index": 4, "sens_index": len(self.sens)}[attr]
+            if not 0 <= index < size:
+                raise ValueError(args)
+            setattr(self, attr, index)
+            self._apply_filter()
+            return None
+        if name in self.config:
+            if query:
+                return str(self.config[name])
+            value = int(_number(args))
+            if not 0 <= value <= (19999 if name == "HARM" else 4):
+                raise ValueError(args)
+            self.config[name] = value
+            return None
+        if name == "SNAP" and query:
+            wanted = [p.strip().upper() for p in args.split(",")]
+            x_code, y_code = ("1", "2") if self.model == "SR830" else ("0", "1")
+            z = self._reading()
+            values = {x_code: z.real, y_code: z.imag, "X": z.real, "Y": z.imag}
+            if self.model == "SR830" and "9" in wanted:
+                values["9"] = self.bench.frequency_hz
+            if any(w not in values for w in wanted):
+                raise ValueError(args)
+            return ",".join(f"{values[w]:.7e}" for w in wanted)
+        if name in ("FREQ", "FREQEXT") and query:
+            return f"{self.bench.frequency_hz:.7e}" if self.external else f"{1000.0:.7e}"
+        if name == "LIAS" and query and self.model == "SR830":
+            status = (1 if self._overloaded() else 0) | (0 if self.external else 8)
+            return str(status)
+        if name == "ERRS" and query and self.model == "SR830":
+            return "0"
+        if name == "CUROVLDSTAT" and query and self.model == "SR860":
+            status = (1 << 4 if self._overloaded() else 0) | (0 if self.external else 1 << 3)
+            return str(status)
+        return self._bad(query)
+
+    def _bad(self, query: bool) -> None:
+        self.errors.append(UNDEFINED_HEADER)
+        self.esr |= 1 << 5  # command error
+        return None
+
+
+class InstrumentServer:
+    """A newline-terminated text instrument on ``127.0.0.1:port`` (0: a free port), in a thread.
+
+    ``close()`` stops it; a client then sees the connection refused, as with an instrument
+    switched off.
+    """
+
+    def __init__(self, emulator: _Emulator, port: int = 0, host: str = "127.0.0.1",
+                 on_disconnect: Callable[[], None] | None = None):
+        self.emulator = emulator
+        lock = emulator.bench.lock
+        emu = emulator
+
+        class Handler(socketserver.StreamRequestHandler):
+            def handle(self):  # noqa: D401 - socketserver API
+                try:
+                    for raw in self.rfile:
+                        line = raw.decode("ascii", errors="replace").strip()
+                        if not line:
+                            continue
+                        with lock:
+                            reply = emu.handle_line(line)
+                        if reply is not None:
+                            self.wfile.write((reply + "\n").encode("ascii"))
+                except (ConnectionError, OSError):
+                    pass
+                finally:
+                    if on_disconnect is not None:
+                        on_disconnect()
+
+        class Server(socketserver.ThreadingTCPServer):
+            allow_reuse_address = True
+            daemon_threads = True
+
+        self._server = Server((host, port), Handler)
+        self.host, self.port = self._server.server_address[:2]
+        self._thread = threading.Thread(target=self._server.serve_forever, name=f"emulator-{self.port}", daemon=True)
+        self._thread.start()
+
+    @property
+    def resource(self) -> str:
+        return f"TCPIP::{self.host}::{self.port}::SOCKET"
+
+    def close(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
