@@ -32,7 +32,7 @@ def parse_modbus_resource(resource: str) -> dict:
     """``tcp://HOST:PORT`` or ``rtu://PORT?baudrate=..`` to client settings (ValueError says why)."""
     if resource.startswith("tcp://"):
         host, sep, port = resource[6:].rpartition(":")
-        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        if not sep or not host or not port.isdigit() or not 0 <= int(port) < 65536:
             raise ValueError(f"expected tcp://HOST:PORT, found {resource!r}")
         return {"kind": "tcp", "host": host, "port": int(port)}
     if resource.startswith("rtu://"):

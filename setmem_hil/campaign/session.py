@@ -113,6 +113,10 @@ def preflight(procedure: Procedure) -> None:
     from setmem_hil.model.frequency_data import FrequencyData
 
     source = procedure.source_path or procedure.name
+    if procedure.backend.kind == "instruments":  # every profile loads and fits its role
+        from setmem_hil.drivers.instruments.instrument_set import check_instruments
+
+        check_instruments(procedure)
     modes = procedure.prior.modes
     w = np.asarray(procedure.initial_omegas_rad_s, dtype=float)
     probe = FrequencyData(w, np.zeros(w.size, complex), np.zeros(w.size))

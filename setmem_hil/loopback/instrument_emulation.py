@@ -26,7 +26,7 @@ from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBenc
 from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer, LockInEmulator
 from setmem_hil.sim_backends.modbus_controller_emulator import ModbusControllerEmulator
 
-__all__ = ["open_emulated_instruments", "emulator_model"]
+__all__ = ["open_emulated_instruments", "start_emulators", "emulator_model"]
 
 _SOCKET = re.compile(r"^TCPIP0?::(127\.0\.0\.1|localhost)::(\d+)::SOCKET$", re.IGNORECASE)
 _MODBUS_TCP = re.compile(r"^tcp://(127\.0\.0\.1|localhost):(\d+)$")
@@ -42,8 +42,9 @@ def emulator_model(profile) -> str | None:
     return None
 
 
-def open_emulated_instruments(procedure: Procedure, seed: int, extra_bound=None) -> PhasorDwellExperiment:
-    """Start the emulators for the procedure's instruments and open the experiment on them."""
+def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, EmulatedBench, list]:
+    """Start an emulator for each instrument; returns the procedure with the resources they
+    listen on, the bench, and the servers (close them when done)."""
     source = procedure.source_path or procedure.name
     emulation = procedure.backend.emulation
     checked = check_instruments(procedure)
@@ -87,7 +88,12 @@ def open_emulated_instruments(procedure: Procedure, seed: int, extra_bound=None)
             server.close()
         raise
     instruments = {n: dataclasses.replace(s, resource=resources.get(n, s.resource)) for n, s in procedure.instruments.items()}
-    wired = dataclasses.replace(procedure, instruments=instruments)
+    return dataclasses.replace(procedure, instruments=instruments), bench, servers
+
+
+def open_emulated_instruments(procedure: Procedure, seed: int, extra_bound=None) -> PhasorDwellExperiment:
+    """Start the emulators for the procedure's instruments and open the experiment on them."""
+    wired, bench, servers = start_emulators(procedure, seed)
     experiment = open_instrument_experiment(wired, clock=bench.clock, extra_bound=extra_bound,
                                             on_measurement=lambda index: bench.reseed((index,)), owned=tuple(servers))
     experiment.bench = bench  # tests read the emulated truth and the peak force through it
