@@ -56,6 +56,9 @@ class VisaLink:
         errors = self._pyvisa.errors
         if isinstance(exc, errors.VisaIOError) and exc.error_code == self._pyvisa.constants.StatusCode.error_timeout:
             return DeviceTimeoutError(f"{self.name} ({self.resource}): no reply to {command!r} within {self.timeout_s:g} s")
+        if isinstance(exc, OSError):  # pyvisa-py connects on first use: refused, unreachable, reset
+            return DeviceDisconnectedError(f"{self.name}: cannot reach {self.resource!r} ({_reason(exc)}); is the instrument on and "
+                                           f"the resource string right? ({command!r} was not delivered)")
         return DeviceDisconnectedError(f"{self.name} ({self.resource}): {command!r} failed ({_reason(exc)})")
 
     def close(self) -> None:
