@@ -131,9 +131,9 @@ class ModbusGenerator:
         spec = self.profile.identity
         value = self.read(spec, "the identity register")
         if not math.isclose(value, spec.expect, rel_tol=1e-9, abs_tol=1e-12):
-            raise DeviceIdentityError(f"{self.where}: expected a {self.model} (identity register {spec.table} {spec.address} = {spec.expect:g}), "
-                                      f"it answered {value:g}; nothing was switched on")
-        return f"{self.model} (identity register {spec.address} = {value:g})"
+            raise DeviceIdentityError(f"{self.where}: expected a {self.model} (identity register {spec.table} {spec.address} = {spec.expect:.10g}), "
+                                      f"it answered {value:.10g}; nothing was switched on")
+        return f"{self.model} (identity register {spec.address} = {value:.10g})"
 
     def initialise(self) -> None:
         self.set_output(False)
