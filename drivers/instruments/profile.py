@@ -8,7 +8,7 @@ code. Shipped profiles live in ``profiles/`` beside this module (``keysight-3350
 one, or gives a path to its own file (relative to the procedure file).
 
 Three kinds (``kind = ...``); the keys of each are in :data:`PROFILE_KEYS` and documented in
-``docs/profiles.md``:
+``docs/instrument-profiles.md``:
 
 ``scpi-generator``
     A function generator driving the shaker amplifier (SCPI over PyVISA).
