@@ -313,7 +313,8 @@ amplitude_v = [0.0, 10.0]
 class PlainModbusServer:
     """A pymodbus server with preset registers and nothing of ours behind it."""
 
-    def __init__(self, holding: dict[int, int], device_id: int):
+    def __init__(self, holding: dict[int, int], device_id: int, framer: str = "socket"):
+        from pymodbus.framer import FramerType
         from pymodbus.server import ModbusTcpServer
         from pymodbus.simulator import SimData, SimDevice
         from pymodbus.simulator.simdata import DataType
@@ -321,6 +322,7 @@ class PlainModbusServer:
         from setmem_hil.sim_backends.instrument_emulators import free_port
 
         self.port = free_port()
+        self.framer = FramerType.RTU if framer == "rtu" else FramerType.SOCKET
         regs = [0] * 64
         for a, v in holding.items():
             regs[a] = v
@@ -331,7 +333,8 @@ class PlainModbusServer:
             device = SimDevice(device_id, simdata=(
                 [SimData(0, count=64, values=False, datatype=DataType.BITS)], [SimData(0, count=64, values=False, datatype=DataType.BITS)],
                 [SimData(0, values=regs, datatype=DataType.REGISTERS)], [SimData(0, count=64, values=0, datatype=DataType.REGISTERS)]))
-            self.server = ModbusTcpServer(device, address=("127.0.0.1", self.port))
+            self.server = ModbusTcpServer(device, address=("127.0.0.1", self.port),
+                                          framer=FramerType.RTU if framer == "rtu" else FramerType.SOCKET)
             await self.server.serve_forever(background=True)
 
         def run():
@@ -345,8 +348,9 @@ class PlainModbusServer:
 
     def read_holding(self, address: int, count: int) -> list[int]:
         from pymodbus.client import ModbusTcpClient
+        from pymodbus.framer import FramerType
 
-        client = ModbusTcpClient("127.0.0.1", port=self.port)
+        client = ModbusTcpClient("127.0.0.1", port=self.port, framer=self.framer)
         client.connect()
         try:
             return list(client.read_holding_registers(address, count=count, device_id=3).registers)
@@ -358,13 +362,16 @@ class PlainModbusServer:
         self.loop.call_soon_threadsafe(self.loop.stop)
 
 
-@pytest.mark.parametrize("word_order", ["big", "little"])
-def test_modbus_registers_against_a_plain_pymodbus_server(word_order, tmp_path):
+@pytest.mark.parametrize("word_order, framer", [("big", "socket"), ("little", "socket"), ("little", "rtu")])
+def test_modbus_registers_against_a_plain_pymodbus_server(word_order, framer, tmp_path):
+    """Modbus TCP, and RTU framing (through pyserial's socket:// port, as a serial line would carry it)."""
     ident = (0x1234, 0x5678) if word_order == "big" else (0x5678, 0x1234)  # 305419896 = 0x12345678
-    server = PlainModbusServer({0: ident[0], 1: ident[1]}, device_id=3)
+    server = PlainModbusServer({0: ident[0], 1: ident[1]}, device_id=3, framer=framer)
+    resource = (f"tcp://127.0.0.1:{server.port}" if framer == "socket"
+                else f"rtu://socket://127.0.0.1:{server.port}?baudrate=19200&parity=E")
     try:
         profile = parse_profile(_profile_text(word_order), str(tmp_path / "hand.toml"))
-        gen = ModbusGenerator("plc", profile, f"tcp://127.0.0.1:{server.port}")
+        gen = ModbusGenerator("plc", profile, resource)
         try:
             assert "305419896" in gen.check_identity()
             gen.set_frequency_hz(1234.5)

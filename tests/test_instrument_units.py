@@ -4,6 +4,7 @@ the emulated bench's physics and the phasor dwell's safety order."""
 from __future__ import annotations
 
 import math
+import re
 import struct
 
 import numpy as np
@@ -104,3 +105,53 @@ def test_phasor_point_ratio_units_and_force_amplitude():
     p = phasor_point(F, R, 0.0225, 1000.0)
     assert p.response == pytest.approx(g_true)
     assert p.force_amplitude == pytest.approx(0.8)
+
+
+def test_sensor_quantities_convert_to_receptance():
+    from setmem_hil.drivers.instruments.phasor_dwell import to_receptance
+
+    w, x = 7.0, 0.02 - 0.01j  # displacement per newton
+    assert to_receptance(1j * w * x, w, "velocity") == pytest.approx(x)  # v = j w x
+    assert to_receptance(-(w**2) * x, w, "acceleration") == pytest.approx(x)  # a = -w^2 x
+    assert to_receptance(x, w, "displacement") == x
+
+
+@pytest.mark.parametrize("resource, problem", [
+    ("tcp://10.0.0.5", "expected tcp://HOST:PORT"), ("rtu://?baudrate=9600", "expected rtu://PORT"),
+    ("rtu:///dev/ttyUSB0?baud=9600", "unknown RTU option 'baud'"), ("rtu:///dev/ttyUSB0?parity=X", "parity must be N, E or O"),
+    ("modbus://10.0.0.5:502", "a Modbus resource is tcp://"),
+])
+def test_modbus_resource_errors_say_what_is_expected(resource, problem):
+    from setmem_hil.drivers.instruments.modbus_generator import parse_modbus_resource
+
+    with pytest.raises(ValueError, match=re.escape(problem)):
+        parse_modbus_resource(resource)
+
+
+def test_modbus_controller_watchdog_switches_the_output_off():
+    """The dead-man: with the output on, the emulated controller stops driving when the
+    watchdog register is not rewritten within its timeout (bench clock)."""
+    from setmem_hil.drivers.instruments.modbus_generator import ModbusGenerator
+    from setmem_hil.sim_backends.beam import beam_parameters
+    from setmem_hil.sim_backends.instrument_bench import EmulatedBench
+    from setmem_hil.sim_backends.modbus_controller_emulator import ModbusControllerEmulator
+
+    profile = load_profile("modbus-shaker-controller")
+    bench = EmulatedBench(beam_parameters())
+    controller = ModbusControllerEmulator(bench, profile).start()
+    gen = ModbusGenerator("plc", profile, f"tcp://127.0.0.1:{controller.port}")
+    try:
+        gen.check_identity()
+        gen.initialise()
+        gen.set_frequency_hz(1.0)
+        gen.set_amplitude_v(0.1)
+        gen.set_output(True)
+        bench.clock.sleep(0.9 * profile.watchdog_timeout_s)
+        gen.keepalive()
+        assert bench.output_on  # refreshed in time
+        bench.clock.sleep(1.5 * profile.watchdog_timeout_s)
+        gen.read(profile.output, "output")  # any request: the controller notices the silence
+        assert not bench.output_on and controller.watchdog_trips == 1
+    finally:
+        gen.close()
+        controller.close()
