@@ -26,7 +26,7 @@ from setmem_hil.drivers.clock import Clock, WallClock
 from setmem_hil.drivers.instruments.lockin import LockIn
 from setmem_hil.drivers.instruments.modbus_generator import ModbusGenerator, parse_modbus_resource
 from setmem_hil.drivers.instruments.phasor_dwell import DriveChannel, PhasorDwellExperiment, PhasorDwellSettings, SensorChannel
-from setmem_hil.drivers.instruments.profile import LockInProfile, ModbusProfile, Profile, ScpiGeneratorProfile, load_profile
+from setmem_hil.drivers.instruments.profile import DbcProfile, LockInProfile, ModbusProfile, Profile, ScpiGeneratorProfile, load_profile
 from setmem_hil.drivers.instruments.scpi_generator import ScpiGenerator
 from setmem_hil.drivers.instruments.visa_link import VisaLink
 from setmem_hil.errors import DeviceError, ProcedureError
@@ -37,7 +37,7 @@ __all__ = ["ROLES", "check_instruments", "open_instrument", "probe_instruments",
 log = logging.getLogger(__name__)
 
 ROLES = ("exciter", "force", "response")
-_ROLE_KINDS = {"exciter": ("scpi-generator", "modbus"), "force": ("scpi-lockin",), "response": ("scpi-lockin",)}
+_ROLE_KINDS = {"exciter": ("scpi-generator", "modbus", "dbc"), "force": ("scpi-lockin",), "response": ("scpi-lockin",)}
 
 
 def _source(procedure: Procedure) -> str:
@@ -64,9 +64,11 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
         if role == "exciter" and settings.channel not in profile.channels:
             raise ProcedureError(_source(procedure), f"[instruments.{name}] key 'channel'",
                                  f"channel {settings.channel} does not exist on a {profile.model} (channels {list(profile.channels)})")
-        if isinstance(profile, ModbusProfile):
+        if isinstance(profile, (ModbusProfile, DbcProfile)):
+            from setmem_hil.drivers.instruments.dbc_generator import parse_can_resource
+
             try:
-                parse_modbus_resource(settings.resource)
+                (parse_modbus_resource if isinstance(profile, ModbusProfile) else parse_can_resource)(settings.resource)
             except ValueError as exc:
                 raise ProcedureError(_source(procedure), f"[instruments.{name}] key 'resource'", str(exc)) from None
         found[name] = (settings, profile, role)
@@ -77,6 +79,10 @@ def open_instrument(settings: InstrumentSettings, profile: Profile):
     """Open one instrument (no command sent yet): a ScpiGenerator, ModbusGenerator or LockIn."""
     if isinstance(profile, ModbusProfile):
         return ModbusGenerator(settings.name, profile, settings.resource)
+    if isinstance(profile, DbcProfile):
+        from setmem_hil.drivers.instruments.dbc_generator import DbcGenerator
+
+        return DbcGenerator(settings.name, profile, settings.resource)
     link = VisaLink(settings.name, settings.resource, visa_library=settings.visa_library,
                     termination=profile.termination, timeout_s=profile.timeout_s)
     try:

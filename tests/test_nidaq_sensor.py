@@ -1,0 +1,89 @@
+"""Issue 13, DAQ: the NI-DAQmx sensor against a recorded-call fake whose calls are checked
+against the installed ``nidaqmx`` API (so the fake cannot drift from the real one), and its
+samples through the existing sine fit."""
+
+from __future__ import annotations
+
+import inspect
+import math
+import types
+
+import numpy as np
+import pytest
+
+nidaqmx = pytest.importorskip("nidaqmx")
+
+from nidaqmx.task._timing import Timing  # noqa: E402
+from nidaqmx.task.collections._ai_channel_collection import AIChannelCollection  # noqa: E402
+
+from setmem_hil.drivers.instruments.nidaq_sensor import NidaqSensor  # noqa: E402
+from setmem_hil.errors import DeviceError  # noqa: E402
+from setmem_hil.estimation.sine_fit import fit_sine  # noqa: E402
+
+OMEGA, F_AMP, R_AMP, R_PHASE = 2 * math.pi * 7.0, 0.8, 0.003, -0.6
+
+
+class Recorder:
+    def __init__(self, fail: bool = False):
+        self.calls: list[tuple[str, tuple, dict]] = []
+        self.fail = fail
+
+    def module(self):
+        rec = self
+
+        class Task:
+            def __init__(self):
+                rec.calls.append(("Task", (), {}))
+                self.ai_channels = types.SimpleNamespace(add_ai_voltage_chan=lambda *a, **k: rec.calls.append(("add_ai_voltage_chan", a, k)))
+                self.timing = types.SimpleNamespace(cfg_samp_clk_timing=self._timing)
+
+            def _timing(self, *a, **k):
+                rec.calls.append(("cfg_samp_clk_timing", a, k))
+                self.rate, self.n = a[0], k["samps_per_chan"]
+
+            def read(self, *a, **k):
+                rec.calls.append(("read", a, k))
+                if rec.fail:
+                    raise nidaqmx.errors.DaqError("Device identifier is invalid.", -200220)
+                t = np.arange(self.n) / self.rate
+                force = 0.0225 * F_AMP * np.sin(OMEGA * t)  # volts at 22.5 mV/N
+                resp = 100.0 * R_AMP * np.sin(OMEGA * t + R_PHASE)  # volts at 100 V/m
+                return [force.tolist(), resp.tolist()]
+
+            def close(self):
+                rec.calls.append(("close", (), {}))
+
+        return types.SimpleNamespace(Task=Task, constants=nidaqmx.constants, errors=nidaqmx.errors)
+
+
+def test_calls_match_the_real_nidaqmx_api_and_the_sine_fit_recovers_the_signal():
+    rec = Recorder()
+    sensor = NidaqSensor("Dev1/ai0", "Dev1/ai1", 0.0225, 100.0, nidaqmx_module=rec.module())
+    sensor.set_sample_rate(7.0 * 32)
+    block = sensor.acquire(2.0)
+    names = [c[0] for c in rec.calls]
+    assert names == ["Task", "add_ai_voltage_chan", "add_ai_voltage_chan", "cfg_samp_clk_timing", "read", "close"]
+    real = {"add_ai_voltage_chan": AIChannelCollection.add_ai_voltage_chan, "cfg_samp_clk_timing": Timing.cfg_samp_clk_timing,
+            "read": nidaqmx.Task.read}
+    for name, args, kwargs in rec.calls:
+        if name in real:
+            inspect.signature(real[name]).bind(None, *args, **kwargs)  # raises TypeError if the real API has no such call
+    chans = [c for c in rec.calls if c[0] == "add_ai_voltage_chan"]
+    assert [c[1][0] for c in chans] == ["Dev1/ai0", "Dev1/ai1"]
+    assert chans[0][2]["min_val"] == -10.0 and chans[0][2]["max_val"] == 10.0
+    timing = next(c for c in rec.calls if c[0] == "cfg_samp_clk_timing")
+    assert timing[1][0] == pytest.approx(224.0) and timing[2]["sample_mode"] == nidaqmx.constants.AcquisitionType.FINITE
+    assert timing[2]["samps_per_chan"] == 448
+    f = fit_sine(block.t_s, block.force, OMEGA)
+    r = fit_sine(block.t_s, block.response, OMEGA)
+    assert abs(f.phasor) == pytest.approx(F_AMP, rel=1e-9)
+    assert abs(r.phasor) == pytest.approx(R_AMP, rel=1e-9)
+    assert np.angle(r.phasor / f.phasor) == pytest.approx(R_PHASE, abs=1e-9)
+
+
+def test_a_driver_error_is_one_line_naming_the_channels_and_the_task_is_closed():
+    rec = Recorder(fail=True)
+    sensor = NidaqSensor("Dev1/ai0", "Dev1/ai1", 0.0225, 100.0, nidaqmx_module=rec.module())
+    with pytest.raises(DeviceError, match=r"NI-DAQ Dev1/ai0, Dev1/ai1: Device identifier is invalid"):
+        sensor.acquire(0.5)
+    assert rec.calls[-1][0] == "close"
