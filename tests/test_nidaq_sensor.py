@@ -87,3 +87,92 @@ def test_a_driver_error_is_one_line_naming_the_channels_and_the_task_is_closed()
     with pytest.raises(DeviceError, match=r"NI-DAQ Dev1/ai0, Dev1/ai1: Device identifier is invalid"):
         sensor.acquire(0.5)
     assert rec.calls[-1][0] == "close"
+
+
+def _daq_procedure(generator_resource: str, gain_ratio: float = 1.0):
+    from setmem_hil.io.procedure_file import parse_procedure_text
+
+    text = f'''
+name = "daq-rig"
+[backend]
+kind = "instruments"
+exciter = "fgen"
+force = "daq_force"
+response = "daq_response"
+[instruments.fgen]
+profile = "keysight-33500b"
+resource = "{generator_resource}"
+newton_per_volt = 4.0
+max_drive_v = 2.5
+[instruments.daq_force]
+profile = "ni-daqmx"
+resource = "Dev1/ai0"
+volt_per_unit = 0.0225
+[instruments.daq_response]
+profile = "ni-daqmx"
+resource = "Dev1/ai1"
+volt_per_unit = 0.004
+[safety]
+max_amplitude_n = 1.0
+omega_min_rad_s = 0.05
+omega_max_rad_s = 2000.0
+max_dwell_s = 3600.0
+[[mode]]
+omega_min = 0.884
+omega_max = 1.125
+zeta_max = 0.5
+b1 = 0.0
+[initial]
+omega_rad_s = [3.0]
+'''
+    return parse_procedure_text(text, "daq.toml")
+
+
+def _daq_from_bench(bench):
+    """A nidaqmx stand-in sampling the emulated bench's steady state (what the generator drives)."""
+
+    class Task:
+        def __init__(self):
+            self.ai_channels = types.SimpleNamespace(add_ai_voltage_chan=lambda *a, **k: None)
+            self.timing = types.SimpleNamespace(cfg_samp_clk_timing=self._timing)
+
+        def _timing(self, rate, **k):
+            self.rate, self.n = rate, k["samps_per_chan"]
+
+        def read(self, **k):
+            t = np.arange(self.n) / self.rate
+            w = 2 * math.pi * bench.frequency_hz
+            force = bench.force_amplitude_n * np.sin(w * t)
+            g = bench.true_response(w)
+            resp = bench.force_amplitude_n * abs(g) * np.sin(w * t + np.angle(g))
+            return [(0.0225 * force).tolist(), (0.004 * resp).tolist()]
+
+        def close(self):
+            pass
+
+    return types.SimpleNamespace(Task=Task, constants=nidaqmx.constants, errors=nidaqmx.errors)
+
+
+@pytest.mark.parametrize("gain_ratio", [1.0, 1.2])
+def test_generator_plus_daq_runs_the_sine_dwell_and_bounds_the_force(gain_ratio):
+    from setmem_hil.drivers.instruments.instrument_set import check_instruments, open_daq_experiment
+    from setmem_hil.errors import SafetyLimitError
+    from setmem_hil.sim_backends.beam import beam_parameters
+    from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBench
+    from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer
+
+    bench = EmulatedBench(beam_parameters(), BenchSettings(drive_gain_ratio=gain_ratio))
+    server = InstrumentServer(GeneratorEmulator(bench, "33500B"))
+    try:
+        procedure = _daq_procedure(server.resource)
+        exp = open_daq_experiment(procedure, check_instruments(procedure), nidaqmx_module=_daq_from_bench(bench))
+        with exp:
+            if gain_ratio > 1.05:  # the nominal gain under-states the real one by 20 %: the sampled force stops it
+                with pytest.raises(SafetyLimitError, match="exceeds max_amplitude_n 1 N by more than 5 %"):
+                    exp.measure(3.0)
+            else:
+                m = exp.measure(3.0)
+                assert abs(m.response - bench.true_response(3.0)) <= m.bound
+        assert not bench.output_on
+    finally:
+        server.close()

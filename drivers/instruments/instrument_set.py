@@ -26,7 +26,7 @@ from setmem_hil.drivers.clock import Clock, WallClock
 from setmem_hil.drivers.instruments.lockin import LockIn
 from setmem_hil.drivers.instruments.modbus_generator import ModbusGenerator, parse_modbus_resource
 from setmem_hil.drivers.instruments.phasor_dwell import DriveChannel, PhasorDwellExperiment, PhasorDwellSettings, SensorChannel
-from setmem_hil.drivers.instruments.profile import DbcProfile, LockInProfile, ModbusProfile, Profile, ScpiGeneratorProfile, load_profile
+from setmem_hil.drivers.instruments.profile import DaqProfile, DbcProfile, LockInProfile, ModbusProfile, Profile, ScpiGeneratorProfile, load_profile
 from setmem_hil.drivers.instruments.scpi_generator import ScpiGenerator
 from setmem_hil.drivers.instruments.visa_link import VisaLink
 from setmem_hil.errors import DeviceError, ProcedureError
@@ -37,7 +37,7 @@ __all__ = ["ROLES", "check_instruments", "open_instrument", "probe_instruments",
 log = logging.getLogger(__name__)
 
 ROLES = ("exciter", "force", "response")
-_ROLE_KINDS = {"exciter": ("scpi-generator", "modbus", "dbc"), "force": ("scpi-lockin",), "response": ("scpi-lockin",)}
+_ROLE_KINDS = {"exciter": ("scpi-generator", "modbus", "dbc"), "force": ("scpi-lockin", "nidaqmx"), "response": ("scpi-lockin", "nidaqmx")}
 
 
 def _source(procedure: Procedure) -> str:
@@ -72,6 +72,10 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
             except ValueError as exc:
                 raise ProcedureError(_source(procedure), f"[instruments.{name}] key 'resource'", str(exc)) from None
         found[name] = (settings, profile, role)
+    kinds = {found[getattr(backend, r)][1].kind for r in ("force", "response")}
+    if len(kinds) > 1:
+        raise ProcedureError(_source(procedure), "[backend] key 'response'", "force and response must both be lock-ins or both "
+                             f"DAQ channels, found {' and '.join(sorted(kinds))}")
     return found
 
 
@@ -111,6 +115,9 @@ def probe_instruments(procedure: Procedure) -> list[ProbeResult]:
     results = []
     for name, (settings, profile, role) in check_instruments(procedure).items():
         inst = None
+        if isinstance(profile, DaqProfile):  # NI-DAQmx has no identity query of a channel
+            results.append(ProbeResult(name, role, profile.model, settings.resource, True, "NI-DAQmx channel (not queried)"))
+            continue
         try:
             inst = open_instrument(settings, profile)
             answer = inst.check_identity()
@@ -125,10 +132,38 @@ def probe_instruments(procedure: Procedure) -> list[ProbeResult]:
     return results
 
 
+def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None, nidaqmx_module=None):
+    """Source + NI-DAQ: the sine dwell on a sampled rig (:mod:`.sampled_rig`)."""
+    from setmem_hil.drivers.instruments.nidaq_sensor import NidaqSensor
+    from setmem_hil.drivers.instruments.sampled_rig import SampledInstrumentRig
+    from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
+
+    backend = procedure.backend
+    exciter, force, response = (procedure.instruments[getattr(backend, r)] for r in ROLES)
+    daq: DaqProfile = checked[force.name][1]
+    source = open_instrument(exciter, checked[exciter.name][1])
+    try:
+        source.check_identity()
+        source.initialise()
+        sensor = NidaqSensor(force.resource, response.resource, force.volt_per_unit, response.volt_per_unit,
+                             range_v=daq.range_v, terminal=daq.terminal, nidaqmx_module=nidaqmx_module)
+        limits = procedure.safety
+        rig = SampledInstrumentRig(source, sensor, exciter.newton_per_volt, exciter.max_drive_v or math.inf, limits.max_amplitude_n,
+                                   force_range_n=daq.range_v / force.volt_per_unit, response_range=daq.range_v / response.volt_per_unit,
+                                   sample_rate_hz=1000.0)
+    except BaseException:
+        source.close()
+        raise
+    settings = DwellSettings(amplitude_n=min(1.0, procedure.safety.max_amplitude_n))
+    return SineDwellExperiment(rig, procedure.safety, settings, model=procedure.prior.initial_bounds(), extra_bound=extra_bound)
+
+
 def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = None, extra_bound: Callable[[float], float] | None = None,
                                on_measurement: Callable[[int], None] | None = None, owned: tuple = ()) -> PhasorDwellExperiment:
     """Open, identify (all three before any output is touched) and initialise the instruments."""
     checked = check_instruments(procedure)
+    if isinstance(checked[procedure.backend.force][1], DaqProfile):
+        return open_daq_experiment(procedure, checked, extra_bound=extra_bound)
     opened = {}
     try:
         for name, (settings, profile, role) in checked.items():

@@ -183,7 +183,22 @@ class DbcProfile:
     channels: tuple[int, ...] = (1,)
 
 
-Profile = ScpiGeneratorProfile | LockInProfile | ModbusProfile | DbcProfile
+@dataclass(frozen=True)
+class DaqProfile:
+    """An NI DAQ analog input (NI-DAQmx); the instrument table's ``resource`` is the physical
+    channel (``Dev1/ai0``)."""
+
+    name: str
+    source: str
+    model: str
+    range_v: float
+    terminal: str
+    max_sample_rate_hz: float
+    kind: str = "nidaqmx"
+    channels: tuple[int, ...] = (1,)
+
+
+Profile = ScpiGeneratorProfile | LockInProfile | ModbusProfile | DbcProfile | DaqProfile
 
 _COMMON = {"kind", "model", "description"}
 PROFILE_KEYS: dict[str, set[str]] = {
@@ -191,6 +206,7 @@ PROFILE_KEYS: dict[str, set[str]] = {
     "scpi-lockin": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "reference", "time_constant", "read", "status", "filter_slope_db_per_octave", "full_scale_v"},
     "modbus": _COMMON | {"device_id", "identity", "frequency_hz", "amplitude_v", "output", "watchdog_s", "watchdog_timeout_s", "limits", "timeout_s"},
     "dbc": _COMMON | {"dbc", "command", "status", "identity", "canopen_identity", "limits"},
+    "nidaqmx": _COMMON | {"range_v", "terminal", "max_sample_rate_hz"},
 }
 _TABLE_KEYS = {
     "identity": {"query", "expect"},
@@ -493,7 +509,15 @@ def _dbc(name: str, source: str, top: _Reader) -> DbcProfile:
     )
 
 
-_BUILDERS = {"scpi-generator": _generator, "scpi-lockin": _lockin, "modbus": _modbus, "dbc": _dbc}
+def _daq(name: str, source: str, top: _Reader) -> DaqProfile:
+    terminal = top.string("terminal", "DIFF")
+    if terminal not in ("DIFF", "RSE", "NRSE", "PSEUDO_DIFF", "DEFAULT"):
+        raise top.error(f"terminal: expected DIFF, RSE, NRSE, PSEUDO_DIFF or DEFAULT, found {terminal!r}")
+    return DaqProfile(name=name, source=source, model=top.string("model"), range_v=top.number("range_v", 10.0, positive=True),
+                      terminal=terminal, max_sample_rate_hz=top.number("max_sample_rate_hz", 100e3, positive=True))
+
+
+_BUILDERS = {"scpi-generator": _generator, "scpi-lockin": _lockin, "modbus": _modbus, "dbc": _dbc, "nidaqmx": _daq}
 
 
 def parse_profile(text: str, source: str, name: str = "") -> Profile:
