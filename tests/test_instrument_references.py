@@ -348,7 +348,6 @@ class PlainModbusServer:
 
     def read_holding(self, address: int, count: int) -> list[int]:
         from pymodbus.client import ModbusTcpClient
-        from pymodbus.framer import FramerType
 
         client = ModbusTcpClient("127.0.0.1", port=self.port, framer=self.framer)
         client.connect()

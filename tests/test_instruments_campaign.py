@@ -203,7 +203,7 @@ def test_unknown_profile_and_wrong_role_are_input_errors(tmp_path, capsys):
     assert "did you mean 'srs-sr830'" in capsys.readouterr().err
     path.write_text(_emulated({'profile = "keysight-33500b"': 'profile = "srs-sr830"'}))
     assert main(["run", "--check", str(path)]) == 2
-    assert "the exciter needs a scpi-generator or modbus profile" in capsys.readouterr().err
+    assert "is a scpi-lockin (Stanford Research Systems SR830); the exciter needs a scpi-generator, modbus or dbc profile" in capsys.readouterr().err
 
 
 def test_unreachable_resource_exits_4_with_nothing_switched_on(tmp_path, capsys):

@@ -23,8 +23,9 @@ import math
 import time
 from urllib.parse import parse_qs
 
+from setmem_hil.drivers.instruments.source import check_instrument_range
 from setmem_hil.drivers.instruments.profile import DbcProfile
-from setmem_hil.errors import DeviceDisconnectedError, DeviceIdentityError, DeviceRejectedError, DeviceTimeoutError, SafetyLimitError
+from setmem_hil.errors import DeviceDisconnectedError, DeviceIdentityError, DeviceRejectedError, DeviceTimeoutError
 
 __all__ = ["DbcGenerator", "parse_can_resource"]
 
@@ -157,15 +158,11 @@ class DbcGenerator:
         """The cyclic command is the keepalive (see the module docs)."""
 
     def set_frequency_hz(self, frequency_hz: float) -> None:
-        lo, hi = self.frequency_limits_hz
-        if not lo <= frequency_hz <= hi:
-            raise SafetyLimitError(f"{self.where}: {frequency_hz:g} Hz outside the {self.model}'s range [{lo:g}, {hi:g}] Hz; nothing was sent")
+        check_instrument_range(self.where, self.model, frequency_hz, self.frequency_limits_hz, "Hz")
         self._set("frequency_hz", frequency_hz)
 
     def set_amplitude_v(self, peak_v: float) -> None:
-        lo, hi = self.amplitude_limits_v
-        if not lo <= peak_v <= hi:
-            raise SafetyLimitError(f"{self.where}: {peak_v:g} V outside the {self.model}'s range [{lo:g}, {hi:g}] V; nothing was sent")
+        check_instrument_range(self.where, self.model, peak_v, self.amplitude_limits_v, "V")
         self._set("amplitude_v", peak_v)
 
     def set_output(self, on: bool) -> None:

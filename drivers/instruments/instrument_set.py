@@ -40,6 +40,10 @@ ROLES = ("exciter", "force", "response")
 _ROLE_KINDS = {"exciter": ("scpi-generator", "modbus", "dbc"), "force": ("scpi-lockin", "nidaqmx"), "response": ("scpi-lockin", "nidaqmx")}
 
 
+def _one_of(kinds: tuple[str, ...]) -> str:
+    return kinds[0] if len(kinds) == 1 else ", ".join(kinds[:-1]) + " or " + kinds[-1]
+
+
 def _source(procedure: Procedure) -> str:
     return procedure.source_path or procedure.name
 
@@ -60,7 +64,7 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
             raise
         if profile.kind not in _ROLE_KINDS[role]:
             raise ProcedureError(_source(procedure), where, f"profile {settings.profile!r} is a {profile.kind} ({profile.model}); "
-                                 f"the {role} needs a {' or '.join(_ROLE_KINDS[role])} profile")
+                                 f"the {role} needs a {_one_of(_ROLE_KINDS[role])} profile")
         if role == "exciter" and settings.channel not in profile.channels:
             raise ProcedureError(_source(procedure), f"[instruments.{name}] key 'channel'",
                                  f"channel {settings.channel} does not exist on a {profile.model} (channels {list(profile.channels)})")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+from setmem_hil.drivers.instruments.source import check_instrument_range
 from setmem_hil.drivers.instruments.profile import ScpiGeneratorProfile
 from setmem_hil.drivers.instruments.scpi_instrument import ScpiInstrument
 from setmem_hil.drivers.instruments.visa_link import VisaLink
@@ -40,15 +41,11 @@ class ScpiGenerator(ScpiInstrument):
         self.set_output(False)
 
     def set_frequency_hz(self, frequency_hz: float) -> None:
-        lo, hi = self.frequency_limits_hz
-        if not lo <= frequency_hz <= hi:
-            raise SafetyLimitError(f"{self.where}: {frequency_hz:g} Hz outside the {self.model}'s range [{lo:g}, {hi:g}] Hz; nothing was sent")
+        check_instrument_range(self.where, self.model, frequency_hz, self.frequency_limits_hz, "Hz")
         self.set_checked(self.profile.frequency, frequency_hz, "frequency (Hz)")
 
     def set_amplitude_v(self, peak_v: float) -> None:
-        lo, hi = self.amplitude_limits_v
-        if not lo <= peak_v <= hi:
-            raise SafetyLimitError(f"{self.where}: {peak_v:g} V peak outside the {self.model}'s range [{lo:g}, {hi:g}] V; nothing was sent")
+        check_instrument_range(self.where, self.model, peak_v, self.amplitude_limits_v, "V")
         value = float(f"{peak_v * AMPLITUDE_FACTORS[self.profile.amplitude.unit]:.5g}")
         self.set_checked(self.profile.amplitude, value, f"amplitude ({self.profile.amplitude.unit})")
 

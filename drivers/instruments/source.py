@@ -9,7 +9,16 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
-__all__ = ["SignalSource", "IdentifiedInstrument"]
+from setmem_hil.errors import SafetyLimitError
+
+__all__ = ["SignalSource", "IdentifiedInstrument", "check_instrument_range"]
+
+
+def check_instrument_range(where: str, model: str, value: float, limits: tuple[float, float], unit: str) -> None:
+    """The instrument's own limit (from its profile), checked before anything is sent."""
+    lo, hi = limits
+    if not lo <= value <= hi:
+        raise SafetyLimitError(f"{where}: {value:g} {unit} outside the {model}'s range [{lo:g}, {hi:g}] {unit}; nothing was sent")
 
 
 @runtime_checkable
