@@ -46,6 +46,7 @@ Example
 from __future__ import annotations
 
 import atexit
+import dataclasses
 import logging
 import weakref
 from typing import Callable
@@ -132,6 +133,8 @@ class SineDwellExperiment:
         self.extra_bound = extra_bound
         self.model: IntervalModel | ModalParameters | None = model
         self.n_measured = 0
+        self.rig_s = 0.0  # device seconds of all dwells so far
+        self._device_s = 0.0
         self.last_result: DwellResult | None = None
         self.counters: dict[str, int] = {}
         self.pole_tracker = PoleTracker()
@@ -163,6 +166,7 @@ class SineDwellExperiment:
         check_dwell(self.limits, plan.skip_s + plan.window_s)
         errors: list[str] = []
         last_exc: BaseException | None = None
+        self._device_s = 0.0  # rig time of this dwell, every attempt included
         for attempt in range(self.settings.max_attempts):
             try:
                 result = self._dwell(plan, attempt)
@@ -186,7 +190,8 @@ class SineDwellExperiment:
             self.last_result = result
             if self.settings.learn_poles:
                 self._learn(result.response_fit)
-            return result.measurement
+            self.rig_s += self._device_s
+            return dataclasses.replace(result.measurement, rig_s=self._device_s)
         self._failed_attempts += self.settings.max_attempts
         summary = "; ".join(errors)
         msg = f"sine dwell at {w:g} rad/s failed after {self.settings.max_attempts} attempts ({summary})"
@@ -235,6 +240,7 @@ class SineDwellExperiment:
                 sensor.wait(plan.skip_s)
             else:
                 sensor.acquire(plan.skip_s)
+            self._device_s += plan.skip_s + plan.window_s
             block = sensor.acquire(plan.window_s)
             check_block(block, rig.metadata.force_range_n, rig.metadata.response_range, plan.sample_rate_hz)
             dwell_s = plan.skip_s + plan.window_s
@@ -249,6 +255,7 @@ class SineDwellExperiment:
                         "(the halves of the window disagree beyond their uncertainty)"
                     )
                 # consecutive windows: the next estimate uses the newest window only
+                self._device_s += plan.window_s
                 block = sensor.acquire(plan.window_s)
                 check_block(block, rig.metadata.force_range_n, rig.metadata.response_range, plan.sample_rate_hz)
                 dwell_s += plan.window_s

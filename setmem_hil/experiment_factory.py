@@ -38,10 +38,11 @@ Example
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from setmem_hil.model.experiment import Experiment
 from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
+from setmem_hil.estimation.dwell_estimate import plan_dwell
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import BACKENDS, Procedure
 from setmem_hil.drivers.instruments.instrument_set import open_instrument_experiment
@@ -61,10 +62,29 @@ LOOPBACK_RIGS = {
 
 @dataclass
 class ManagedSimulatedBeam(SimulatedBeamExperiment):
-    """The frequency-domain simulated beam, usable as a context manager."""
+    """The frequency-domain simulated beam, usable as a context manager.
+
+    It has no dwell, so each measurement's ``rig_s`` is the time the time-domain sine dwell
+    (the loopback rigs' :class:`~setmem_hil.drivers.sine_dwell.SineDwellExperiment`, default
+    settings) would plan for it with the current interval model: skip plus first window, without
+    window extensions. A planning figure, comparable between strategies, not a measured one.
+    """
+
+    dwell_model: object = None
 
     def __enter__(self) -> "ManagedSimulatedBeam":
         return self
+
+    def update_model(self, model) -> None:
+        self.dwell_model = model
+
+    def measure_many(self, omega_rad_s):
+        measured = super().measure_many(omega_rad_s)
+        if self.dwell_model is None:
+            return measured
+        settings = DwellSettings()
+        return [replace(m, rig_s=float(sum(getattr(plan_dwell(settings, self.dwell_model, m.omega_rad_s), k) for k in ("skip_s", "window_s"))))
+                for m in measured]
 
     def __exit__(self, *exc) -> None:
         self.close()
@@ -141,6 +161,7 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
             w1_num=tuple(procedure.weights.w1_num),
             w1_den=tuple(procedure.weights.w1_den),
             first_mode_rad_s=sim.first_mode_rad_s,
+            dwell_model=procedure.prior.initial_bounds(),
         )
     if kind == "instruments":
         return open_instruments(procedure, seed)

@@ -60,7 +60,7 @@ def test_measurements_round_trip_in_order(tmp_path):
     assert [r["seq"] for r in rows] == list(range(1, 21))
     assert [r["role"] for r in rows] == ["initial"] * 15 + ["added"] * 5
     assert rows[16]["iteration"] == 2
-    assert set(rows[0]) == {"seq", "iteration", "role", "omega_rad_s", "re", "im", "bound", "utc"}
+    assert set(rows[0]) == {"seq", "iteration", "role", "omega_rad_s", "re", "im", "bound", "utc", "rig_s"}
     assert j.integrity_problems() == []
     j.close()
 

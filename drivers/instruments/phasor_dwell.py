@@ -157,7 +157,7 @@ class PhasorDwellExperiment:
             bound += float(self.extra_bound(omega_rad_s))
         log.info("dwell at %.6g rad/s: tau %.3g s, %d readings, %.1f s, force %.4g N, |g| %.4g, bound %.3g",
                  omega_rad_s, tau, point.n_readings, self.last_dwell_s, point.force_amplitude, abs(g), bound)
-        return Measurement(float(omega_rad_s), complex(g), float(bound))
+        return Measurement(float(omega_rad_s), complex(g), float(bound), rig_s=float(self.last_dwell_s))
 
     def close(self) -> None:
         if self.closed:

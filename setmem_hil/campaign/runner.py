@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -87,6 +87,7 @@ class IterationSummary:
     basis: str
     compute_s: float
     compute_cpu_s: float = 0.0
+    rig_s: float = 0.0  # device seconds of the dwells this iteration asked for (measured after it)
 
     def to_document(self) -> dict:
         return {
@@ -99,6 +100,7 @@ class IterationSummary:
             "basis": self.basis,
             "compute_s": self.compute_s,
             "compute_cpu_s": self.compute_cpu_s,
+            "rig_s": float(self.rig_s),
         }
 
 
@@ -117,6 +119,7 @@ class CampaignSummary:
     max_experiments: int
     stop_reason: str
     replayed_measurements: int = 0
+    rig_s: float = 0.0  # device seconds of every dwell, initial points included
     extra: dict = field(default_factory=dict)
 
     @property
@@ -141,6 +144,7 @@ class CampaignSummary:
             "compute_s_per_iteration": self.compute_s_per_iteration,
             "compute_cpu_s_per_iteration": float(np.mean([it.compute_cpu_s for it in self.iterations])) if self.iterations else 0.0,
             "replayed_measurements": int(self.replayed_measurements),
+            "rig_s": float(self.rig_s),
             **self.extra,
         }
 
@@ -364,7 +368,8 @@ def run_campaign(
             outcome = safeguarded_design(model, previous_outcome, analyze)
         analysis = outcome.analysis
         emit("iteration", k=k, n_points=len(measured), mu_peak=outcome.mu_peak,
-             mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch)
+             mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch,
+             rig_s=float(sum(m.rig_s for m in measured)))
         reached = outcome.mu_peak < goal.mu_target
         budget_spent = n_added >= goal.max_experiments
         choice: InputChoice | None = None
@@ -423,6 +428,7 @@ def run_campaign(
             break
         emit("chosen", k=k, next_omega=next_omega)
         measured.append(source.measure(next_omega, iteration=k, role="added"))
+        rows[-1] = replace(rows[-1], rig_s=float(measured[-1].rig_s))
         n_added += 1
         previous_model, previous_outcome = model, outcome
         k += 1
@@ -439,6 +445,7 @@ def run_campaign(
         max_experiments=int(goal.max_experiments),
         stop_reason="goal" if rows[-1].mu_peak < goal.mu_target else "budget",
         replayed_measurements=min(replayed_before, source.count),
+        rig_s=float(sum(m.rig_s for m in measured)),
     )
     if journal is not None and not already_finished:
         journal.finish(summary.to_document())

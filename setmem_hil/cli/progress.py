@@ -46,6 +46,16 @@ def format_frequency(omega_rad_s: float) -> str:
     return f"{omega_rad_s:.4g} rad/s ({omega_rad_s / (2 * math.pi):.4g} Hz)"
 
 
+def format_duration(seconds: float) -> str:
+    """``734 s`` as ``12 min 14 s`` (rig time)."""
+    if not math.isfinite(seconds):
+        return "?"
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    minutes, rest = divmod(int(round(seconds)), 60)
+    return f"{minutes} min {rest} s" if minutes < 120 else f"{minutes // 60} h {minutes % 60} min"
+
+
 def format_mu(mu: float) -> str:
     """mu-bar for humans: ``inf`` when the nominal loop is unstable."""
     return "inf (nominal loop unstable)" if not math.isfinite(mu) else f"{mu:.4f}"
@@ -167,9 +177,11 @@ class CampaignProgress:
             self._show_status()
             safeguard = info.get("safeguard")
             extra = f" [{safeguard}]" if safeguard and safeguard != "new-design" else ""
+            rig = info.get("rig_s")
+            rig_text = f", rig time {format_duration(float(rig))}" if rig else ""
             self._line(
                 f"iteration {self.k}: {info.get('n_points')} points, mu-bar peak {format_mu(self.mu_peak)}"
-                f" at {format_frequency(float(info.get('mu_peak_omega', math.nan)))}{extra}"
+                f" at {format_frequency(float(info.get('mu_peak_omega', math.nan)))}{rig_text}{extra}"
             )
         elif event == "chosen":
             self.next_omega = float(info["next_omega"])
@@ -185,9 +197,11 @@ class CampaignProgress:
                 self._progress.update(self._dwell_task, visible=False)
             if summary is not None:
                 reached = "goal reached" if getattr(summary, "reached_goal", False) else f"stopped ({getattr(summary, 'stop_reason', '?')})"
+                rig = float(getattr(summary, "rig_s", 0.0) or 0.0)
                 self._line(
                     f"finished: {reached}; mu-bar {format_mu(float(getattr(summary, 'final_mu_peak', math.nan)))} after "
                     f"{getattr(summary, 'experiments_added', '?')} added experiments"
+                    + (f"; rig time {format_duration(rig)}" if rig else "")
                 )
         if self.on_event is not None:
             self.on_event(event, **info)

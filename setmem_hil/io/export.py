@@ -4,8 +4,9 @@ Files written to ``OUT/`` (UTF-8, comma-separated, header row, floats with full 
 empty cell for "none", ``inf``/``nan`` spelled so):
 
 ``measurements.csv``
-    ``seq, iteration, role, omega_rad_s, re, im, bound, utc``: every measurement in order;
-    ``iteration`` is the loop iteration that asked for it (0 = initial design).
+    ``seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s``: every measurement in order;
+    ``iteration`` is the loop iteration that asked for it (0 = initial design), ``rig_s`` the
+    device seconds its dwell took.
 ``data.csv``
     ``omega, re, im, bound``: the same measurements in the data-CSV format that
     ``setmem-hil identify --data`` reads.
@@ -95,7 +96,7 @@ def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[P
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
-    cols = ("seq", "iteration", "role", "omega_rad_s", "re", "im", "bound", "utc")
+    cols = ("seq", "iteration", "role", "omega_rad_s", "re", "im", "bound", "utc", "rig_s")
     files["measurements.csv"] = _csv_text(cols, ([r[c] for c in cols] for r in rows))
     if measurements:
         from setmem_hil.io.data_file import format_data_csv

@@ -62,7 +62,7 @@ __all__ = ["Journal", "IterationRecord", "JournalError", "JournalSnapshot", "rea
 
 JOURNAL_FILENAME = "journal.sqlite"
 APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: measurement.rig_s (version-1 journals are upgraded when opened)
 ROLES = ("initial", "added")
 
 
@@ -140,7 +140,8 @@ CREATE TABLE measurement (
     re REAL NOT NULL,
     im REAL NOT NULL,
     bound REAL NOT NULL,
-    utc TEXT NOT NULL
+    utc TEXT NOT NULL,
+    rig_s REAL NOT NULL DEFAULT 0
 );
 CREATE TABLE iteration (
     k INTEGER PRIMARY KEY CHECK (k >= 1),
@@ -340,6 +341,15 @@ class Journal:
         if app_id != APPLICATION_ID:
             conn.close()
             raise InputFormatError(str(p), "", "not a setmem-hil journal (SQLite application_id differs)")
+        if version == 1:  # add the rig-time column (0 for the measurements it holds)
+            try:
+                conn.execute("ALTER TABLE measurement ADD COLUMN rig_s REAL NOT NULL DEFAULT 0")
+                conn.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+                conn.commit()
+                version = SCHEMA_VERSION
+            except sqlite3.DatabaseError as exc:
+                conn.close()
+                raise InputFormatError(str(p), "", f"cannot upgrade the version-1 journal: {exc}") from None
         if version != SCHEMA_VERSION:
             conn.close()
             raise InputFormatError(str(p), "", f"journal schema version {version}; this software reads version {SCHEMA_VERSION}")
@@ -434,8 +444,8 @@ class Journal:
         """
         if role not in ROLES:
             raise JournalError(f"{self.path}: measurement role {role!r}; expected one of {', '.join(ROLES)}")
-        omega, g, bound = float(m.omega_rad_s), complex(m.response), float(m.bound)
-        if not (math.isfinite(omega) and math.isfinite(g.real) and math.isfinite(g.imag) and math.isfinite(bound)):
+        omega, g, bound, rig_s = float(m.omega_rad_s), complex(m.response), float(m.bound), float(m.rig_s)
+        if not (math.isfinite(omega) and math.isfinite(g.real) and math.isfinite(g.imag) and math.isfinite(bound) and math.isfinite(rig_s)):
             raise JournalError(f"{self.path}: refusing a non-finite measurement at omega {omega:g} rad/s")
         with self._lock:
             db = self._db()
@@ -443,8 +453,8 @@ class Journal:
             try:
                 seq = db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM measurement").fetchone()[0]
                 db.execute(
-                    "INSERT INTO measurement (seq, iteration, role, omega_rad_s, re, im, bound, utc) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                    (seq, int(iteration), role, omega, g.real, g.imag, bound, _utc_now()),
+                    "INSERT INTO measurement (seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (seq, int(iteration), role, omega, g.real, g.imag, bound, _utc_now(), rig_s),
                 )
             except BaseException:
                 db.execute("ROLLBACK")
@@ -454,12 +464,12 @@ class Journal:
         return int(seq)
 
     def measurement_rows(self) -> list[dict]:
-        """Rows ``seq, iteration, role, omega_rad_s, re, im, bound, utc`` in sequence order."""
-        return self._query("SELECT seq, iteration, role, omega_rad_s, re, im, bound, utc FROM measurement ORDER BY seq")
+        """Rows ``seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s`` in sequence order."""
+        return self._query("SELECT seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s FROM measurement ORDER BY seq")
 
     def measurements(self) -> list[Measurement]:
         """All stored measurements in sequence order."""
-        return [Measurement(r["omega_rad_s"], complex(r["re"], r["im"]), r["bound"]) for r in self.measurement_rows()]
+        return [Measurement(r["omega_rad_s"], complex(r["re"], r["im"]), r["bound"], r["rig_s"]) for r in self.measurement_rows()]
 
     def n_measurements(self) -> int:
         return int(self._query("SELECT COUNT(*) AS n FROM measurement")[0]["n"])

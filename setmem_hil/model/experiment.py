@@ -21,11 +21,16 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Measurement:
-    """One frequency-response measurement: a row of the data CSV."""
+    """One frequency-response measurement: a row of the data CSV, plus the rig time it cost.
+
+    ``rig_s`` is the device time of the dwell (settling, excitation and acquisition, failed
+    attempts included): the shaker time a real rig spends on this point. 0 where unknown.
+    """
 
     omega_rad_s: float
     response: complex
     bound: float
+    rig_s: float = 0.0
 
 
 @runtime_checkable

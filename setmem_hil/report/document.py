@@ -166,6 +166,11 @@ def write_report(run_dir: str | os.PathLike) -> Path:
         ["iterations", len(its)],
         ["goal", f"mu-bar < {target:g}"],
     ]
+    rig_by_iteration: dict[int, float] = {}
+    for row in run.rows:
+        rig_by_iteration[int(row["iteration"])] = rig_by_iteration.get(int(row["iteration"]), 0.0) + float(row.get("rig_s") or 0.0)
+    run_rows.append(["rig time (device s)", f"{sum(rig_by_iteration.values()):.1f} "
+                     f"(initial points {rig_by_iteration.get(0, 0.0):.1f})"])
     if its:
         run_rows.append(["last peak mu-bar", _num(its[-1].mu_peak)])
     for key in ("reached_goal", "stop_reason", "experiments_added", "final_mu_peak", "wall_s"):
@@ -189,9 +194,9 @@ def write_report(run_dir: str | os.PathLike) -> Path:
                              "residue of every mode shrinking as experiments are added.", "fig-intervals"))
         rows = [[r.k, r.n_points, _num(r.mu_peak), _num(r.mu_peak_omega, 4), _num(r.mu_lower_peak), _num(r.next_omega, 6),
                  "-" if r.next_omega is None else _num(r.next_omega / (2 * math.pi), 5),
-                 r.safeguard, r.controller_order, f"{r.wall_s:.2f}"] for r in its]
+                 r.safeguard, r.controller_order, f"{r.wall_s:.2f}", f"{rig_by_iteration.get(r.k, 0.0):.1f}"] for r in its]
         parts.append(_table(["k", "points", "peak mu-bar", "at omega (rad/s)", "lower bound peak", "next omega (rad/s)",
-                             "next (Hz)", "eq. 5.12 branch", "controller order", "compute (s)"], rows, "table-iterations",
+                             "next (Hz)", "eq. 5.12 branch", "controller order", "compute (s)", "rig (s)"], rows, "table-iterations",
                             "Iterations (the numbers behind figure 6-12)."))
     else:
         parts.append("<p>No iteration is stored yet.</p>")
