@@ -63,6 +63,72 @@ def test_version_1_journals_are_upgraded(tmp_path):
     conn.close()
     j = Journal.open(tmp_path / "journal.sqlite")
     try:
-        assert j.measurements() == [Measurement(1.0, 2 + 1j, 0.1, rig_s=0.0)]
+        (m,) = j.measurements()
+        assert (m.omega_rad_s, m.response, m.bound, m.rig_s) == (1.0, 2 + 1j, 0.1, 0.0)
     finally:
         j.close()
+
+
+# -- [input_design] per_iteration and ranking ---------------------------------------------------------
+def _sim_procedure(extra: str, max_experiments: int = 4):
+    from setmem_hil.io.procedure_file import parse_procedure_text
+
+    text = (REPO / "procedures" / "beam_6_3_2.toml").read_text()
+    text = text.replace("exact_resolve_top = 5", "exact_resolve_top = 5\n" + extra).replace("max_experiments = 30", f"max_experiments = {max_experiments}")
+    return parse_procedure_text(text, "p.toml")
+
+
+def test_defaults_stated_explicitly_reproduce_todays_campaign(tmp_path):
+    from setmem_hil.campaign.runner import run_campaign
+
+    plain = _sim_procedure("", 2)
+    stated = _sim_procedure('per_iteration = 1\nranking = "thesis"', 2)
+    assert stated.input_design == plain.input_design
+    runs = []
+    for p in (plain, stated):
+        with open_experiment(p, seed=1) as exp:
+            runs.append(run_campaign(p, exp, seed=1))
+    assert [it.next_omega for it in runs[0].iterations] == [it.next_omega for it in runs[1].iterations]
+    assert runs[0].rig_s == runs[1].rig_s
+
+
+def test_batch_of_two_frequencies_per_iteration(tmp_path):
+    procedure = _sim_procedure("per_iteration = 2", 4)
+    outcome = start_run(procedure, tmp_path / "run", opener=open_experiment, quiet_report_hint=True)
+    snap = read_snapshot(tmp_path / "run")
+    added = [r for r in snap.rows if r["role"] == "added"]
+    per_iteration = {}
+    for r in added:
+        per_iteration.setdefault(r["iteration"], []).append(r["omega_rad_s"])
+    assert all(len(ws) == 2 and ws[0] != ws[1] for ws in per_iteration.values()) or outcome.summary["reached_goal"]
+    assert len(added) <= 4  # the budget counts every frequency
+    for it in outcome.summary["iterations"]:
+        assert it["rig_s"] == pytest.approx(sum(r["rig_s"] for r in added if r["iteration"] == it["k"]))
+    batch_events = [e for e in snap.events if e["kind"] == "batch"]
+    assert len(batch_events) == len([k for k, ws in per_iteration.items() if len(ws) == 2])
+
+
+def test_per_rig_second_ranking_is_invariant_to_a_uniform_cost_and_follows_a_penalty():
+    """Dividing every candidate's improvement by the same cost changes nothing; making the
+    thesis's choice (and its neighbours) expensive moves the choice away from it."""
+    import numpy as np
+
+    from setmem_hil.design.input_design import choose_input
+    from setmem_hil.identification.algorithm import identify
+    from setmem_hil.design.input_design import uniform_weights
+    from setmem_hil.model.frequency_data import FrequencyData
+
+    procedure = _sim_procedure("", 2)
+    with open_experiment(procedure, seed=1) as exp:
+        ms = [exp.measure(w) for w in procedure.initial_omegas_rad_s]
+    data = FrequencyData.from_measurements(ms)
+    result = identify(data, procedure.prior)
+    omega = np.geomspace(0.1, 1000, 300)
+    R = exp.total_bound(omega)
+    w = uniform_weights(result.model)
+    base = choose_input(result, data, procedure.prior, omega, R, w, scoring="max-reduction", exact_resolve_top=3)
+    same = choose_input(result, data, procedure.prior, omega, R, w, scoring="max-reduction", exact_resolve_top=3, cost_s=np.full(omega.size, 37.0))
+    assert same.next_omega_rad_s == base.next_omega_rad_s
+    cost = np.where(np.abs(np.log(omega / base.next_omega_rad_s)) < 0.05, 1e6, 1.0)
+    moved = choose_input(result, data, procedure.prior, omega, R, w, scoring="max-reduction", exact_resolve_top=3, cost_s=cost)
+    assert abs(np.log(moved.next_omega_rad_s / base.next_omega_rad_s)) >= 0.05

@@ -56,6 +56,7 @@ from setmem_hil.model.experiment import (
     Experiment,
     Measurement,
     ModelAwareExperiment,
+    PlanningExperiment,
     ResumableExperiment,
 )
 from setmem_hil.model.frequency_data import FrequencyData
@@ -236,6 +237,7 @@ def next_frequency(
     model = result.model
     omega = candidate_frequencies(k, settings)
     R = candidate_noise_bound(experiment, omega, measured)
+    cost = dwell_seconds(experiment, model, omega) if settings.ranking == "per_rig_second" else None
     if strategy == "mu":
         weights = sensitivity_matrix(outcome.analysis.sensitivities, model.n_modes)
         weights = np.where(model.fixed, 0.0, weights)
@@ -255,7 +257,64 @@ def next_frequency(
         scoring=scoring,
         exact_resolve_top=settings.exact_resolve_top,
         identify_settings=_identify_settings(exact_resolve=True),
+        cost_s=cost,
     )
+
+
+def dwell_seconds(experiment: Any, model, omega_rad_s: np.ndarray) -> np.ndarray:
+    """Rig seconds a dwell at each frequency is expected to take: the experiment's own plan
+    (:class:`~setmem_hil.model.experiment.PlanningExperiment`), else the sine dwell's plan with the
+    current interval model (:func:`setmem_hil.estimation.dwell_estimate.plan_dwell`): the
+    settling follows from the pole intervals, long near a lightly damped mode, short between modes."""
+    from setmem_hil.estimation.dwell_estimate import DwellSettings, plan_dwell
+
+    settings = DwellSettings()
+    out = np.empty(np.size(omega_rad_s))
+    for i, w in enumerate(np.atleast_1d(omega_rad_s)):
+        plan = experiment.plan(float(w)) if isinstance(experiment, PlanningExperiment) else plan_dwell(settings, model, float(w))
+        out[i] = plan.skip_s + plan.window_s
+    return out
+
+
+def batch_frequencies(first: float, strategy: str, k: int, n_added: int, procedure: Procedure, result, data: FrequencyData,
+                      outcome: SafeguardOutcome, experiment: Any, measured: list[Measurement], seed: int | None, count: int) -> list[float]:
+    """``count`` frequencies for one iteration (``[input_design] per_iteration``), ``first`` first.
+
+    Each further choice is made on the data plus the frequencies already chosen, as the
+    certainty-equivalent measurements eq. 4.53 predicts (the interval model's midpoint response
+    with the bound expected there, widened when the midpoint response is not consistent with the
+    data), re-identified: the effect of a frequency is re-estimated given the ones already in the
+    batch, so their expected improvements do not overlap. A repeated choice ends the batch early.
+    """
+    from setmem_hil.identification.algorithm import identify
+
+    from setmem_hil.errors import InconsistentDataError, SolverError
+
+    chosen = [float(first)]
+    model = result.model
+    for j in range(1, count):
+        w = np.array(chosen)
+        trial, augmented = result, data
+        if strategy in ("mu", "max-reduction"):
+            # the midpoint response need not be feasible: widen the predicted points' bounds until
+            # the data stay consistent (the choice then counts on less from them); give up after 4
+            for widen in (1.0, 2.0, 4.0, 8.0):
+                predicted = FrequencyData(w, model.midpoint.frequency_response(w), widen * candidate_noise_bound(experiment, w, measured))
+                try:
+                    with blas_one_thread():
+                        trial = identify(data.appended(predicted), procedure.prior, previous=model, settings=_identify_settings())
+                    augmented = data.appended(predicted)
+                    break
+                except (InconsistentDataError, SolverError):
+                    continue
+            else:
+                break
+        choice = next_frequency(strategy, k * 1000 + j if strategy == "random" else k, n_added + j, procedure, trial,
+                                augmented, outcome, experiment, measured, seed)
+        if any(math.isclose(choice.next_omega_rad_s, c, rel_tol=1e-9) for c in chosen):
+            break
+        chosen.append(float(choice.next_omega_rad_s))
+    return chosen
 
 
 def run_campaign(
@@ -426,10 +485,20 @@ def run_campaign(
         ))
         if choice is None:
             break
-        emit("chosen", k=k, next_omega=next_omega)
-        measured.append(source.measure(next_omega, iteration=k, role="added"))
-        rows[-1] = replace(rows[-1], rig_s=float(measured[-1].rig_s))
-        n_added += 1
+        batch = [next_omega]
+        per_iteration = min(procedure.input_design.per_iteration, goal.max_experiments - n_added)
+        if per_iteration > 1:
+            batch = batch_frequencies(next_omega, strategy, k, n_added, procedure, result, data, outcome, experiment,
+                                      measured, seed, per_iteration)
+            if journal is not None and k not in stored_iterations:
+                journal.add_event(BATCH_EVENT, f"iteration {k}: " + ", ".join(f"{w:.9g}" for w in batch) + " rad/s")
+        rig = 0.0
+        for w in batch:
+            emit("chosen", k=k, next_omega=w)
+            measured.append(source.measure(w, iteration=k, role="added"))
+            rig += float(measured[-1].rig_s)
+            n_added += 1
+        rows[-1] = replace(rows[-1], rig_s=rig)
         previous_model, previous_outcome = model, outcome
         k += 1
 
@@ -451,6 +520,10 @@ def run_campaign(
         journal.finish(summary.to_document())
     emit("finished", summary=summary)
     return summary
+
+
+BATCH_EVENT = "batch"
+"""Journal event of an iteration that chose several frequencies (``[input_design] per_iteration``)."""
 
 
 def _same_choice(a: float | None, b: float | None) -> bool:

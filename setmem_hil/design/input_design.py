@@ -167,6 +167,7 @@ def choose_input(
     scoring: str = "mu",
     exact_resolve_top: int = 5,
     identify_settings=None,
+    cost_s: np.ndarray | None = None,
 ) -> InputChoice:
     """Algorithm 5.1 steps 6-7: rank the candidates and pick the next input.
 
@@ -188,6 +189,10 @@ def choose_input(
         How many of the best approximate candidates to re-identify exactly (0: none).
     identify_settings : setmem_hil.identification.algorithm.IdentifySettings, optional
         Settings of the exact re-solves.
+    cost_s : numpy.ndarray, optional
+        Rig seconds a dwell at each candidate is expected to take. Given, candidates are ranked
+        by improvement *per second* (approximate scores to pick the ones re-identified exactly,
+        then the exact improvements); ``estimated_improvement`` stays the improvement itself.
 
     Returns
     -------
@@ -197,7 +202,8 @@ def choose_input(
     omega = np.asarray(omega_rad_s, dtype=float)
     R = np.asarray(noise_bound, dtype=float)
     estimate, score, basis, _ = approximate_scores(model, result.optimizers, omega, R, weights, scoring)
-    top = top_indices(score, exact_resolve_top)
+    per_second = np.ones_like(omega) if cost_s is None else 1.0 / np.maximum(np.asarray(cost_s, dtype=float), 1e-9)
+    top = top_indices(score * per_second, exact_resolve_top)
     resolved = np.full(top.size, np.nan)
     if top.size:
         settings = identify_settings if identify_settings is not None else IdentifySettings()
@@ -211,11 +217,11 @@ def choose_input(
             new_width = np.minimum(trial.model.width, model.width)
             resolved[n] = float(improvement_from_widths(model.width, new_width, weights, scoring))
     # final ranking: exact improvement where available, the approximate score breaking ties
-    exact_key = np.where(np.isnan(resolved), estimate[top], resolved)
+    exact_key = np.where(np.isnan(resolved), estimate[top], resolved) * per_second[top]
     if top.size and np.any(exact_key > 0):
-        best = top[np.lexsort((np.arange(top.size), -score[top], -exact_key))[0]]
+        best = top[np.lexsort((np.arange(top.size), -(score * per_second)[top], -exact_key))[0]]
     else:
-        best = top[0] if top.size else int(top_indices(score, 1)[0])
+        best = top[0] if top.size else int(top_indices(score * per_second, 1)[0])
     return InputChoice(
         next_omega_rad_s=float(omega[best]),
         candidate_omega_rad_s=omega,

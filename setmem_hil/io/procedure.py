@@ -23,6 +23,7 @@ BACKENDS = ("sim", *LOOPBACK_BACKENDS, "instruments")
 SENSOR_QUANTITIES = ("force", "displacement", "velocity", "acceleration")
 UNMODELLED_BOUNDS = ("w1", "none")
 STRATEGIES = ("mu", "log-sweep", "random", "max-reduction")
+RANKINGS = ("thesis", "per_rig_second")
 NOISE_PROFILES = ("fully_damped", "snr10", "resonance", "none")
 
 
@@ -98,6 +99,8 @@ class InputDesignSettings:
     candidate_omega_min_rad_s: float | None = None  # None: 0.1 x the reference frequency
     candidate_omega_max_rad_s: float | None = None  # None: 1000 x the reference frequency
     exact_resolve_top: int = 5  # candidates re-identified exactly before choosing
+    per_iteration: int = 1  # frequencies added per iteration (batch design)
+    ranking: str = "thesis"  # or "per_rig_second": expected improvement per second of rig time
 
     def resolved(self, reference_rad_s: float = 1.0, safety: "SafetyLimits | None" = None) -> "InputDesignSettings":
         """These settings with a concrete candidate band: the given one, or ``[0.1, 1000] x

@@ -44,6 +44,7 @@ from setmem_hil.errors import InputFormatError, ProcedureError
 from setmem_hil.model.prior import ModePrior, Prior, parse_mode_table, parse_toml_text
 from setmem_hil.io.procedure import (
     BACKENDS,
+    RANKINGS,
     LOOPBACK_BACKENDS,
     SENSOR_QUANTITIES,
     UNMODELLED_BOUNDS,
@@ -189,6 +190,8 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("input_design", "candidate_omega_min_rad_s", "number", "rad/s", "0.1 T", "Lowest candidate frequency (inside the safety range). Default 0.1 T, T the weights' reference frequency (half W2's pole frequency: 1 rad/s for the thesis weights), clipped to the safety range.", gt=0.0),
     KeySpec("input_design", "candidate_omega_max_rad_s", "number", "rad/s", "1000 T", "Highest candidate frequency (inside the safety range). Default 1000 T, clipped to the safety range.", gt=0.0),
     KeySpec("input_design", "exact_resolve_top", "integer", "", _ID.exact_resolve_top, "The best candidates re-identified exactly before choosing.", ge=0, le=10**6),
+    KeySpec("input_design", "per_iteration", "integer", "", _ID.per_iteration, "Frequencies added per iteration (batch design: each further choice re-estimated with the ones already chosen as predicted data, chapter 4).", ge=1, le=100),
+    KeySpec("input_design", "ranking", "choice", "", _ID.ranking, "thesis: rank candidates by expected mu-bar improvement (eq. 5.3); per_rig_second: by expected improvement per second of rig time (the dwell the rig would plan at that frequency with the current pole intervals).", choices=RANKINGS),
     # [weights]
     KeySpec("weights", "w1_num", "numbers", "", "thesis eq. 6.1", "W1 numerator coefficients, highest power of s first."),
     KeySpec("weights", "w1_den", "numbers", "", "thesis eq. 6.1", "W1 denominator coefficients (stable, degree >= numerator's)."),
@@ -483,6 +486,8 @@ def _input_design(top: _Table, safety: SafetyLimits) -> InputDesignSettings:
         candidate_omega_min_rad_s=t.get("candidate_omega_min_rad_s", _ID.candidate_omega_min_rad_s),
         candidate_omega_max_rad_s=t.get("candidate_omega_max_rad_s", _ID.candidate_omega_max_rad_s),
         exact_resolve_top=t.get("exact_resolve_top", _ID.exact_resolve_top),
+        per_iteration=t.get("per_iteration", _ID.per_iteration),
+        ranking=t.get("ranking", _ID.ranking),
     )
     lo, hi = s.candidate_omega_min_rad_s, s.candidate_omega_max_rad_s
     if lo is not None and hi is not None and lo >= hi:

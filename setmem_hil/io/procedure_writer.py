@@ -101,7 +101,9 @@ def format_procedure(procedure: Procedure) -> str:
             f"candidates_per_iteration = {int(d.candidates_per_iteration)}",
             *(f"{key} = {_toml_value(float(getattr(d, key)))}" for key in ("candidate_omega_min_rad_s", "candidate_omega_max_rad_s")
               if getattr(d, key) is not None),
-            f"exact_resolve_top = {int(d.exact_resolve_top)}", ""]
+            f"exact_resolve_top = {int(d.exact_resolve_top)}",
+            *([f"per_iteration = {int(d.per_iteration)}"] if d.per_iteration != 1 else []),
+            *([f"ranking = {_toml_value(d.ranking)}"] if d.ranking != "thesis" else []), ""]
     w = p.weights
     out += ["[weights]"] + [f"{k} = {_toml_value([float(c) for c in getattr(w, k)])}" for k in ("w1_num", "w1_den", "w2_num", "w2_den")]
     out += [f"w2_extra_pole_rad_s = {_toml_value(float(w.w2_extra_pole_rad_s or 0.0))}", ""]

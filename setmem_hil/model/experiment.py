@@ -13,7 +13,7 @@ the sine-dwell measurement over serial/CAN/Modbus and test doubles all implement
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
@@ -24,13 +24,14 @@ class Measurement:
     """One frequency-response measurement: a row of the data CSV, plus the rig time it cost.
 
     ``rig_s`` is the device time of the dwell (settling, excitation and acquisition, failed
-    attempts included): the shaker time a real rig spends on this point. 0 where unknown.
+    attempts included): the shaker time a real rig spends on this point. 0 where unknown. It is
+    what the point cost, not part of what was measured: equality compares the measurement only.
     """
 
     omega_rad_s: float
     response: complex
     bound: float
-    rig_s: float = 0.0
+    rig_s: float = field(default=0.0, compare=False)
 
 
 @runtime_checkable
