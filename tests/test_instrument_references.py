@@ -406,3 +406,37 @@ def test_hand_encodings_are_ieee754():
     assert struct.unpack(">f", bytes.fromhex("449A5000"))[0] == 1234.5
     assert struct.unpack(">f", bytes.fromhex("40200000"))[0] == 2.5
     assert math.isclose(HAND_2_5[0] * 65536 + HAND_2_5[1], 0x40200000)
+
+
+# -- PyMeasure's own expected_protocol, fed with the commands our profiles send -------------------------
+def test_expected_protocol_sr830_accepts_our_time_constant_slope_and_sensitivity_commands():
+    """``expected_protocol`` fails unless PyMeasure's SR830 driver sends exactly these messages;
+    they are our profile's commands (the SR830 ignores the space between header and value,
+    PyMeasure writes none)."""
+    from pymeasure.test import expected_protocol
+    from pymeasure.instruments.srs.sr830 import SR830
+
+    profile = load_profile("srs-sr830")
+    for index, tau in enumerate(profile.time_constants_s):
+        ours = profile.time_constant.set.format(index=index).replace(" ", "")
+        with expected_protocol(SR830, [(ours, None)]) as inst:
+            inst.time_constant = tau
+    slope = next(c for c in profile.init if c.startswith("OFSL")).replace(" ", "")
+    sens = next(c for c in profile.init if c.startswith("SENS")).replace(" ", "")
+    with expected_protocol(SR830, [(slope, None), (sens, None)]) as inst:
+        inst.filter_slope = 24
+        inst.sensitivity = profile.full_scale_v
+
+
+def test_expected_protocol_33500b_accepts_our_frequency_and_output_commands():
+    """Our 33500B commands, with the value written in PyMeasure's format (``%f``, booleans as
+    1/0), are exactly what PyMeasure's driver sends for the same settings."""
+    from pymeasure.test import expected_protocol
+    from pymeasure.instruments.agilent.agilent33500 import Agilent33500
+
+    sent = ours_generator("keysight-33500b", KEYSIGHT_ID, lambda g: (g.set_frequency_hz(1234.5), g.set_output(True)))
+    (freq_head, freq_value), (out_head, out_value) = (scpi_parts(c) for c in sent)
+    pairs = [(f"{':'.join(freq_head)} {freq_value[0]:f}", None), (f"{':'.join(out_head)} {int(out_value[0])}", None)]
+    with expected_protocol(Agilent33500, pairs) as gen:
+        gen.ch_1.frequency = 1234.5
+        gen.ch_1.output = True
