@@ -155,3 +155,46 @@ def test_modbus_controller_watchdog_switches_the_output_off():
     finally:
         gen.close()
         controller.close()
+
+
+@pytest.mark.parametrize("model", ["SR830", "SR860"])
+def test_lockin_sensitivity_lists_match_pymeasure(model):
+    pymeasure_srs = pytest.importorskip("pymeasure.instruments.srs")
+    cls = pymeasure_srs.SR830 if model == "SR830" else pymeasure_srs.SR860
+    profile = load_profile("srs-sr830" if model == "SR830" else "srs-sr860")
+    assert list(profile.sensitivities_v) == [float(v) for v in cls.SENSITIVITIES]
+
+
+def _emulated_experiment(response_volt_per_unit: float):
+    import dataclasses
+    from pathlib import Path
+
+    from setmem_hil.experiment_factory import open_experiment
+    from setmem_hil.io.procedure_file import load_procedure
+
+    p = load_procedure(Path(__file__).resolve().parents[1] / "procedures" / "instruments_emulated.toml")
+    sensor = dataclasses.replace(p.instruments["lia_response"], volt_per_unit=response_volt_per_unit)
+    return open_experiment(dataclasses.replace(p, instruments={**p.instruments, "lia_response": sensor}), seed=1)
+
+
+def test_auto_range_picks_the_smallest_full_scale_with_room():
+    with _emulated_experiment(0.004) as exp:
+        w = 14.0376  # between modes: a small response
+        exp.measure(w)
+        lia = exp.response
+        force_n = 1.0 / 1.01  # the level target: max_amplitude_n / (1 + force calibration uncertainty)
+        rms = 0.004 * abs(exp.bench.true_response(w)) * force_n / math.sqrt(2)  # response signal, V RMS
+        # 3 x max(|X|, |Y|) lies between 3 rms / sqrt(2) and 3 rms
+        assert lia.full_scale_v >= 3 * rms / math.sqrt(2) * 0.98
+        smaller = [v for v in lia.profile.sensitivities_v if v < lia.full_scale_v]
+        assert not smaller or max(smaller) < 3 * rms * 1.02
+        assert lia.full_scale_v < 1.0  # ranged down from the init's 1 V
+
+
+def test_overload_at_the_largest_range_stops_with_the_output_off():
+    from setmem_hil.drivers.instruments.lockin import LockInOverload
+
+    with _emulated_experiment(0.1) as exp:  # 4 V peak at 0.95 rad/s: beyond the 1 V full scale
+        with pytest.raises(LockInOverload, match=r"lia_response .*overload.*1 V full scale"):
+            exp.measure(0.95)
+        assert not exp.bench.output_on

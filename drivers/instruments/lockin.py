@@ -8,7 +8,11 @@ from setmem_hil.drivers.instruments.scpi_instrument import ScpiInstrument
 from setmem_hil.drivers.instruments.visa_link import VisaLink
 from setmem_hil.errors import DataQualityError, DeviceRejectedError
 
-__all__ = ["LockIn", "filter_settling_time_constants"]
+__all__ = ["LockIn", "LockInOverload", "filter_settling_time_constants"]
+
+
+class LockInOverload(DataQualityError):
+    """The lock-in's input or output is overloaded at its present full scale."""
 
 # Time, in time constants, for the output filter to settle within 1 % after a step, by filter
 # order (SR830 manual, "Time constants and settling": 5, 7, 9 and 10 tau for 6-24 dB/oct).
@@ -24,9 +28,16 @@ class LockIn(ScpiInstrument):
 
     profile: LockInProfile
 
+    # auto-ranging: the full scale is at least this many times the largest reading component
+    # (room for the response to grow while it settles), and a reading above RANGE_UP_FRACTION of
+    # the full scale moves one range up
+    RANGE_HEADROOM = 3.0
+    RANGE_UP_FRACTION = 0.8
+
     def __init__(self, name: str, profile: LockInProfile, link: VisaLink):
         super().__init__(name, profile, link)
         self.time_constant_s = 0.0
+        self.full_scale_v = profile.full_scale_v
 
     @property
     def settling_time_s(self) -> float:
@@ -53,6 +64,46 @@ class LockIn(ScpiInstrument):
             self.time_constant_s = values[index]
         return self.time_constant_s
 
+    @property
+    def can_range(self) -> bool:
+        return self.profile.sensitivity is not None and bool(self.profile.sensitivities_v)
+
+    def set_range_for(self, reading_v: complex) -> bool:
+        """Smallest full scale >= ``RANGE_HEADROOM`` x the larger of |X|, |Y| (the largest if
+        none is); returns whether the range changed. Without a sensitivity in the profile: no-op."""
+        if not self.can_range:
+            return False
+        need = self.RANGE_HEADROOM * max(abs(reading_v.real), abs(reading_v.imag))
+        ordered = sorted(range(len(self.profile.sensitivities_v)), key=lambda i: self.profile.sensitivities_v[i])
+        index = next((i for i in ordered if self.profile.sensitivities_v[i] >= need), ordered[-1])
+        return self._select_range(index)
+
+    def range_up(self) -> bool:
+        """One full scale up; False when already at the largest."""
+        if not self.can_range:
+            return False
+        bigger = [v for v in self.profile.sensitivities_v if v > self.full_scale_v]
+        if not bigger:
+            return False
+        return self._select_range(self.profile.sensitivities_v.index(min(bigger)))
+
+    def _select_range(self, index: int) -> bool:
+        value = self.profile.sensitivities_v[index]
+        if value == self.full_scale_v:
+            return False
+        command = self.profile.sensitivity.set.format(index=index)
+        self.link.write(command)
+        if self.profile.sensitivity.query:
+            reply = self.link.query(self.profile.sensitivity.query)
+            if int(parse_number(reply)) != index:
+                raise DeviceRejectedError("instrument", f"{self.where}: sensitivity index {index} sent, the instrument reads back {reply!r}")
+        self.check_errors(command)
+        self.full_scale_v = value
+        return True
+
+    def near_full_scale(self, reading_v: complex) -> bool:
+        return max(abs(reading_v.real), abs(reading_v.imag)) > self.RANGE_UP_FRACTION * self.full_scale_v
+
     def reference_frequency_hz(self) -> float:
         return parse_number(self.link.query(self.profile.reference_frequency_query))
 
@@ -78,5 +129,5 @@ class LockIn(ScpiInstrument):
             raise DataQualityError(f"{self.where}: reference unlocked (status {status}): is the generator's sync output "
                                    "wired to the lock-in's reference input?")
         if status & self.profile.overload_mask:
-            raise DataQualityError(f"{self.where}: overload (status {status}): the signal exceeds the lock-in's "
-                                   f"{self.profile.full_scale_v:g} V full scale; lower volt_per_unit or the force level")
+            raise LockInOverload(f"{self.where}: overload (status {status}): the signal exceeds the lock-in's "
+                                 f"{self.full_scale_v:g} V full scale{'' if self.can_range else ''}; lower volt_per_unit or the force level")

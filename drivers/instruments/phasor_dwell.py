@@ -18,6 +18,8 @@ protocol (:class:`setmem_hil.model.experiment.Experiment`):
    sensor's calibration uncertainty), so the actual force at the structure stays within the
    limit; every force reading is checked against ``1.05 max_amplitude_n`` and the output is
    switched off at once if it is exceeded.
+   Then both lock-ins are **auto-ranged** (smallest full scale with 3x room; a reading near full
+   scale or an overload moves one range up and is read again).
 4. **Settling**: readings of both lock-ins spaced by their settling time (independent
    readings); the dwell is settled when the two halves of the last ``2 m`` readings agree
    (:func:`setmem_hil.estimation.phasor_estimate.settling_test`), or ``max_dwell_s`` is reached
@@ -43,7 +45,7 @@ from typing import Callable
 import numpy as np
 
 from setmem_hil.drivers.clock import Clock
-from setmem_hil.drivers.instruments.lockin import LockIn
+from setmem_hil.drivers.instruments.lockin import LockIn, LockInOverload
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.safety import check_sine_command
 from setmem_hil.errors import DeviceRejectedError, SafetyLimitError
@@ -139,6 +141,7 @@ class PhasorDwellExperiment:
             tau = self._set_time_constants(omega_rad_s)
             self._level_up(target)
             self._check_reference(frequency_hz)
+            self._auto_range()
             force_v, response_v = self._settle_and_read(omega_rad_s, target)
             self._ramp_down()
         finally:
@@ -224,7 +227,7 @@ class PhasorDwellExperiment:
 
     def _read_force(self) -> complex:
         """One force reading, checked against the force abort limit (output off if exceeded)."""
-        f_v = self.force.read_xy()
+        f_v = self._read(self.force)
         self.source.keepalive()
         actual = math.sqrt(2.0) * abs(f_v) / self.force_sensor.volt_per_unit * (1.0 + self.force_sensor.calibration_uncertainty)
         if actual > FORCE_LIMIT_MARGIN * self.limits.max_amplitude_n:
@@ -265,6 +268,34 @@ class PhasorDwellExperiment:
         self.gain_estimate = force / volts
         return force
 
+    MAX_RANGE_STEPS = 6
+
+    def _auto_range(self) -> None:
+        """Both lock-ins to the smallest full scale with room for the signal (better resolution
+        and dynamic reserve for small responses); the readings keep their units (volts)."""
+        changed = False
+        for li in (self.force, self.response):
+            changed |= li.set_range_for(self._read(li))
+        if changed:
+            self._wait(self._settle_time() / 10.0)
+
+    def _read(self, li: LockIn) -> complex:
+        """One reading; on an overload or a reading near full scale the range goes up and the
+        reading is taken again (an overload at the largest range stops the dwell)."""
+        for _ in range(self.MAX_RANGE_STEPS):
+            try:
+                z = li.read_xy()
+            except LockInOverload:
+                if not li.range_up():
+                    raise
+                self._wait(self._settle_time() / 10.0)
+                continue
+            if li.near_full_scale(z) and li.range_up():
+                self._wait(self._settle_time() / 10.0)
+                continue
+            return z
+        return li.read_xy()
+
     def _check_reference(self, frequency_hz: float) -> None:
         for li in (self.force, self.response):
             ref = li.reference_frequency_hz()
@@ -281,7 +312,7 @@ class PhasorDwellExperiment:
         passes = 0
         while True:
             forces.append(self._read_force())
-            responses.append(self.response.read_xy())
+            responses.append(self._read(self.response))
             self._check_response(responses[-1], omega_rad_s)
             if len(forces) >= 2 * m:
                 window_f, window_r = np.array(forces[-2 * m:]), np.array(responses[-2 * m:])

@@ -114,6 +114,8 @@ class LockInProfile:
     termination: str = "\n"
     timeout_s: float = 2.0
     kind: str = "scpi-lockin"
+    sensitivity: Setting | None = None  # template with {index}: the full scale, for auto-ranging
+    sensitivities_v: tuple[float, ...] = ()  # full scale of each index
 
 
 @dataclass(frozen=True)
@@ -203,7 +205,7 @@ Profile = ScpiGeneratorProfile | LockInProfile | ModbusProfile | DbcProfile | Da
 _COMMON = {"kind", "model", "description"}
 PROFILE_KEYS: dict[str, set[str]] = {
     "scpi-generator": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "commands", "limits", "dead_man"},
-    "scpi-lockin": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "reference", "time_constant", "read", "status", "filter_slope_db_per_octave", "full_scale_v"},
+    "scpi-lockin": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "reference", "time_constant", "read", "status", "filter_slope_db_per_octave", "full_scale_v", "sensitivity"},
     "modbus": _COMMON | {"device_id", "identity", "frequency_hz", "amplitude_v", "output", "watchdog_s", "watchdog_timeout_s", "limits", "timeout_s"},
     "dbc": _COMMON | {"dbc", "command", "status", "identity", "canopen_identity", "limits"},
     "nidaqmx": _COMMON | {"range_v", "terminal", "max_sample_rate_hz"},
@@ -216,6 +218,7 @@ _TABLE_KEYS = {
     "limits": {"frequency_hz", "amplitude_v", "channels"},
     "reference": {"set", "query", "expect", "frequency_query"},
     "time_constant": {"set", "query", "values_s"},
+    "sensitivity": {"set", "query", "values_v"},
     "read": {"xy"},
     "status": {"query", "overload_mask", "unlock_mask"},
     "register": {"table", "address", "type", "scale", "word_order", "expect"},
@@ -376,6 +379,14 @@ def _lockin(name: str, source: str, top: _Reader) -> LockInProfile:
             or list(values) != sorted(values):
         raise tc.error(f"values_s: expected the instrument's time constants in seconds, ascending, found {values!r}")
     status = top.sub("status", "status")
+    sensitivity, sensitivities = None, ()
+    if "sensitivity" in top.mapping:
+        sens = top.sub("sensitivity", "sensitivity")
+        values_v = sens.mapping.get("values_v")
+        if not isinstance(values_v, list) or not values_v or any(isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0 for v in values_v):
+            raise sens.error(f"values_v: expected the full scale of each index in volts, found {values_v!r}")
+        sensitivity = Setting(set=sens.template("set", {"index"}), query=sens.string("query", ""))
+        sensitivities = tuple(float(v) for v in values_v)
     slope = top.integer("filter_slope_db_per_octave", 24, 6, 24)
     if slope not in SLOPE_ORDERS:
         raise top.error(f"filter_slope_db_per_octave: expected 6, 12, 18 or 24, found {slope}")
@@ -395,6 +406,8 @@ def _lockin(name: str, source: str, top: _Reader) -> LockInProfile:
         full_scale_v=top.number("full_scale_v", 1.0, positive=True),
         termination=top.string("termination", "\n"),
         timeout_s=top.number("timeout_s", 2.0, positive=True),
+        sensitivity=sensitivity,
+        sensitivities_v=sensitivities,
     )
 
 
