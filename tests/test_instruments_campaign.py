@@ -227,3 +227,33 @@ def test_url_in_backend_transport_is_refused_not_ignored(tmp_path, capsys):
         else text.replace('kind = "serial-loopback"', 'kind = "serial-loopback"\n\n[backend.transport]\nurl = "/dev/ttyUSB0"')
     with pytest.raises(Exception, match="unknown key 'url'"):
         parse_procedure_text(text, "p.toml")
+
+
+def test_sigterm_during_a_run_exits_130_with_the_output_off(tmp_path, monkeypatch):
+    """``kill PID`` (SIGTERM) is handled like Ctrl-C: output off, journal closed, exit 130."""
+    import os
+    import signal
+
+    import setmem_hil.drivers.instruments.phasor_dwell as phasor_dwell
+
+    benches = []
+    original = phasor_dwell.PhasorDwellExperiment.measure
+
+    def measure(self, omega):
+        benches.append(self.bench)
+        if self.n_measured == 2:
+            real_sleep = self.clock.sleep
+
+            def sleep_then_term(s):  # SIGTERM arrives in the middle of the third dwell's ramp
+                self.clock.sleep = real_sleep
+                os.kill(os.getpid(), signal.SIGTERM)
+                real_sleep(s)
+
+            self.clock.sleep = sleep_then_term
+        return original(self, omega)
+
+    monkeypatch.setattr(phasor_dwell.PhasorDwellExperiment, "measure", measure)
+    code = main(["run", str(PROCEDURES["33500B+SR830+SR860"]), "--out", str(tmp_path / "r"), "--quiet"])
+    assert code == 130
+    assert benches and not benches[-1].output_on and benches[-1].force_amplitude_n == 0.0
+    assert len(read_snapshot(tmp_path / "r").measurements) == 2  # the two finished dwells are kept
