@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 
 from rich.console import Console
+from rich.markup import escape
 
 EXIT_DEVICE = 4
 
@@ -44,10 +45,10 @@ def run(args: argparse.Namespace) -> int:
         for server in servers:
             server.close()
     console = Console(soft_wrap=True, highlight=False)
-    console.print(f"instruments of {args.procedure}" + (" (emulated)" if servers else "") + ":")
+    console.print(escape(f"instruments of {args.procedure}" + (" (emulated)" if servers else "") + ":"))
     for r in results:
         status = "[green]OK    [/]" if r.ok else "[red]FAILED[/]"
-        console.print(f"  {status} {r.name} ({r.role}, {r.model}) at {r.resource}: {r.answer}")
+        console.print(f"  {status} " + escape(f"{r.name} ({r.role}, {r.model}) at {r.resource}: {r.answer}"))
     bad = [r for r in results if not r.ok]
     console.print(f"{len(results) - len(bad)} of {len(results)} instruments answered as expected; no output was switched on",
                   highlight=False)
