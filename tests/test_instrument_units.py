@@ -198,3 +198,30 @@ def test_overload_at_the_largest_range_stops_with_the_output_off():
         with pytest.raises(LockInOverload, match=r"lia_response .*overload.*1 V full scale"):
             exp.measure(0.95)
         assert not exp.bench.output_on
+
+
+def test_a_fault_mid_dwell_propagates_even_when_output_off_also_fails(caplog):
+    """The cause reaches the technician; the failing output-off is logged, not substituted."""
+    from setmem_hil.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError
+
+    exp = _emulated_experiment(0.004)
+    try:
+        def timeout(*a, **k):
+            raise DeviceTimeoutError("fgen: no reply to 'SOUR1:FREQ?' within 2 s")
+
+        def refuse_off(on):
+            raise DeviceDisconnectedError("fgen: connection lost")
+
+        exp.source.set_frequency_hz = timeout
+        exp.source.set_output = refuse_off
+        with pytest.raises(DeviceTimeoutError, match="no reply"):
+            exp.measure(3.0)
+        assert "output off failed during an abort" in caplog.text
+        exp.closed = True
+        with pytest.raises(DeviceError, match=r"measure\(\) after close\(\)"):
+            exp.measure(3.0)
+    finally:
+        exp.closed = False
+        del exp.source.set_output  # the real one again, so close() switches the emulated output off
+        exp.close()
+        assert not exp.bench.output_on

@@ -48,7 +48,7 @@ from setmem_hil.drivers.clock import Clock
 from setmem_hil.drivers.instruments.lockin import LockIn, LockInOverload
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.safety import check_sine_command
-from setmem_hil.errors import DeviceRejectedError, SafetyLimitError
+from setmem_hil.errors import DeviceError, DeviceRejectedError, SafetyLimitError
 from setmem_hil.estimation.phasor_estimate import phasor_point, settling_test
 from setmem_hil.io.procedure import SafetyLimits
 from setmem_hil.model.experiment import Measurement
@@ -131,6 +131,8 @@ class PhasorDwellExperiment:
 
     # -- the Experiment protocol -----------------------------------------------------------------
     def measure(self, omega_rad_s: float) -> Measurement:
+        if self.closed:
+            raise DeviceError(f"{self.source.name}: measure() after close()")
         target = self._target_force()
         frequency_hz = self._check_command(omega_rad_s, target)
         if self.on_measurement is not None:
@@ -143,9 +145,13 @@ class PhasorDwellExperiment:
             self._check_reference(frequency_hz)
             self._auto_range()
             force_v, response_v = self._settle_and_read(omega_rad_s, target)
-            self._ramp_down()
-        finally:
+            self._ramp_down(target)
+        except BaseException:
+            self._output_off_keeping_the_cause()  # Ctrl-C stays Ctrl-C, a fault stays that fault
+            raise
+        else:
             self._output_off()
+        finally:
             self.last_dwell_s = self.clock.now() - start
             self.rig_s += self.last_dwell_s
         self.counters["dwells"] += 1
@@ -336,11 +342,18 @@ class PhasorDwellExperiment:
             raise SafetyLimitError(f"{self.response.name}: response amplitude {amplitude:.4g} at {omega_rad_s:.6g} rad/s exceeds "
                                    f"[safety] max_response {self.max_response:g}; output switched off")
 
-    def _ramp_down(self) -> None:
-        volts = self.gain_estimate and self._target_force() / self.gain_estimate
+    def _ramp_down(self, target: float) -> None:
+        volts = target / self.gain_estimate
         for fraction in reversed(self.settings.ramp_fractions):
             self.source.set_amplitude_v(self._drive_volts(fraction * volts))
             self._wait(self._settle_time() / 10.0)
+
+    def _output_off_keeping_the_cause(self) -> None:
+        """Output off while an exception is on its way out: a failure is logged, never raised."""
+        try:
+            self._output_off()
+        except BaseException as exc:  # noqa: BLE001 - the original exception must propagate
+            log.error("%s: output off failed during an abort: %r; switch the output off at the instrument", self.source.name, exc)
 
     def _output_off(self) -> None:
         """Switch the output off; a failure is logged, retried once, then raised."""
