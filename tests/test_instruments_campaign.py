@@ -257,3 +257,14 @@ def test_sigterm_during_a_run_exits_130_with_the_output_off(tmp_path, monkeypatc
     assert code == 130
     assert benches and not benches[-1].output_on and benches[-1].force_amplitude_n == 0.0
     assert len(read_snapshot(tmp_path / "r").measurements) == 2  # the two finished dwells are kept
+
+
+def test_the_journal_records_which_instruments_measured(tmp_path):
+    procedure = load_procedure(PROCEDURES["Modbus+SR830+SR860"])
+    procedure = dataclasses.replace(procedure, goal=dataclasses.replace(procedure.goal, max_experiments=0))
+    start_run(procedure, tmp_path / "run", opener=open_experiment, quiet_report_hint=True)
+    events = [e for e in read_snapshot(tmp_path / "run").events if e["kind"] == "instruments"]
+    assert len(events) == 1
+    message = events[0]["message"]
+    assert "shaker_plc: Generic Modbus shaker controller" in message
+    assert "lia_force: Stanford_Research_Systems,SR830,s/n86021" in message and "lia_response: Stanford_Research_Systems,SR860,004512" in message

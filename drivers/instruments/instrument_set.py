@@ -172,8 +172,9 @@ def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = No
     try:
         for name, (settings, profile, role) in checked.items():
             opened[role] = open_instrument(settings, profile)
+        identities = {}
         for role in ROLES:  # identities first: a wrong instrument never sees an init command
-            opened[role].check_identity()
+            identities[opened[role].name] = opened[role].check_identity()
         opened["exciter"].initialise()  # output forced off first
         opened["force"].initialise()
         opened["response"].initialise()
@@ -199,4 +200,5 @@ def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = No
         max_response=procedure.safety.max_response,
         on_measurement=on_measurement,
         owned=owned,
+        identities=identities,
     )

@@ -123,6 +123,7 @@ class PhasorDwellExperiment:
     rig_s: float = 0.0
     gain_estimate: float = 0.0
     closed: bool = False
+    identities: dict = field(default_factory=dict)  # instrument name -> identity answer (journaled)
 
     def __post_init__(self) -> None:
         if self.force_sensor.quantity != "force":

@@ -340,6 +340,17 @@ def _run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, 
                                 quiet_report_hint=quiet_report_hint, control=control, observers=observers)
 
 
+INSTRUMENTS_EVENT = "instruments"
+"""Journal event: the instruments a session drove and what each answered to its identity query."""
+
+
+def _journal_identities(journal: Journal, experiment: Any) -> None:
+    from setmem_hil.model.experiment import IdentifiedExperiment
+
+    if isinstance(experiment, IdentifiedExperiment) and experiment.identities:
+        journal.add_event(INSTRUMENTS_EVENT, "; ".join(f"{name}: {answer}" for name, answer in experiment.identities.items()))
+
+
 def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
                      opener: ExperimentOpener, display: Display | None, experiment: Any = None,
                      continue_stored: bool = False, quiet_report_hint: bool = False, control=None,
@@ -347,6 +358,7 @@ def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, s
     try:
         if experiment is None:
             experiment = opener(procedure, seed)
+        _journal_identities(journal, experiment)
         with (display(experiment) if display is not None else contextlib.nullcontext(None)) as shown:
             summary = run_journaled_campaign(procedure, experiment, journal, seed=seed, strategy=strategy,
                                              observers=([shown] if shown is not None else []) + list(observers),

@@ -2,7 +2,8 @@
 
 Optional capabilities are declared protocols too (checked with ``isinstance``, never probed
 with ``getattr``): :class:`ResumableExperiment`, :class:`ModelAwareExperiment`,
-:class:`BoundPredictingExperiment`, :class:`CountingExperiment`, :class:`PlanningExperiment`.
+:class:`BoundPredictingExperiment`, :class:`CountingExperiment`, :class:`PlanningExperiment`,
+:class:`IdentifiedExperiment`.
 
 One call applies a unit-amplitude sinusoid at ``omega_rad_s`` and returns the steady-state
 complex response ``G(j omega)`` with an absolute bound on its total error (noise, estimation
@@ -84,6 +85,14 @@ class PlanningExperiment(Protocol):
     """Can say beforehand how long a dwell at ``omega`` will take (``plan(w).skip_s + .window_s``)."""
 
     def plan(self, omega_rad_s: float) -> Any: ...
+
+
+@runtime_checkable
+class IdentifiedExperiment(Protocol):
+    """Knows which instruments it drives: ``{name: identity answer}`` (journaled with the run,
+    so the data say which serial numbers measured them)."""
+
+    identities: Mapping[str, str]
 
 
 @runtime_checkable
