@@ -268,3 +268,11 @@ def test_the_journal_records_which_instruments_measured(tmp_path):
     message = events[0]["message"]
     assert "shaker_plc: Generic Modbus shaker controller" in message
     assert "lia_force: Stanford_Research_Systems,SR830,s/n86021" in message and "lia_response: Stanford_Research_Systems,SR860,004512" in message
+
+
+def test_transport_settings_with_instruments_are_refused_not_ignored(tmp_path, capsys):
+    path = tmp_path / "p.toml"
+    path.write_text(_emulated({'\n[backend.emulation]\n': '\n[backend.transport]\nurl = "/dev/ttyUSB0"\n\n[backend.emulation]\n'}))
+    assert main(["run", "--check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "[backend.transport]" in err and "[instruments.<name>]" in err

@@ -334,10 +334,11 @@ def _backend(top: _Table) -> BackendSettings:
     if kind != "sim" and sim.first_mode_rad_s != 1.0:
         raise ProcedureError(top.source, "[backend.simulation] key 'first_mode_rad_s'",
                              f"only the frequency-domain simulation (kind = \"sim\") scales the beam; the {kind} fake device simulates it at 1 rad/s")
-    if kind == "sim":
+    if kind not in LOOPBACK_BACKENDS:
         for key in ("transport", "faults"):
             if t.has(key):
-                raise ProcedureError(top.source, f"[backend.{key}]", f"only used by transport backends ({', '.join(LOOPBACK_BACKENDS)}); kind is 'sim'")
+                where = "; the instruments' settings go in [instruments.<name>] tables" if kind == "instruments" else ""
+                raise ProcedureError(top.source, f"[backend.{key}]", f"only used by the loopback backends ({', '.join(LOOPBACK_BACKENDS)}); kind is {kind!r}{where}")
     roles = {role: t.get(role, "") for role in ("exciter", "force", "response")}
     emulation = None
     if t.has("emulation"):
