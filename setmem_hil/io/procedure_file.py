@@ -338,7 +338,7 @@ def _backend(top: _Table) -> BackendSettings:
         for key in ("transport", "faults"):
             if t.has(key):
                 where = "; the instruments' settings go in [instruments.<name>] tables" if kind == "instruments" else ""
-                raise ProcedureError(top.source, f"[backend.{key}]", f"only used by the loopback backends ({', '.join(LOOPBACK_BACKENDS)}); kind is {kind!r}{where}")
+                raise ProcedureError(top.source, f"[backend.{key}]", f"only used by transport backends ({', '.join(LOOPBACK_BACKENDS)}); kind is {kind!r}{where}")
     roles = {role: t.get(role, "") for role in ("exciter", "force", "response")}
     emulation = None
     if t.has("emulation"):
