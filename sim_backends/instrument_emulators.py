@@ -113,7 +113,6 @@ class GeneratorEmulator(_Emulator):
         nodes = canonical_header(head.rstrip("?"))
         if nodes in (("*IDN",), ("*RST",), ("*CLS",), ("*OPC",), ("SYST", "ERR")):
             return self._common(nodes, query)
-        ch = 1
         m = re.fullmatch(r"(SOUR|OUTP)(\d?)", nodes[0]) if nodes else None
         if not m:
             return self._undefined(query)

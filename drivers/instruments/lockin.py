@@ -54,13 +54,7 @@ class LockIn(ScpiInstrument):
         values = self.profile.time_constants_s
         index = next((i for i, v in enumerate(values) if v >= at_least_s), len(values) - 1)
         if values[index] != self.time_constant_s:
-            command = self.profile.time_constant.set.format(index=index)
-            self.link.write(command)
-            if self.profile.time_constant.query:
-                reply = self.link.query(self.profile.time_constant.query)
-                if int(parse_number(reply)) != index:
-                    raise DeviceRejectedError("instrument", f"{self.where}: time constant index {index} sent, the instrument reads back {reply!r}")
-            self.check_errors(command)
+            self._set_index(self.profile.time_constant, index, "time constant")
             self.time_constant_s = values[index]
         return self.time_constant_s
 
@@ -91,15 +85,19 @@ class LockIn(ScpiInstrument):
         value = self.profile.sensitivities_v[index]
         if value == self.full_scale_v:
             return False
-        command = self.profile.sensitivity.set.format(index=index)
-        self.link.write(command)
-        if self.profile.sensitivity.query:
-            reply = self.link.query(self.profile.sensitivity.query)
-            if int(parse_number(reply)) != index:
-                raise DeviceRejectedError("instrument", f"{self.where}: sensitivity index {index} sent, the instrument reads back {reply!r}")
-        self.check_errors(command)
+        self._set_index(self.profile.sensitivity, index, "sensitivity")
         self.full_scale_v = value
         return True
+
+    def _set_index(self, setting, index: int, what: str) -> None:
+        """Send an indexed setting (``{index}`` in its template), read the index back, check errors."""
+        command = setting.set.format(index=index)
+        self.link.write(command)
+        if setting.query:
+            reply = self.link.query(setting.query)
+            if int(parse_number(reply)) != index:
+                raise DeviceRejectedError("instrument", f"{self.where}: {what} index {index} sent, the instrument reads back {reply!r}")
+        self.check_errors(command)
 
     def near_full_scale(self, reading_v: complex) -> bool:
         return max(abs(reading_v.real), abs(reading_v.imag)) > self.RANGE_UP_FRACTION * self.full_scale_v
