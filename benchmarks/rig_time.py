@@ -9,7 +9,9 @@ included, as ``summary.json`` reports it. Configurations:
 * ``single-sine``: today's loop (one frequency per iteration, the thesis ranking);
 * ``per_rig_second``: candidates ranked by expected improvement per second of rig time;
 * ``batch-2``, ``batch-3``: two or three frequencies per iteration (batch design);
-* ``batch-3/per_rig_second``: both.
+* ``batch-3/per_rig_second``: both;
+* ``multisine...``: ``[dwell] signal = "multisine"``: the 15 initial points in one multisine
+  record, each iteration's frequencies in one record, with the options above.
 
 A naive "wait five time constants" rig is reported as a computed figure: every dwell waits
 ``5 / (zeta omega_1)`` for the slowest (first) mode of the true beam (zeta = 0.01, omega_1 =
@@ -34,6 +36,13 @@ CONFIGS = {
     "batch-2": {"per_iteration": 2},
     "batch-3": {"per_iteration": 3},
     "batch-3/per_rig_second": {"per_iteration": 3, "ranking": "per_rig_second"},
+    "multisine": {"signal": "multisine"},
+    "multisine/per_rig_second": {"signal": "multisine", "ranking": "per_rig_second"},
+    "multisine/batch-2": {"signal": "multisine", "per_iteration": 2},
+    "multisine/batch-3": {"signal": "multisine", "per_iteration": 3},
+    "multisine/batch-3/per_rig_second": {"signal": "multisine", "per_iteration": 3, "ranking": "per_rig_second"},
+    "multisine/batch-5": {"signal": "multisine", "per_iteration": 5},
+    "multisine/batch-5/window-60": {"signal": "multisine", "per_iteration": 5, "max_window_s": 60.0},
 }
 
 
@@ -41,17 +50,23 @@ def run_one(config: str, seed: int) -> dict:
     import numpy as np
 
     from setmem_hil.campaign.runner import run_campaign
-    from setmem_hil.experiment_factory import dwell_experiment
+    from setmem_hil.experiment_factory import dwell_experiment, dwell_settings
     from setmem_hil.io.procedure import default_procedure
     from setmem_hil.sim_backends.core_rig import CoreRig
     from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 
     base = default_procedure()
-    procedure = dataclasses.replace(base, seed=seed, input_design=dataclasses.replace(base.input_design, **CONFIGS[config]))
+    options = dict(CONFIGS[config])
+    signal = options.pop("signal", "sine")
+    window = options.pop("max_window_s", None)
+    procedure = dataclasses.replace(base, seed=seed, dwell_signal=signal, input_design=dataclasses.replace(base.input_design, **options))
     core = FakeDeviceCore.from_procedure(procedure, seed)
     t0 = time.perf_counter()
     measured = []
-    with dwell_experiment(procedure, CoreRig(core)) as exp:
+    settings = dwell_settings(procedure)
+    if window is not None:
+        settings = dataclasses.replace(settings, max_window_s=window)
+    with dwell_experiment(procedure, CoreRig(core), settings) as exp:
         inner = exp.measure
 
         def measure(w):
@@ -60,6 +75,14 @@ def run_one(config: str, seed: int) -> dict:
             return m
 
         exp.measure = measure
+        inner_record = exp.measure_multisine
+
+        def measure_multisine(ws):
+            ms = inner_record(ws)
+            measured.extend(ms[1:] if len(ws) == 1 else ms)  # a single line went through measure()
+            return ms
+
+        exp.measure_multisine = measure_multisine
         summary = run_campaign(procedure, exp, seed=seed)
     truth = core.true_response(np.array([m.omega_rad_s for m in measured]))
     inside = np.abs(np.array([m.response for m in measured]) - truth) <= np.array([m.bound for m in measured])

@@ -68,6 +68,15 @@ class Rig(Protocol):
 
 
 @runtime_checkable
+class MultisineExciter(Protocol):
+    """An exciter that can play a sum of sinusoids (a multisine record, several points at once)."""
+
+    def set_multisine(self, omegas_rad_s, amplitudes_n, phases_rad) -> None:
+        """Start ``sum_k a_k sin(omega_k t + phi_k)`` (t from this command). Limits checked before sending."""
+        ...
+
+
+@runtime_checkable
 class RateConfigurableSensor(Protocol):
     """A sensor whose sample rate may be set per acquisition (coherent stepped-sine sampling)."""
 

@@ -96,6 +96,22 @@ class SafeExciter:
         check_sine_command(self.limits, omega_rad_s, amplitude_n)
         self.inner.set_sine(omega_rad_s, amplitude_n)
 
+    def set_multisine(self, multisine, duration_s: float) -> None:
+        """Play a :class:`setmem_hil.estimation.multisine.Multisine` for at most ``duration_s``.
+
+        Every line must be inside the frequency limits and the *peak of the sum* over the
+        record (its guaranteed bound) within ``max_amplitude_n``; nothing is sent otherwise.
+        """
+        for w in multisine.omegas_rad_s:
+            check_sine_command(self.limits, w, 0.0)
+        peak = multisine.peak_bound(duration_s)
+        if not peak <= self.limits.max_amplitude_n * (1 + 1e-9):
+            raise SafetyLimitError(
+                f"multisine command: peak force {peak:.4g} N over {duration_s:.4g} s above the procedure's safety limit "
+                f"{self.limits.max_amplitude_n:g} N; nothing was sent"
+            )
+        self.inner.set_multisine(multisine.omegas_rad_s, multisine.amplitudes_n, multisine.phases_rad)
+
     def stop(self) -> None:
         self.inner.stop()
 

@@ -27,6 +27,13 @@ One :meth:`SineDwellExperiment.measure` call (a *dwell*):
    fixed poles' worst case and the halves' difference beyond its noise RMS) (eq. 3.7: the identification
    needs ``|g - g_0| <= R``), and stops the exciter, also on every abort path.
 
+:meth:`SineDwellExperiment.measure_multisine` measures several frequencies in one record (a
+*multisine dwell*, issue 15): the sum of sinusoids of :func:`setmem_hil.estimation.multisine.design_multisine`
+(its peak, not each line, within the amplitude limit), one window planned for all lines
+(:func:`~setmem_hil.estimation.dwell_estimate.plan_multisine`), one joint transient-aware fit,
+a bound per line; the settling is paid once. The rig's exciter must be a
+:class:`~setmem_hil.drivers.protocols.MultisineExciter`.
+
 Faults: a :class:`setmem_hil.errors.DataQualityError` discards the dwell and re-measures; a
 :class:`setmem_hil.errors.DeviceError` (timeout, frame error, disconnect) stops the exciter,
 reconnects when the rig can (:class:`~setmem_hil.drivers.protocols.ReconnectableRig`) and
@@ -48,12 +55,14 @@ from __future__ import annotations
 import atexit
 import dataclasses
 import logging
+import math
 import weakref
 from typing import Callable
 
 
 from setmem_hil.drivers.protocols import (
     MeasurementIndexedRig,
+    MultisineExciter,
     RateConfigurableSensor,
     ReconnectableRig,
     Rig,
@@ -68,12 +77,16 @@ from setmem_hil.estimation.dwell_estimate import (
     DwellPlan,
     DwellResult,
     DwellSettings,
+    MultisinePlan,
     PoleTracker,
     check_block,
     estimate_dwell,
+    estimate_multisine,
     plan_dwell,
+    plan_multisine,
     replan_fixed_rate,
 )
+from setmem_hil.estimation.multisine import design_multisine
 from setmem_hil.estimation.sine_fit import SineFit
 
 log = logging.getLogger(__name__)
@@ -164,12 +177,69 @@ class SineDwellExperiment:
         check_sine_command(self.limits, w, self.settings.amplitude_n)
         plan = self.plan(w)
         check_dwell(self.limits, plan.skip_s + plan.window_s)
+
+        def start(plan):
+            self.exciter.set_sine(plan.omega_rad_s, self.settings.amplitude_n)
+
+        def estimate(plan, block, attempt, dwell_s, extensions):
+            return estimate_dwell(self.settings, self.model, self.pole_tracker, self.extra_bound, plan, block, attempt, dwell_s, extensions)
+
+        result = self._attempts(f"sine dwell at {w:g} rad/s", plan, start, estimate)
+        self.n_measured += 1
+        self.last_result = result
+        if self.settings.learn_poles:
+            self._learn(result.response_fit)
+        self.rig_s += self._device_s
+        return dataclasses.replace(result.measurement, rig_s=self._device_s)
+
+    def measure_multisine(self, omegas_rad_s) -> list[Measurement]:
+        """One multisine record measuring every frequency of ``omegas_rad_s`` (distinct).
+
+        The lines share the record's device time: each measurement's ``rig_s`` is its equal
+        share. A single frequency is an ordinary :meth:`measure`. The noise of the record is
+        seeded with the index of its first line, and ``n_measured`` advances by the number of
+        lines, so a resumed campaign repeats the record exactly.
+        """
+        lines = [float(w) for w in omegas_rad_s]
+        if len(lines) == 1:
+            return [self.measure(lines[0])]
+        if self._closed:
+            raise DeviceError("sine dwell: measure_multisine() after close()")
+        if not isinstance(self.rig.exciter, MultisineExciter):
+            raise DeviceError(f"multisine record: the exciter of {self.rig.metadata.name!r} plays single sines only "
+                              "(use [dwell] signal = \"sine\")")
+        for w in lines:
+            check_sine_command(self.limits, w, self.settings.amplitude_n)
+        plan = plan_multisine(self.settings, self.model, lines)
+        longest = plan.skip_s + plan.window_s * (1 + self.settings.max_extensions)
+        check_dwell(self.limits, plan.skip_s + plan.window_s)
+        signal = design_multisine(lines, self.settings.amplitude_n, longest)
+
+        def start(plan):
+            self.exciter.set_multisine(signal, longest)
+
+        def estimate(plan, block, attempt, dwell_s, extensions):
+            return estimate_multisine(self.settings, self.model, self.pole_tracker, self.extra_bound, plan, block, attempt,
+                                      dwell_s, extensions)
+
+        label = f"multisine record at {', '.join(f'{w:g}' for w in lines)} rad/s"
+        results = self._attempts(label, plan, start, estimate)
+        self.n_measured += len(lines)
+        self.last_result = results[0]
+        if self.settings.learn_poles:
+            self._learn(results[0].response_fit)
+        self.rig_s += self._device_s
+        share = self._device_s / len(lines)
+        return [dataclasses.replace(r.measurement, rig_s=share) for r in results]
+
+    def _attempts(self, label: str, plan, start, estimate):
+        """Run a dwell until it gives a result, at most ``max_attempts`` times (see the module docs)."""
         errors: list[str] = []
         last_exc: BaseException | None = None
         self._device_s = 0.0  # rig time of this dwell, every attempt included
         for attempt in range(self.settings.max_attempts):
             try:
-                result = self._dwell(plan, attempt)
+                return self._dwell(plan, attempt, start, estimate)
             except DataQualityError as exc:
                 safe_stop(self.exciter)
                 self._count("discarded_dwell")
@@ -186,15 +256,9 @@ class SineDwellExperiment:
             except BaseException:
                 safe_stop(self.exciter)
                 raise
-            self.n_measured += 1
-            self.last_result = result
-            if self.settings.learn_poles:
-                self._learn(result.response_fit)
-            self.rig_s += self._device_s
-            return dataclasses.replace(result.measurement, rig_s=self._device_s)
         self._failed_attempts += self.settings.max_attempts
         summary = "; ".join(errors)
-        msg = f"sine dwell at {w:g} rad/s failed after {self.settings.max_attempts} attempts ({summary})"
+        msg = f"{label} failed after {self.settings.max_attempts} attempts ({summary})"
         if isinstance(last_exc, DeviceError):
             raise DeviceError(msg) from last_exc
         raise DataQualityError(msg) from last_exc
@@ -223,7 +287,7 @@ class SineDwellExperiment:
                 errors.append(f"reconnect {k + 1} failed: {exc}")
                 self._count("reconnect_failed")
 
-    def _dwell(self, plan: DwellPlan, attempt: int) -> DwellResult:
+    def _dwell(self, plan: DwellPlan | MultisinePlan, attempt: int, start, estimate):
         rig, sensor = self.rig, self.rig.sensor
         if isinstance(rig, MeasurementIndexedRig):
             # attempts of earlier measurements that failed for good get their own streams
@@ -231,11 +295,15 @@ class SineDwellExperiment:
         if isinstance(sensor, RateConfigurableSensor):
             sensor.set_sample_rate(plan.sample_rate_hz)
         elif abs(rig.metadata.sample_rate_hz - plan.sample_rate_hz) > 1e-9 * plan.sample_rate_hz:
-            plan = replan_fixed_rate(plan, rig.metadata.sample_rate_hz)
+            if isinstance(plan, MultisinePlan):
+                plan = dataclasses.replace(plan, sample_rate_hz=rig.metadata.sample_rate_hz,
+                                           n_samples=int(math.ceil(plan.window_s * rig.metadata.sample_rate_hz)))
+            else:
+                plan = replan_fixed_rate(plan, rig.metadata.sample_rate_hz)
         # output_guard: zero output however the block ends; a failing stop during an abort is
         # logged and never replaces the original exception (so Ctrl-C stays Ctrl-C)
         with output_guard(self.exciter):
-            self.exciter.set_sine(plan.omega_rad_s, self.settings.amplitude_n)
+            start(plan)
             if isinstance(sensor, WaitingSensor):
                 sensor.wait(plan.skip_s)
             else:
@@ -246,12 +314,12 @@ class SineDwellExperiment:
             dwell_s = plan.skip_s + plan.window_s
             extensions = 0
             while True:
-                result = estimate_dwell(self.settings, self.model, self.pole_tracker, self.extra_bound, plan, block, attempt, dwell_s, extensions)
+                result = estimate(plan, block, attempt, dwell_s, extensions)
                 if result is not None:
                     return result
                 if extensions >= self.settings.max_extensions or dwell_s + plan.window_s > self.limits.max_dwell_s:
                     raise DataQualityError(
-                        f"response at {plan.omega_rad_s:g} rad/s not settled after {dwell_s:.1f} s "
+                        f"response at {', '.join(f'{w:g}' for w in getattr(plan, 'omegas_rad_s', (plan.omega_rad_s,)))} rad/s not settled after {dwell_s:.1f} s "
                         "(the halves of the window disagree beyond their uncertainty)"
                     )
                 # consecutive windows: the next estimate uses the newest window only

@@ -10,6 +10,11 @@
     beam behind the serial line protocol on ``socket://127.0.0.1:<free port>``), a
     :class:`~setmem_hil.drivers.serial_rig.SerialRig` and a
     :class:`~setmem_hil.drivers.sine_dwell.SineDwellExperiment` on it.
+``time-domain``
+    the fake shaker + DAQ (:class:`~setmem_hil.sim_backends.fake_device_core.FakeDeviceCore`:
+    exact time-domain beam, sensor noise, virtual clock) called in process
+    (:class:`~setmem_hil.sim_backends.core_rig.CoreRig`) and a SineDwellExperiment on it: the
+    dwell numerics without a wire format, and the one device backend that plays multisines.
 ``can-virtual`` / ``modbus-loopback``
     :func:`setmem_hil.loopback.rigs.open_can_virtual_rig` /
     :func:`setmem_hil.loopback.rigs.open_modbus_loopback_rig` and a SineDwellExperiment on the rig.
@@ -42,13 +47,18 @@ from dataclasses import dataclass, replace
 
 from setmem_hil.model.experiment import Experiment
 from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
-from setmem_hil.estimation.dwell_estimate import plan_dwell
+import numpy as np
+
+from setmem_hil.estimation.dwell_estimate import plan_dwell, plan_multisine
+from setmem_hil.estimation.multisine import design_multisine
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import BACKENDS, Procedure
 from setmem_hil.drivers.instruments.instrument_set import open_instrument_experiment
 from setmem_hil.loopback.instrument_emulation import open_emulated_instruments
 from setmem_hil.loopback.rigs import open_can_virtual_rig, open_modbus_loopback_rig, open_serial_loopback_rig
 from setmem_hil.sim_backends.beam import BEAM_N_MODES
+from setmem_hil.sim_backends.core_rig import CoreRig
+from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
 
 __all__ = ["open_experiment", "dwell_settings", "dwell_experiment", "ManagedSimulatedBeam"]
@@ -78,13 +88,28 @@ class ManagedSimulatedBeam(SimulatedBeamExperiment):
     def update_model(self, model) -> None:
         self.dwell_model = model
 
-    def measure_many(self, omega_rad_s):
-        measured = super().measure_many(omega_rad_s)
+    def measure_many(self, omega_rad_s, noise_gain=1.0):
+        measured = super().measure_many(omega_rad_s, noise_gain)
         if self.dwell_model is None:
             return measured
         settings = DwellSettings()
         return [replace(m, rig_s=float(sum(getattr(plan_dwell(settings, self.dwell_model, m.omega_rad_s), k) for k in ("skip_s", "window_s"))))
                 for m in measured]
+
+    def measure_multisine(self, omegas_rad_s) -> list:
+        """One multisine record (as the time-domain dwell would play it): each line carries the
+        force share of :func:`~setmem_hil.estimation.multisine.design_multisine` (peak 1 N), so
+        its noise and bound grow by ``1 / a_k``; the record's planned time is shared equally."""
+        lines = [float(w) for w in omegas_rad_s]
+        if len(lines) == 1:
+            return self.measure_many(lines)
+        settings = DwellSettings()
+        plan = plan_multisine(settings, self.dwell_model, lines)
+        signal = design_multisine(lines, settings.amplitude_n, plan.skip_s + plan.window_s * (1 + settings.max_extensions))
+        gains = settings.amplitude_n / np.asarray(signal.amplitudes_n)
+        measured = SimulatedBeamExperiment.measure_many(self, lines, gains)
+        share = (plan.skip_s + plan.window_s) / len(lines)
+        return [replace(m, rig_s=share) for m in measured]
 
     def __exit__(self, *exc) -> None:
         self.close()
@@ -165,6 +190,8 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
         )
     if kind == "instruments":
         return open_instruments(procedure, seed)
+    if kind == "time-domain":
+        return dwell_experiment(procedure, CoreRig(FakeDeviceCore.from_procedure(procedure, seed)))
     if kind not in LOOPBACK_RIGS:
         raise ProcedureError(source, "[backend] key 'kind'", f"expected one of {list(BACKENDS)}, found {kind!r}")
     settings = dwell_settings(procedure)  # validated before any device is started

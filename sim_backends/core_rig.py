@@ -1,7 +1,7 @@
 """In-process rig over a :class:`FakeDeviceCore` (no transport): for tests and benchmarks.
 
 Implements :class:`setmem_hil.drivers.protocols.Rig` and its optional capabilities
-(sample rate per acquisition, wait, measurement index) by direct calls, so the sine-dwell
+(sample rate per acquisition, wait, measurement index, multisine excitation) by direct calls, so the sine-dwell
 numerics can be exercised without any wire format.
 """
 
@@ -18,6 +18,9 @@ class _CoreExciter:
 
     def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
         self.core.set_sine(omega_rad_s, amplitude_n)
+
+    def set_multisine(self, omegas_rad_s, amplitudes_n, phases_rad) -> None:
+        self.core.set_multisine(omegas_rad_s, amplitudes_n, phases_rad)
 
     def stop(self) -> None:
         self.core.stop()

@@ -11,6 +11,9 @@ API (what a transport wrapper calls)
 ``core.set_sine(omega_rad_s, amplitude_n)``
     Start/change the sinusoid; raises :class:`DeviceRejectedError` outside the device's own
     hard limits (``omega`` in ``(0, max_omega_rad_s]``, amplitude in ``[0, force_range_n]``).
+``core.set_multisine(omegas_rad_s, amplitudes_n, phases_rad)``
+    Start a sum of sinusoids (a multisine record); the sum of the amplitudes (a bound of the
+    peak) must be within ``force_range_n``.
 ``core.stop()``
     Output to zero (idempotent). ``core.host_lost()`` does the same (watchdog on disconnect).
 ``core.set_sample_rate(rate_hz)``
@@ -47,7 +50,10 @@ Sensor noise: white Gaussian on both channels. The response channel's RMS follow
 procedure's noise profile ``R(omega)`` (``setmem_hil.sim_backends.noise``) at the commanded
 frequency times ``response_noise_per_bound`` (so the dwell's information content tracks the
 frequency-domain simulation's), with a floor ``response_noise_floor``; the force channel has a
-fixed RMS ``force_noise_n``.
+fixed RMS ``force_noise_n``. During a multisine the response noise is *coloured* instead: white
+noise shaped in the frequency domain by the profile (its spectral density at ``omega`` is what a
+single sine at ``omega`` would see), so every line meets the noise the single-sine dwell at its
+frequency would (the profile is interpolated on a 256-point logarithmic grid).
 
 Example
 -------
@@ -280,9 +286,19 @@ class FakeDeviceCore:
             raise DeviceRejectedError("range", f"fake device: omega {omega!r} rad/s outside (0, {self.max_omega_rad_s:g}]")
         if not (np.isfinite(amp) and 0.0 <= amp <= self.metadata.force_range_n):
             raise DeviceRejectedError("range", f"fake device: amplitude {amp!r} N outside [0, {self.metadata.force_range_n:g}]")
-        if omega == self.beam.omega_rad_s and amp == self.beam.amplitude_n:
+        if self.beam.line_omegas_rad_s == (omega,) and amp == self.beam.amplitude_n:
             return  # idempotent: repeating the command does not restart the sine
         self.beam.set_sine(omega, amp)
+
+    def set_multisine(self, omegas_rad_s, amplitudes_n, phases_rad) -> None:
+        w, a, p = (np.atleast_1d(np.asarray(v, dtype=float)).ravel() for v in (omegas_rad_s, amplitudes_n, phases_rad))
+        if not (w.size >= 1 and w.size == a.size == p.size):
+            raise DeviceRejectedError("range", f"fake device: multisine with {w.size} frequencies, {a.size} amplitudes, {p.size} phases")
+        if not (np.all(np.isfinite(w)) and np.all(w > 0) and np.all(w <= self.max_omega_rad_s)):
+            raise DeviceRejectedError("range", f"fake device: multisine frequencies {w.tolist()} outside (0, {self.max_omega_rad_s:g}] rad/s")
+        if not (np.all(np.isfinite(a)) and np.all(a >= 0) and float(np.sum(a)) <= self.metadata.force_range_n and np.all(np.isfinite(p))):
+            raise DeviceRejectedError("range", f"fake device: multisine amplitudes sum to {float(np.sum(a))!r} N, outside [0, {self.metadata.force_range_n:g}]")
+        self.beam.set_multisine(w, a, p)
 
     def stop(self) -> None:
         self.beam.stop()
@@ -324,13 +340,26 @@ class FakeDeviceCore:
         force, disp = self.beam.simulate(n, dt)
         self.time_s += n * dt
         force = force + self.force_noise_n * self._noise_rng.standard_normal(n)
-        disp = disp + self.response_noise_rms() * self._noise_rng.standard_normal(n)
+        disp = disp + self._response_noise_samples(n, dt)
         force = np.clip(force, -self.metadata.force_range_n, self.metadata.force_range_n)
         disp = np.clip(disp, -self.metadata.response_range, self.metadata.response_range)
         t, force, disp = self._inject_data_faults(t, force, disp)
         self._buffer = SampleBlock(t, force, disp)
         self._last_request_id = request_id
         return n
+
+    def _response_noise_samples(self, n: int, dt: float) -> np.ndarray:
+        """White noise at the commanded frequency's RMS; coloured by the profile during a multisine."""
+        white = self._noise_rng.standard_normal(n)
+        r = self._response_noise
+        if len(self.beam.line_omegas_rad_s) <= 1 or not callable(r) or n < 4:
+            return self.response_noise_rms() * white
+        omega = 2 * np.pi * np.fft.rfftfreq(n, dt)
+        omega[0] = omega[1]
+        grid = np.geomspace(omega[1], omega[-1], 256)
+        density = np.array([float(r(w)) for w in grid])
+        shape = np.exp(np.interp(np.log(omega), np.log(grid), np.log(np.maximum(density, 1e-300))))
+        return np.fft.irfft(np.fft.rfft(white) * shape, n)
 
     def _inject_data_faults(self, t, force, disp):
         n = t.size

@@ -87,12 +87,19 @@ class SimulatedBeamExperiment:
         """
         return np.random.default_rng((self.seed, index))
 
-    def measure_many(self, omega_rad_s) -> list[Measurement]:
+    def measure_many(self, omega_rad_s, noise_gain=1.0) -> list[Measurement]:
+        """Measure each frequency; ``noise_gain`` (per point) multiplies its noise and noise bound.
+
+        The noise bound is the error of ``G`` at the unit force the thesis applies; a line of
+        a multisine carries a smaller force ``a`` and its error grows as ``1 / a``: pass
+        ``noise_gain = 1 / a``.
+        """
         w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
-        bound = self._noise_bound(w)
+        gain = np.broadcast_to(np.asarray(noise_gain, dtype=float), w.shape)
+        bound = self._noise_bound(w) * gain
         noise = np.array([bounded_complex_noise(bound[i : i + 1], self.noise_generator(self.n_measured + i))[0] for i in range(w.size)])
         g = self.truth.frequency_response(w) + noise
-        bounds = self.total_bound(w)
+        bounds = bound + polynomial_magnitude(self.w1_num, self.w1_den, w) if self.unmodelled_dynamics else bound
         self.n_measured += w.size
         return [Measurement(float(wi), complex(gi), float(bi)) for wi, gi, bi in zip(w, g, bounds)]
 

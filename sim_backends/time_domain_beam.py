@@ -17,6 +17,10 @@ response at ``omega`` is exactly ``params.frequency_response(omega)`` (eq. 2.3),
 transient after any change of input is exactly the sum of the modal free responses with poles
 ``-zeta_k omega_k +- j omega_k sqrt(1 - zeta_k^2)``.
 
+A multisine ``f(t) = sum_k a_k sin(omega_k (t - t_on) + phi_k)`` (:meth:`TimeDomainBeam.set_multisine`)
+uses one such two-state block per line (``f`` is the sum of their first states); one line with
+phase 0 is exactly the single sine.
+
 No noise and no I/O here; the fake device (``fake_device_core``) adds sensor noise and a
 virtual clock.
 
@@ -55,12 +59,15 @@ class TimeDomainBeam:
     ----------
     x : ndarray, shape (2 n_modes,)
         Structural state (per mode: displacement-like state, its derivative; eq. 2.6).
-    z : ndarray, shape (2,)
-        Exosystem state ``[a sin(phase), a cos(phase)]``; the force is ``z[0]``.
+    z : ndarray, shape (2 L,)
+        Exosystem state, per line ``[a sin(phase), a cos(phase)]``; the force is the sum of the
+        lines' first states.
     omega_rad_s : float
-        Current excitation frequency (0 when stopped).
+        Current excitation frequency (0 when stopped; the first line of a multisine).
     amplitude_n : float
-        Current force amplitude.
+        Current force amplitude (a multisine: the sum of its lines' amplitudes, a bound of its peak).
+    line_omegas_rad_s : tuple of float
+        The lines being played (one for a sine, none when stopped).
     """
 
     params: ModalParameters
@@ -68,12 +75,13 @@ class TimeDomainBeam:
     z: np.ndarray = field(init=False)
     omega_rad_s: float = field(init=False, default=0.0)
     amplitude_n: float = field(init=False, default=0.0)
+    line_omegas_rad_s: tuple[float, ...] = field(init=False, default=())
 
     def __post_init__(self):
         A, B, C, _ = self.params.state_space_matrices()
         self._A, self._B, self._C = A, B, C
         self._n = A.shape[0]
-        self._phi_cache: dict[tuple[float, float], np.ndarray] = {}
+        self._phi_cache: dict[tuple, np.ndarray] = {}
         self.reset()
 
     # -- state -----------------------------------------------------------------------------
@@ -83,6 +91,7 @@ class TimeDomainBeam:
         self.z = np.zeros(2)
         self.omega_rad_s = 0.0
         self.amplitude_n = 0.0
+        self.line_omegas_rad_s = (0.0,)
 
     def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
         """Start ``f = amplitude sin(omega (t - now))`` (phase 0 at the moment of the command).
@@ -95,25 +104,41 @@ class TimeDomainBeam:
             raise ValueError(f"amplitude_n: expected a finite amplitude >= 0, found {amplitude_n!r}")
         self.omega_rad_s = float(omega_rad_s)
         self.amplitude_n = float(amplitude_n)
+        self.line_omegas_rad_s = (self.omega_rad_s,)
         self.z = np.array([0.0, float(amplitude_n)])
+
+    def set_multisine(self, omegas_rad_s, amplitudes_n, phases_rad) -> None:
+        """Start ``f = sum_k a_k sin(omega_k (t - now) + phi_k)``; the structural state is kept."""
+        w, a, p = (np.atleast_1d(np.asarray(v, dtype=float)).ravel() for v in (omegas_rad_s, amplitudes_n, phases_rad))
+        if not (w.size >= 1 and w.size == a.size == p.size):
+            raise ValueError(f"multisine: expected equal numbers of frequencies, amplitudes and phases, found {w.size}, {a.size}, {p.size}")
+        if not (np.all(np.isfinite(w)) and np.all(w > 0) and np.all(np.isfinite(a)) and np.all(a >= 0) and np.all(np.isfinite(p))):
+            raise ValueError(f"multisine: expected finite positive frequencies and amplitudes >= 0, found {w.tolist()}, {a.tolist()}")
+        self.omega_rad_s = float(w[0])
+        self.amplitude_n = float(np.sum(a))
+        self.line_omegas_rad_s = tuple(float(v) for v in w)
+        self.z = np.column_stack([a * np.sin(p), a * np.cos(p)]).ravel()
 
     def stop(self) -> None:
         """Force to zero; the structure keeps ringing at its own modes."""
-        self.z = np.zeros(2)
+        self.z = np.zeros(self.z.size)
         self.amplitude_n = 0.0
 
     # -- simulation ------------------------------------------------------------------------
     def transition_matrix(self, dt_s: float) -> np.ndarray:
-        """``expm(M dt)`` of the augmented matrix ``M = [[A, B e1^T], [0, S]]`` (cached)."""
-        key = (self.omega_rad_s, float(dt_s))
+        """``expm(M dt)`` of the augmented matrix ``M = [[A, B e1^T ...], [0, S]]`` (cached)."""
+        lines = self.line_omegas_rad_s
+        key = (lines, float(dt_s))
         phi = self._phi_cache.get(key)
         if phi is None:
-            n = self._n
-            M = np.zeros((n + 2, n + 2))
+            n, m = self._n, 2 * len(lines)
+            M = np.zeros((n + m, n + m))
             M[:n, :n] = self._A
-            M[:n, n] = self._B[:, 0]
-            M[n, n + 1] = self.omega_rad_s
-            M[n + 1, n] = -self.omega_rad_s
+            for k, w in enumerate(lines):
+                e = n + 2 * k
+                M[:n, e] = self._B[:, 0]
+                M[e, e + 1] = w
+                M[e + 1, e] = -w
             with blas_one_thread():
                 phi = expm(M * dt_s)
             if len(self._phi_cache) > 64:
@@ -132,12 +157,12 @@ class TimeDomainBeam:
         phi = self.transition_matrix(dt_s)
         n = self._n
         s = np.concatenate([self.x, self.z])
-        states = np.empty((n_samples, n + 2))
+        states = np.empty((n_samples, s.size))
         for k in range(n_samples):
             states[k] = s
             s = phi @ s
         self.x, self.z = s[:n].copy(), s[n:].copy()
-        force = states[:, n]
+        force = states[:, n] if s.size == n + 2 else states[:, n::2].sum(axis=1)
         disp = states[:, :n] @ self._C[0]
         return force, disp
 

@@ -50,13 +50,14 @@ from typing import Any, Callable
 import numpy as np
 
 from setmem_hil.numerics.blas_threads import blas_one_thread
-from setmem_hil.errors import CampaignReplayError
+from setmem_hil.errors import CampaignReplayError, DeviceError
 from setmem_hil.model.experiment import (
     BoundPredictingExperiment,
     Experiment,
     Measurement,
     ModelAwareExperiment,
     PlanningExperiment,
+    MultisineExperiment,
     ResumableExperiment,
 )
 from setmem_hil.model.frequency_data import FrequencyData
@@ -205,6 +206,45 @@ class _Replay:
         if self.journal is not None:
             self.journal.add_measurement(m, iteration=iteration, role=role)
         return m
+
+
+    def measure_record(self, omegas_rad_s, *, iteration: int, role: str) -> list[Measurement]:
+        """Several frequencies in one multisine record (``[dwell] signal = "multisine"``).
+
+        Stored lines are served from the journal; if any line of the record is missing (a kill
+        while the record's lines were being written) the whole record is measured again with
+        its first line's index, which reproduces the stored lines exactly, and only the missing
+        ones are journaled. One frequency is an ordinary :meth:`measure`.
+        """
+        lines = [float(w) for w in omegas_rad_s]
+        if len(lines) == 1:
+            return [self.measure(lines[0], iteration=iteration, role=role)]
+        start = self.count
+        stored = [self.measure(w, iteration=iteration, role=role) for w in lines[: max(0, len(self.stored) - start)]]
+        if len(stored) == len(lines):
+            return stored
+        if not isinstance(self.experiment, MultisineExperiment):
+            raise DeviceError(f"{type(self.experiment).__name__} cannot measure a multisine record "
+                              "([dwell] signal = \"multisine\" needs backend kind 'sim' or 'time-domain')")
+        if self.control is not None:
+            self.control.checkpoint()
+        if isinstance(self.experiment, ResumableExperiment):
+            self.experiment.n_measured = start  # the record's noise is seeded with its first line's index
+        self._synced = True
+        self.count = start + len(lines)
+        self.emit("measure", index=start + 1, total=self.total, omega_rad_s=lines[0], replayed=False, record_omegas=tuple(lines))
+        record = self.experiment.measure_multisine(lines)
+        for m in record[len(stored):]:
+            if self.journal is not None:
+                self.journal.add_measurement(m, iteration=iteration, role=role)
+        return stored + list(record[len(stored):])
+
+
+def measure_batch(source: _Replay, procedure: Procedure, omegas, *, iteration: int, role: str) -> list[Measurement]:
+    """The frequencies one after the other (``[dwell] signal = "sine"``) or in one multisine record."""
+    if procedure.dwell_signal == "multisine":
+        return source.measure_record(omegas, iteration=iteration, role=role)
+    return [source.measure(w, iteration=iteration, role=role) for w in omegas]
 
 
 def _identify_settings(exact_resolve: bool = False):
@@ -406,7 +446,7 @@ def run_campaign(
         if isinstance(experiment, ResumableExperiment):
             experiment.n_measured = len(measured)  # simulated noise goes on, never repeats
     else:
-        measured = [source.measure(w, iteration=0, role="initial") for w in procedure.initial_omegas_rad_s]
+        measured = measure_batch(source, procedure, procedure.initial_omegas_rad_s, iteration=0, role="initial")
     previous_model = None
     previous_outcome: SafeguardOutcome | None = None
     rows: list[IterationSummary] = []
@@ -492,13 +532,12 @@ def run_campaign(
                                       measured, seed, per_iteration)
             if journal is not None and k not in stored_iterations:
                 journal.add_event(BATCH_EVENT, f"iteration {k}: " + ", ".join(f"{w:.9g}" for w in batch) + " rad/s")
-        rig = 0.0
         for w in batch:
             emit("chosen", k=k, next_omega=w)
-            measured.append(source.measure(w, iteration=k, role="added"))
-            rig += float(measured[-1].rig_s)
-            n_added += 1
-        rows[-1] = replace(rows[-1], rig_s=rig)
+        added = measure_batch(source, procedure, batch, iteration=k, role="added")
+        measured.extend(added)
+        n_added += len(added)
+        rows[-1] = replace(rows[-1], rig_s=float(sum(m.rig_s for m in added)))
         previous_model, previous_outcome = model, outcome
         k += 1
 

@@ -206,7 +206,11 @@ class CampaignProgress:
         if self.on_event is not None:
             self.on_event(event, **info)
 
-    def _measure(self, index: int, total: int, omega_rad_s: float, replayed: bool = False, **_: Any) -> None:
+    def _measure(self, index: int, total: int, omega_rad_s: float, replayed: bool = False, record_omegas: tuple = (),
+                 **_: Any) -> None:
+        if len(record_omegas) > 1:
+            self._record(index, total, record_omegas)
+            return
         self.last_index = int(index)
         if replayed:
             self.replayed += 1
@@ -228,6 +232,18 @@ class CampaignProgress:
             self._line(f"dwell {index}/{total} at {format_frequency(omega_rad_s)}" + (f" ({planned:.3g} s of excitation)" if planned else ""))
         elif index == 1:
             self._line("replaying the measurements stored in the journal")
+
+    def _record(self, index: int, total: int, omegas: tuple) -> None:
+        """A multisine record: one dwell measuring several points."""
+        last = index + len(omegas) - 1
+        self.last_index = last
+        self.measured += len(omegas)
+        desc = f"multisine record, points {index}-{last}/{total} at " + ", ".join(f"{w:.4g}" for w in omegas) + " rad/s"
+        if self._progress is not None and self._task is not None:
+            self._progress.update(self._task, total=total, completed=index - 1, description="measurements")
+            self._set_dwell(desc, None, running=True)
+        else:
+            self._line(desc)
 
     def _set_dwell(self, description: str, total_s: float | None, running: bool) -> None:
         if self._progress is None or self._dwell_task is None:

@@ -5,7 +5,9 @@ the current pole intervals), :func:`pole_bands` (eq. 2.25 midpoint poles and the
 ``omega_n`` bands), :class:`PoleTracker` (pole posteriors carried between dwells),
 :func:`fit_response` and :func:`estimate_dwell` (the response and force phasors with modelled
 transients, their ratio ``g`` and the bound ``R`` covering noise, transient mismatch and the
-extra unmodelled-dynamics term, eq. 3.7), :func:`check_block` (refuse unusable samples). The
+extra unmodelled-dynamics term, eq. 3.7), :func:`check_block` (refuse unusable samples), and
+the same for a multisine record (:func:`plan_multisine`, :func:`estimate_multisine`: one joint
+fit of all lines and the transients, a bound per line). The
 device side, :class:`setmem_hil.drivers.sine_dwell.SineDwellExperiment`, drives the rig and
 calls these.
 """
@@ -32,7 +34,8 @@ from setmem_hil.model.experiment import Measurement
 from setmem_hil.model.modal_model import IntervalModel, ModalParameters
 
 __all__ = ["DwellSettings", "DwellPlan", "DwellResult", "PoleTracker", "pole_bands", "plan_dwell", "replan_fixed_rate",
-           "fit_response", "estimate_dwell", "fixed_pole_term", "check_block"]
+           "fit_response", "estimate_dwell", "fixed_pole_term", "check_block", "MultisinePlan", "plan_multisine",
+           "estimate_multisine"]
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,9 @@ class DwellSettings:
         Times the window may be extended when the halves disagree.
     max_attempts : int
         Dwells tried per measurement (discarded data, device faults) before giving up.
+    multisine_max_samples : int
+        Most samples in one multisine acquisition (its lines share one record, so it may be
+        longer than ``max_samples``).
     learn_poles : bool
         Carry the modelled modes' pole estimates from dwell to dwell (:class:`PoleTracker`,
         each dwell's posterior is the next one's prior): near a mode this brings the variance
@@ -104,6 +110,7 @@ class DwellSettings:
     unmodelled_band: float = 1.5
     mismatch_factor: float = 1.0
     learn_poles: bool = False
+    multisine_max_samples: int = 16384
 
 
 @dataclass(frozen=True)
@@ -239,8 +246,12 @@ def fit_response(settings: DwellSettings, model, tracker: PoleTracker, t, y, w, 
     # an unmodelled mode near the excitation rings too: search outside the modelled bands
     # and outside +-pi/T of omega (a pole there cannot be told from the steady state)
     resolve = math.pi / max(window_s, 1e-9)
-    exclude = tuple((b.omega_min_rad_s - resolve, b.omega_max_rad_s + resolve) for b in bands) + ((w - resolve, w + resolve),)
-    generic = PoleSearchBand(DampedPole(0.01 * w, w), w / settings.unmodelled_band, w * settings.unmodelled_band, exclude)
+    lines = np.atleast_1d(np.asarray(w, dtype=float))
+    exclude = tuple((b.omega_min_rad_s - resolve, b.omega_max_rad_s + resolve) for b in bands) + tuple(
+        (wk - resolve, wk + resolve) for wk in lines)
+    centre = float(lines[0]) if lines.size == 1 else float(np.exp(np.mean(np.log(lines))))
+    generic = PoleSearchBand(DampedPole(0.01 * centre, centre), float(lines.min()) / settings.unmodelled_band,
+                             float(lines.max()) * settings.unmodelled_band, exclude)
     limit = settings.fixed_pole_phase_limit
     fixed: list[DampedPole] = []
     fixed_cov: list[np.ndarray] = []
@@ -273,10 +284,10 @@ def fit_response(settings: DwellSettings, model, tracker: PoleTracker, t, y, w, 
     fit = fit_sine_with_transients(t, y, w, tuple(search), t_ref_s=t_ref, fixed_poles=tuple(fixed),
                                    fixed_covariance=cov, pole_priors=priors)
     fit = dataclasses.replace(fit, pole_sources=tuple(search_index[k] for k in fit.pole_sources))
-    term = 0.0
+    terms = np.zeros(lines.size)
     if any(h != (0.0, 0.0) for h in halfwidths):
-        term = fixed_pole_term(t, y, w, t_ref, fit.poles, halfwidths)
-    return fit, term
+        terms = fixed_pole_terms(t, y, w, t_ref, fit.poles, halfwidths)
+    return fit, (float(terms[0]) if np.ndim(w) == 0 else terms)
 
 
 
@@ -332,18 +343,24 @@ def fixed_pole_term(t, y, w, t_ref, poles, halfwidths) -> float:
     ``dY = G dtheta`` with ``G`` the first two rows of ``-X^+ J_pole`` (the change of the
     linear coefficients when the pole parameters move); ``|dY| <= sum_i |G_i| h_i``.
     """
-    from setmem_hil.estimation.sine_fit import _design, _pole_jacobian_columns, _solve
+    return float(fixed_pole_terms(t, y, w, t_ref, poles, halfwidths)[0])
 
+
+def fixed_pole_terms(t, y, w, t_ref, poles, halfwidths) -> np.ndarray:
+    """:func:`fixed_pole_term` for each line of ``w`` (one frequency or a multisine's lines)."""
+    from setmem_hil.estimation.sine_fit import _design, _n_steady, _pole_jacobian_columns, _solve
+
+    n_lines = np.atleast_1d(w).size
     t0 = float(t[0])
     X = _design(t, w, t_ref, poles, t0)
     coef, _ = _solve(X, y)
-    cols = _pole_jacobian_columns(t, poles[: len(halfwidths)], coef, t0)
+    cols = _pole_jacobian_columns(t, poles[: len(halfwidths)], coef, t0, _n_steady(w))
     if not cols:
-        return 0.0
+        return np.zeros(n_lines)
     Jp = np.column_stack(cols)
-    G = -np.linalg.lstsq(X, Jp, rcond=None)[0][:2]
+    G = -np.linalg.lstsq(X, Jp, rcond=None)[0]
     h = np.array([q for hw, hs in halfwidths for q in (hs, hw)])
-    return float(np.sum(np.hypot(G[0], G[1]) * h))
+    return np.array([float(np.sum(np.hypot(G[2 * k], G[2 * k + 1]) * h)) for k in range(n_lines)])
 
 
 def check_block(block, force_range_n: float, response_range: float, rate_hz: float) -> None:
@@ -365,3 +382,103 @@ def check_block(block, force_range_n: float, response_range: float, rate_hz: flo
     if np.any(np.abs(dt - expected) > 1e-6 * expected + 1e-9):
         k = int(np.argmax(np.abs(dt - expected)))
         raise DataQualityError(f"sample block: timestamp jump of {dt[k]:.6g} s at sample {k + 1} (expected {expected:.6g} s)")
+
+
+
+@dataclass(frozen=True)
+class MultisinePlan:
+    """A planned multisine record: its lines, sample rate, skip and window (seconds)."""
+
+    omegas_rad_s: tuple[float, ...]
+    sample_rate_hz: float
+    skip_s: float
+    window_s: float
+    n_samples: int
+
+    @property
+    def omega_rad_s(self) -> float:
+        """The first line (what a single-sine plan calls its frequency)."""
+        return self.omegas_rad_s[0]
+
+
+def plan_multisine(settings: DwellSettings, model, omegas_rad_s) -> MultisinePlan:
+    """One record for several lines: the longest of the lines' own windows (:func:`plan_dwell`)
+    and ``separation_cycles`` beat periods of the closest pair of lines, capped like a single
+    dwell's window; sampled for the highest line (up to ``multisine_max_samples``); the skip of
+    the lowest line."""
+    s = settings
+    lines = tuple(float(w) for w in omegas_rad_s)
+    if len(lines) < 1 or len(set(lines)) != len(lines):
+        raise ValueError(f"multisine plan: expected distinct frequencies, found {list(lines)}")
+    plans = [plan_dwell(s, model, w) for w in lines]
+    window = max(p.window_s for p in plans)
+    ordered = sorted(lines)
+    if len(ordered) > 1:
+        gap = min(b - a for a, b in zip(ordered, ordered[1:]))
+        window = max(window, s.separation_cycles * 2 * math.pi / gap)
+    longest = 2 * math.pi / ordered[0]
+    window = min(window, max(s.max_window_s, s.min_periods * longest, s.min_window_s))
+    shortest = 2 * math.pi / ordered[-1]
+    rate = s.samples_per_period / shortest
+    if rate * window > s.multisine_max_samples:
+        rate = max(s.multisine_max_samples / window, s.min_samples_per_period / shortest)
+    n = int(math.ceil(window * rate))
+    if n > s.multisine_max_samples:
+        n = s.multisine_max_samples
+        window = n / rate
+    skip = max(s.skip_periods * longest, s.skip_s)
+    return MultisinePlan(lines, rate, skip, n / rate, n)
+
+
+def estimate_multisine(settings: DwellSettings, model, tracker: PoleTracker, extra_bound, plan: MultisinePlan, block,
+                       attempt: int, dwell_s: float, extensions: int) -> list[DwellResult] | None:
+    """Every line's frequency-response point of one settled multisine window, each with its own
+    guaranteed-coverage bound, or None when the window's halves disagree at some line.
+
+    One joint fit per channel (all lines, the offset and the transients:
+    :func:`fit_response`); each line's covariance uses the noise level near that line. The
+    settling test and the transient-mismatch term are the single dwell's, per line; the
+    settling level is split over the lines (Bonferroni), so a record is not extended more
+    often than a single dwell.
+    """
+    t, f, y = block.t_s, block.force, block.response
+    lines = np.asarray(plan.omegas_rad_s, dtype=float)
+    n_lines = lines.size
+    t_ref = float(t[0])
+    window_s = float(t[-1] - t[0])
+    rfit, transient_terms = fit_response(settings, model, tracker, t, y, lines, t_ref, window_s)
+    ffit = fit_sine(t, f, lines, t_ref_s=t_ref)
+    ratios = [phasor_ratio(rfit.line(k), ffit.line(k)) for k in range(n_lines)]
+    mismatch = np.zeros(n_lines)
+    half = t.size // 2
+    if half >= 16 and rfit.n_params < half - 4:
+        ra = fit_sine(t[:half], y[:half], lines, rfit.poles, t_ref_s=t_ref)
+        rb = fit_sine(t[half:], y[half:], lines, rfit.poles, t_ref_s=t_ref)
+        fa = fit_sine(t[:half], f[:half], lines, t_ref_s=t_ref)
+        fb = fit_sine(t[half:], f[half:], lines, t_ref_s=t_ref)
+        threshold = -2.0 * math.log((1.0 - settings.settle_confidence) / n_lines)
+        for k in range(n_lines):
+            ha, ca = phasor_ratio(ra.line(k), fa.line(k))
+            hb, cb = phasor_ratio(rb.line(k), fb.line(k))
+            d = np.array([(ha - hb).real, (ha - hb).imag])
+            cd = ca + cb
+            try:
+                stat = float(d @ np.linalg.solve(cd, d))
+            except np.linalg.LinAlgError:
+                stat = math.inf
+            if stat > threshold:
+                return None
+            mismatch[k] = settings.mismatch_factor * max(0.0, abs(ha - hb) - math.sqrt(float(np.trace(cd))))
+    results = []
+    for k, w in enumerate(lines):
+        h, cov = ratios[k]
+        force_phasor = ffit.line(k).phasor
+        radius = confidence_radius(cov, settings.confidence)
+        t_term = float(transient_terms[k]) / abs(force_phasor) + float(mismatch[k])
+        extra = float(extra_bound(float(w))) if extra_bound is not None else 0.0
+        bound = radius + t_term + extra
+        if not (math.isfinite(bound) and math.isfinite(h.real) and math.isfinite(h.imag)):
+            raise DataQualityError(f"multisine record, line {w:g} rad/s: non-finite estimate")
+        m = Measurement(float(w), complex(h), float(bound))
+        results.append(DwellResult(m, plan, rfit.line(k), ffit.line(k), cov, radius, t_term, extra, dwell_s, attempt + 1, extensions))
+    return results

@@ -113,11 +113,28 @@ class SineFit:
     t_ref_s: float
     pole_covariance: np.ndarray | None = None
     pole_sources: tuple[int, ...] = ()
+    line_omegas: tuple[float, ...] = ()
+    line_phasors: tuple[complex, ...] = ()
+    line_covariances: tuple[np.ndarray, ...] = ()
 
     @property
     def phasor_std(self) -> float:
         """RMS of the phasor error, ``sqrt(trace(covariance))``."""
         return float(np.sqrt(np.trace(self.covariance)))
+
+    @property
+    def n_lines(self) -> int:
+        """Sinusoids fitted (1 for a sine dwell, more for a multisine record)."""
+        return max(1, len(self.line_omegas))
+
+    def line(self, k: int) -> "SineFit":
+        """The fit seen as line ``k``'s: its phasor, covariance and frequency in the scalar fields."""
+        if not self.line_omegas:
+            if k != 0:
+                raise IndexError(f"sine fit: line {k} of 1")
+            return self
+        return dataclasses.replace(self, phasor=self.line_phasors[k], covariance=self.line_covariances[k],
+                                   omega_rad_s=self.line_omegas[k])
 
 
 def _check_signal(t_s, y, omega_rad_s) -> tuple[np.ndarray, np.ndarray]:
@@ -129,14 +146,29 @@ def _check_signal(t_s, y, omega_rad_s) -> tuple[np.ndarray, np.ndarray]:
         raise DataQualityError(f"sine fit: expected at least 8 samples, found {t.size}")
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(v))):
         raise DataQualityError(f"sine fit: {int(np.sum(~np.isfinite(v)) + np.sum(~np.isfinite(t)))} non-finite samples")
-    if not (np.isfinite(omega_rad_s) and omega_rad_s > 0):
+    lines = _lines(omega_rad_s)
+    if lines.size == 0 or not (np.all(np.isfinite(lines)) and np.all(lines > 0)):
         raise ValueError(f"sine fit: omega_rad_s must be finite and > 0, found {omega_rad_s!r}")
     return t, v
 
 
-def _design(t: np.ndarray, omega: float, t_ref: float, poles, t_start: float) -> np.ndarray:
+def _lines(omega) -> np.ndarray:
+    """The excitation frequencies: one (a sine) or several (a multisine record)."""
+    return np.atleast_1d(np.asarray(omega, dtype=float)).ravel()
+
+
+def _n_steady(omega) -> int:
+    """Columns of the steady state: in-phase and quadrature per line, and the offset."""
+    return 2 * _lines(omega).size + 1
+
+
+def _design(t: np.ndarray, omega, t_ref: float, poles, t_start: float) -> np.ndarray:
+    """Columns ``cos, -sin`` per line, the offset, then ``e^{-sigma t} (cos, sin)`` per pole."""
     tau = t - t_ref
-    cols = [np.cos(omega * tau), -np.sin(omega * tau), np.ones_like(t)]
+    cols = []
+    for w in _lines(omega):
+        cols += [np.cos(w * tau), -np.sin(w * tau)]
+    cols.append(np.ones_like(t))
     ts = t - t_start
     for p in poles:
         env = np.exp(-p.sigma_per_s * ts)
@@ -145,12 +177,13 @@ def _design(t: np.ndarray, omega: float, t_ref: float, poles, t_start: float) ->
     return np.column_stack(cols)
 
 
-def _pole_jacobian_columns(t, poles, coef, t_start) -> list[np.ndarray]:
-    """d(model)/d(sigma_k), d(model)/d(omega_dk) at the fitted linear coefficients."""
+def _pole_jacobian_columns(t, poles, coef, t_start, first: int = 3) -> list[np.ndarray]:
+    """d(model)/d(sigma_k), d(model)/d(omega_dk) at the fitted linear coefficients (the first
+    pole's coefficients at index ``first``, :func:`_n_steady`)."""
     ts = t - t_start
     cols = []
     for k, p in enumerate(poles):
-        c, s = coef[3 + 2 * k], coef[4 + 2 * k]
+        c, s = coef[first + 2 * k], coef[first + 1 + 2 * k]
         env = np.exp(-p.sigma_per_s * ts)
         cw, sw = np.cos(p.omega_d_rad_s * ts), np.sin(p.omega_d_rad_s * ts)
         cols.append(-ts * env * (c * cw + s * sw))
@@ -169,7 +202,7 @@ def _solve(X: np.ndarray, v: np.ndarray):
 
 
 @_blas1
-def fit_sine(t_s, y, omega_rad_s: float, poles: tuple[DampedPole, ...] = (), *, t_ref_s: float | None = None,
+def fit_sine(t_s, y, omega_rad_s, poles: tuple[DampedPole, ...] = (), *, t_ref_s: float | None = None,
              refined_poles: bool | tuple[bool, ...] = False,
              pole_prior_covariance: np.ndarray | None = None,
              refined_prior_information: np.ndarray | None = None) -> SineFit:
@@ -179,8 +212,11 @@ def fit_sine(t_s, y, omega_rad_s: float, poles: tuple[DampedPole, ...] = (), *, 
     ----------
     t_s, y : array_like
         Sample times and values (finite; raises DataQualityError otherwise).
-    omega_rad_s : float
-        Known excitation frequency.
+    omega_rad_s : float or sequence of float
+        Known excitation frequency, or the lines of a multisine record (each gets its phasor
+        in ``line_phasors``, ``line_covariances``; ``phasor`` is the first line's). With
+        several lines each line's covariance uses the residual's noise level near that line
+        (:func:`local_noise_variance`), since the noise need not be white over a broad band.
     poles : tuple of DampedPole
         Transient poles to model (their free responses are fitted with free amplitude/phase).
     t_ref_s : float, optional
@@ -202,6 +238,8 @@ def fit_sine(t_s, y, omega_rad_s: float, poles: tuple[DampedPole, ...] = (), *, 
     SineFit
     """
     t, v = _check_signal(t_s, y, omega_rad_s)
+    lines = _lines(omega_rad_s)
+    n_lines, first = lines.size, _n_steady(omega_rad_s)
     t_ref = float(t[0]) if t_ref_s is None else float(t_ref_s)
     t_start = float(t[0])
     X = _design(t, omega_rad_s, t_ref, poles, t_start)
@@ -210,7 +248,7 @@ def fit_sine(t_s, y, omega_rad_s: float, poles: tuple[DampedPole, ...] = (), *, 
     mask = tuple(bool(refined_poles) for _ in poles) if isinstance(refined_poles, bool) else tuple(refined_poles)
     if len(mask) != len(poles):
         raise ValueError(f"refined_poles: expected {len(poles)} flags, found {len(mask)}")
-    cols = _pole_jacobian_columns(t, poles, coef, t_start)
+    cols = _pole_jacobian_columns(t, poles, coef, t_start, first)
     ref_cols = [c for k, m in enumerate(mask) if m for c in cols[2 * k : 2 * k + 2]]
     fix_cols = [c for k, m in enumerate(mask) if not m for c in cols[2 * k : 2 * k + 2]]
     J = np.column_stack([X] + ref_cols) if ref_cols else X
@@ -230,30 +268,81 @@ def fit_sine(t_s, y, omega_rad_s: float, poles: tuple[DampedPole, ...] = (), *, 
     try:
         cov = np.linalg.pinv(M / np.outer(scale, scale), rcond=1e-13) / np.outer(scale, scale)
     except np.linalg.LinAlgError as exc:  # pragma: no cover - pinv of a symmetric matrix
-        raise DataQualityError(f"sine fit: singular normal matrix at omega {omega_rad_s:g} rad/s") from exc
-    phasor_cov = cov[:2, :2].copy()
+        raise DataQualityError(f"sine fit: singular normal matrix at omega {lines[0]:g} rad/s") from exc
+    line_cov = [cov[2 * k : 2 * k + 2, 2 * k : 2 * k + 2].copy() for k in range(n_lines)]
     if pole_prior_covariance is not None and fix_cols:
         P = np.asarray(pole_prior_covariance, dtype=float)
         if P.shape != (len(fix_cols), len(fix_cols)):
             raise ValueError(f"pole_prior_covariance: expected shape {(len(fix_cols),) * 2}, found {P.shape}")
-        # sensitivity of all estimated parameters to the fixed poles, first two rows
-        G = -(cov @ (J.T @ np.column_stack(fix_cols)) / s2)[:2]
-        phasor_cov = phasor_cov + G @ P @ G.T
+        # sensitivity of all estimated parameters to the fixed poles, the lines' rows
+        G_all = -(cov @ (J.T @ np.column_stack(fix_cols)) / s2)
+        for k in range(n_lines):
+            G = G_all[2 * k : 2 * k + 2]
+            line_cov[k] = line_cov[k] + G @ P @ G.T
+    if n_lines > 1:
+        # each line sees the noise near its own frequency, not the broadband average s2
+        local = local_noise_variance(t, r * math.sqrt(t.size / dof), lines, tuple(p.omega_d_rad_s for p in poles))
+        line_cov = [c * (loc / s2) for c, loc in zip(line_cov, local)]
     pole_cov = cov[n_lin:, n_lin:].copy() if ref_cols else None
-    amps = tuple(float(np.hypot(coef[3 + 2 * k], coef[4 + 2 * k])) for k in range(len(poles)))
+    amps = tuple(float(np.hypot(coef[first + 2 * k], coef[first + 1 + 2 * k])) for k in range(len(poles)))
+    line_phasors = tuple(complex(coef[2 * k], coef[2 * k + 1]) for k in range(n_lines))
     return SineFit(
-        phasor=complex(coef[0], coef[1]),
-        covariance=phasor_cov,
-        offset=float(coef[2]),
+        phasor=line_phasors[0],
+        covariance=line_cov[0],
+        offset=float(coef[2 * n_lines]),
         noise_rms=float(np.sqrt(s2)),
         n_samples=int(t.size),
         n_params=int(p),
         poles=tuple(poles),
         transient_amplitudes=amps,
-        omega_rad_s=float(omega_rad_s),
+        omega_rad_s=float(lines[0]),
         t_ref_s=t_ref,
         pole_covariance=pole_cov,
+        line_omegas=tuple(float(w) for w in lines) if n_lines > 1 else (),
+        line_phasors=line_phasors if n_lines > 1 else (),
+        line_covariances=tuple(line_cov) if n_lines > 1 else (),
     )
+
+
+def local_noise_variance(t, residual, lines, avoid=(), n_bins: int = 24) -> np.ndarray:
+    """Noise variance (per sample, white-equivalent) near each line, from the residual's periodogram.
+
+    For white noise of variance ``s^2`` the periodogram ``|DFT(r)_j|^2 / N`` has mean ``s^2``
+    at every bin; for coloured noise it is the spectral density, which is what a phasor at
+    ``omega_k`` sees. Per line: the mean over the ``n_bins`` bins nearest in log-frequency,
+    leaving out DC, Nyquist and the bins within 1.5 bins of any line or ``avoid`` frequency
+    (the fitted transients' poles), where the fit has removed part of the noise. ``residual``
+    should already be scaled by ``sqrt(N / (N - p))`` (the degrees of freedom the fit used).
+    Falls back to ``mean(residual^2)`` when too few bins remain.
+    """
+    r = np.asarray(residual, dtype=float)
+    n = r.size
+    dt = float(t[1] - t[0])
+    spectrum = np.abs(np.fft.rfft(r)) ** 2 / n
+    omega = 2 * np.pi * np.fft.rfftfreq(n, dt)
+    step = omega[1]
+    eligible = np.ones(omega.size, dtype=bool)
+    eligible[0] = False
+    if n % 2 == 0:
+        eligible[-1] = False
+    for w in tuple(np.ravel(lines)) + tuple(avoid):
+        eligible &= np.abs(omega - w) > 1.5 * step
+    index = np.flatnonzero(eligible)
+    fallback = float(np.mean(r * r))
+    out = []
+    for w in np.ravel(lines):
+        if index.size < n_bins:
+            out.append(fallback)
+            continue
+        below, above = index[omega[index] < w][::-1], index[omega[index] > w]
+        half = n_bins // 2
+        if below.size < half or above.size < half:  # at an edge of the band: the nearest bins
+            nearest = index[np.argsort(np.abs(np.log(omega[index] / w)))[:n_bins]]
+            out.append(float(np.mean(spectrum[nearest])))
+            continue
+        # the larger side: a sloping spectrum is not averaged down to below its value at w
+        out.append(max(float(np.mean(spectrum[below[:half]])), float(np.mean(spectrum[above[:half]]))))
+    return np.array(out)
 
 
 def _rss(t, v, omega, t_ref, poles, t_start) -> float:
@@ -337,7 +426,7 @@ def _refine(t, v, omega, t_ref, poles, t_start, bands, fixed=(), priors=None, no
             resid(x)
             last = cache["last"]
         _, X, coef = last
-        Jp = np.column_stack(_pole_jacobian_columns(t, fixed + unpack(x), coef, t_start)[2 * len(fixed) :])
+        Jp = np.column_stack(_pole_jacobian_columns(t, fixed + unpack(x), coef, t_start, _n_steady(omega))[2 * len(fixed) :])
         Q, _ = np.linalg.qr(X / np.sqrt(np.sum(X * X, axis=0)))
         Jd = -(Jp - Q @ (Q.T @ Jp))
         if not prior_rows:
@@ -355,7 +444,7 @@ def _refine(t, v, omega, t_ref, poles, t_start, bands, fixed=(), priors=None, no
 
 
 @_blas1
-def fit_sine_with_transients(t_s, y, omega_rad_s: float, bands: tuple[PoleSearchBand, ...] = (), *,
+def fit_sine_with_transients(t_s, y, omega_rad_s, bands: tuple[PoleSearchBand, ...] = (), *,
                              t_ref_s: float | None = None, significance: float = 25.0,
                              max_poles: int = 4, fixed_poles: tuple[DampedPole, ...] = (),
                              fixed_covariance: np.ndarray | None = None,
@@ -437,7 +526,7 @@ def fit_sine_with_transients(t_s, y, omega_rad_s: float, bands: tuple[PoleSearch
         sig0 = max(float(band.guess.sigma_per_s), 1e-4)
         sigmas = np.array(sorted({min(sig0, 4.0 / T), 0.2 / T, 1.0 / T}))
         best = _scan(t, v, omega_rad_s, t_ref, fixed + tuple(kept), t_start, grid, sigmas)
-        n_par = 3 + 2 * len(fixed) + 4 * (len(kept) + 1)
+        n_par = _n_steady(omega_rad_s) + 2 * len(fixed) + 4 * (len(kept) + 1)
         s2 = best[0] / max(1, t.size - n_par)
         if rss - best[0] > significance * s2:
             kept.append(best[1])
@@ -447,7 +536,7 @@ def fit_sine_with_transients(t_s, y, omega_rad_s: float, bands: tuple[PoleSearch
             rss = best[0]
     prior_info = None
     if kept:
-        noise_scale = math.sqrt(rss / max(1, t.size - 3 - 2 * len(fixed) - 4 * len(kept)))
+        noise_scale = math.sqrt(rss / max(1, t.size - _n_steady(omega_rad_s) - 2 * len(fixed) - 4 * len(kept)))
         kept = list(_refine(t, v, omega_rad_s, t_ref, tuple(kept), t_start, kept_bands, fixed, kept_priors, noise_scale))
         if any(pr is not None for pr in kept_priors):
             prior_info = np.zeros((2 * len(kept), 2 * len(kept)))

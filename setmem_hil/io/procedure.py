@@ -19,7 +19,10 @@ from setmem_hil.model.prior import ModePrior, Prior
 from setmem_hil.model.weights import THESIS_WEIGHTS, Weights
 
 LOOPBACK_BACKENDS = ("serial-loopback", "can-virtual", "modbus-loopback")  # the project's own wire formats, fake devices only
-BACKENDS = ("sim", *LOOPBACK_BACKENDS, "instruments")
+IN_PROCESS_BACKENDS = ("time-domain",)  # the fake shaker + DAQ called directly, no wire format
+BACKENDS = ("sim", *LOOPBACK_BACKENDS, *IN_PROCESS_BACKENDS, "instruments")
+DWELL_SIGNALS = ("sine", "multisine")  # one frequency per dwell, or several in one record
+MULTISINE_BACKENDS = ("sim", *IN_PROCESS_BACKENDS)  # exciters that can play a sum of sines
 SENSOR_QUANTITIES = ("force", "displacement", "velocity", "acceleration")
 UNMODELLED_BOUNDS = ("w1", "none")
 STRATEGIES = ("mu", "log-sweep", "random", "max-reduction")
@@ -133,6 +136,7 @@ class Procedure:
     discrepancy_check: bool = False
     instruments: Mapping[str, InstrumentSettings] = field(default_factory=dict)
     unmodelled_bound: str | None = None  # "w1" | "none"; None: the backend's default (see procedure_file)
+    dwell_signal: str = "sine"  # "multisine": initial points and each iteration's batch in one record
     description: str = ""
     source_text: str = ""  # the file's text, stored in the journal with the run
     source_path: str = ""

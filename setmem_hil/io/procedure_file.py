@@ -46,6 +46,8 @@ from setmem_hil.io.procedure import (
     BACKENDS,
     RANKINGS,
     LOOPBACK_BACKENDS,
+    DWELL_SIGNALS,
+    MULTISINE_BACKENDS,
     SENSOR_QUANTITIES,
     UNMODELLED_BOUNDS,
     EmulationSettings,
@@ -109,6 +111,7 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("", "input_design", "table", "", "", "How the next frequency is chosen (chapter 5)."),
     KeySpec("", "weights", "table", "", "", "Control-design weights W1 (unmodelled dynamics bound) and W2 (performance)."),
     KeySpec("", "discrepancy", "table", "", "", "Model-discrepancy checks."),
+    KeySpec("", "dwell", "table", "", "", "How each measurement excites the structure."),
     KeySpec("", "instruments", "instrument-tables", "", "{}", "The real instruments, one [instruments.<name>] table each (kind = \"instruments\"); the names are what [backend] exciter, force and response refer to."),
     # [backend]
     KeySpec("backend", "kind", "choice", "", "sim", "Backend: the frequency-domain simulated beam or a fake device behind a loopback transport.", choices=BACKENDS),
@@ -198,6 +201,8 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("weights", "w2_num", "numbers", "", "thesis eq. 6.13", "W2 numerator coefficients, highest power of s first."),
     KeySpec("weights", "w2_den", "numbers", "", "thesis eq. 6.13", "W2 denominator coefficients (stable, degree >= numerator's)."),
     KeySpec("weights", "w2_extra_pole_rad_s", "number", "rad/s", _W.w2_extra_pole_rad_s, "Extra W2 pole for the H2 design (section 6.3.1); 0 for none.", ge=0.0),
+    # [dwell]
+    KeySpec("dwell", "signal", "choice", "", "sine", "sine: one frequency per dwell (today's loop); multisine: the initial points in one record and each iteration's frequencies ([input_design] per_iteration) in one record, a sum of sinusoids whose peak stays within max_amplitude_n, settling paid once (backends sim and time-domain).", choices=DWELL_SIGNALS),
     # [discrepancy]
     KeySpec("discrepancy", "check_each_iteration", "bool", "", False, "After every iteration, check where model and data disagree and name the missing effect (setmem_hil.discrepancy.workflow); results go to the journal and the report, the campaign's choices are unchanged."),
 )
@@ -579,6 +584,10 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
     discrepancy = top.sub("discrepancy").get("check_each_iteration", False)
     instruments = _instruments(top, backend)
     unmodelled_bound = top.sub("identification").get("unmodelled_bound")
+    dwell_signal = top.sub("dwell").get("signal", "sine")
+    if dwell_signal == "multisine" and backend.kind not in MULTISINE_BACKENDS:
+        raise ProcedureError(top.source, "[dwell] key 'signal'", f"multisine needs an exciter that plays a sum of sines "
+                             f"(kind {' or '.join(repr(k) for k in MULTISINE_BACKENDS)}); the {backend.kind} exciter plays single sines only")
     return Procedure(
         name=name,
         prior=prior,
@@ -592,6 +601,7 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
         discrepancy_check=discrepancy,
         instruments=instruments,
         unmodelled_bound=unmodelled_bound,
+        dwell_signal=dwell_signal,
         description=description,
         source_text=text,
     )

@@ -107,5 +107,7 @@ def format_procedure(procedure: Procedure) -> str:
     w = p.weights
     out += ["[weights]"] + [f"{k} = {_toml_value([float(c) for c in getattr(w, k)])}" for k in ("w1_num", "w1_den", "w2_num", "w2_den")]
     out += [f"w2_extra_pole_rad_s = {_toml_value(float(w.w2_extra_pole_rad_s or 0.0))}", ""]
+    if p.dwell_signal != "sine":
+        out += ["[dwell]", f"signal = {_toml_value(p.dwell_signal)}", ""]
     out += ["[discrepancy]", f"check_each_iteration = {_toml_value(bool(p.discrepancy_check))}", ""]
     return "\n".join(out)

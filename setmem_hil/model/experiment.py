@@ -3,7 +3,7 @@
 Optional capabilities are declared protocols too (checked with ``isinstance``, never probed
 with ``getattr``): :class:`ResumableExperiment`, :class:`ModelAwareExperiment`,
 :class:`BoundPredictingExperiment`, :class:`CountingExperiment`, :class:`PlanningExperiment`,
-:class:`IdentifiedExperiment`.
+:class:`IdentifiedExperiment`, :class:`MultisineExperiment`.
 
 One call applies a unit-amplitude sinusoid at ``omega_rad_s`` and returns the steady-state
 complex response ``G(j omega)`` with an absolute bound on its total error (noise, estimation
@@ -57,6 +57,17 @@ class ResumableExperiment(Protocol):
     (simulated) noise continues exactly where the stopped run left it."""
 
     n_measured: int
+
+
+@runtime_checkable
+class MultisineExperiment(Protocol):
+    """Measures several frequencies in one record (a multisine dwell, ``[dwell] signal = "multisine"``).
+
+    Returns one measurement per frequency, in order; ``n_measured`` (if any) advances by their
+    number. The actuator is at zero when it returns or raises.
+    """
+
+    def measure_multisine(self, omegas_rad_s) -> list[Measurement]: ...
 
 
 @runtime_checkable
