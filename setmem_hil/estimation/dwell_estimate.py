@@ -295,46 +295,8 @@ def estimate_dwell(settings: DwellSettings, model, tracker: PoleTracker, extra_b
                    attempt: int, dwell_s: float, extensions: int) -> DwellResult | None:
     """The frequency-response point of one settled window with its guaranteed-coverage bound, or
     None when the window's halves disagree (not settled yet: extend the dwell)."""
-    t, f, y = block.t_s, block.force, block.response
-    w = plan.omega_rad_s
-    t_ref = float(t[0])
-    window_s = float(t[-1] - t[0])
-    rfit, transient_term = fit_response(settings, model, tracker, t, y, w, t_ref, window_s)
-    ffit = fit_sine(t, f, w, t_ref_s=t_ref)
-    h, cov = phasor_ratio(rfit, ffit)
-    # settling: the halves must agree within their uncertainty
-    half = t.size // 2
-    mismatch = 0.0
-    if half >= 16 and rfit.n_params < half - 4:
-        ra = fit_sine(t[:half], y[:half], w, rfit.poles, t_ref_s=t_ref)
-        rb = fit_sine(t[half:], y[half:], w, rfit.poles, t_ref_s=t_ref)
-        fa = fit_sine(t[:half], f[:half], w, t_ref_s=t_ref)
-        fb = fit_sine(t[half:], f[half:], w, t_ref_s=t_ref)
-        ha, ca = phasor_ratio(ra, fa)
-        hb, cb = phasor_ratio(rb, fb)
-        d = np.array([(ha - hb).real, (ha - hb).imag])
-        cd = ca + cb
-        try:
-            stat = float(d @ np.linalg.solve(cd, d))
-        except np.linalg.LinAlgError:
-            stat = math.inf
-        if stat > -2.0 * math.log1p(-settings.settle_confidence):
-            return None
-        # transient-mismatch term: what remains of an unmodelled or mis-modelled transient
-        # shows as a difference between the halves (the later half has less of it) beyond
-        # the difference their noise explains (its RMS, sqrt(trace(cov_a + cov_b)))
-        excess = max(0.0, abs(ha - hb) - math.sqrt(float(np.trace(cd))))
-        mismatch = settings.mismatch_factor * excess
-    radius = confidence_radius(cov, settings.confidence)
-    t_term = transient_term / abs(ffit.phasor)
-    extra = float(extra_bound(w)) if extra_bound is not None else 0.0
-    t_term += mismatch
-    bound = radius + t_term + extra
-    if not (math.isfinite(bound) and math.isfinite(h.real) and math.isfinite(h.imag)):
-        raise DataQualityError(f"dwell at {w:g} rad/s: non-finite estimate")
-    m = Measurement(w, complex(h), float(bound))
-    return DwellResult(m, plan, rfit, ffit, cov, radius, t_term, extra, dwell_s, attempt + 1, extensions)
-
+    results = _estimate_lines(settings, model, tracker, extra_bound, plan, (plan.omega_rad_s,), block, attempt, dwell_s, extensions)
+    return None if results is None else results[0]
 
 
 def fixed_pole_term(t, y, w, t_ref, poles, halfwidths) -> float:
@@ -441,8 +403,21 @@ def estimate_multisine(settings: DwellSettings, model, tracker: PoleTracker, ext
     settling level is split over the lines (Bonferroni), so a record is not extended more
     often than a single dwell.
     """
+    return _estimate_lines(settings, model, tracker, extra_bound, plan, plan.omegas_rad_s, block, attempt, dwell_s, extensions)
+
+
+def _estimate_lines(settings: DwellSettings, model, tracker: PoleTracker, extra_bound, plan, omegas, block,
+                    attempt: int, dwell_s: float, extensions: int) -> list[DwellResult] | None:
+    """One settled window's points at ``omegas`` (one sine or a multisine's lines), or None.
+
+    Settling: the two halves of the window must give estimates that agree within their
+    uncertainty (chi-square, at ``settle_confidence`` split over the lines). Transient
+    mismatch: what remains of an unmodelled or mis-modelled transient shows as a difference
+    between the halves (the later half has less of it) beyond the difference their noise
+    explains (its RMS, ``sqrt(trace(cov_a + cov_b))``); it is added to the bound.
+    """
     t, f, y = block.t_s, block.force, block.response
-    lines = np.asarray(plan.omegas_rad_s, dtype=float)
+    lines = np.asarray(omegas, dtype=float)
     n_lines = lines.size
     t_ref = float(t[0])
     window_s = float(t[-1] - t[0])
@@ -456,7 +431,7 @@ def estimate_multisine(settings: DwellSettings, model, tracker: PoleTracker, ext
         rb = fit_sine(t[half:], y[half:], lines, rfit.poles, t_ref_s=t_ref)
         fa = fit_sine(t[:half], f[:half], lines, t_ref_s=t_ref)
         fb = fit_sine(t[half:], f[half:], lines, t_ref_s=t_ref)
-        threshold = -2.0 * math.log((1.0 - settings.settle_confidence) / n_lines)
+        threshold = -2.0 * (math.log1p(-settings.settle_confidence) - math.log(n_lines))
         for k in range(n_lines):
             ha, ca = phasor_ratio(ra.line(k), fa.line(k))
             hb, cb = phasor_ratio(rb.line(k), fb.line(k))
@@ -478,7 +453,8 @@ def estimate_multisine(settings: DwellSettings, model, tracker: PoleTracker, ext
         extra = float(extra_bound(float(w))) if extra_bound is not None else 0.0
         bound = radius + t_term + extra
         if not (math.isfinite(bound) and math.isfinite(h.real) and math.isfinite(h.imag)):
-            raise DataQualityError(f"multisine record, line {w:g} rad/s: non-finite estimate")
+            where = f"dwell at {w:g} rad/s" if n_lines == 1 else f"multisine record, line {w:g} rad/s"
+            raise DataQualityError(f"{where}: non-finite estimate")
         m = Measurement(float(w), complex(h), float(bound))
         results.append(DwellResult(m, plan, rfit.line(k), ffit.line(k), cov, radius, t_term, extra, dwell_s, attempt + 1, extensions))
     return results
