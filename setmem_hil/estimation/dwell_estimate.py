@@ -215,15 +215,19 @@ def plan_dwell(settings: DwellSettings, model, omega_rad_s: float) -> DwellPlan:
         gap = max(gap, 1e-9)
         window = max(window, s.separation_cycles * 2 * math.pi / gap)
     window = min(window, max(s.max_window_s, s.min_periods * period, s.min_window_s))
-    rate = s.samples_per_period / period
-    if rate * window > s.max_samples:
-        rate = max(s.max_samples / window, s.min_samples_per_period / period)
-    n = int(math.ceil(window * rate))
-    if n > s.max_samples:
-        n = s.max_samples
-        window = n / rate
+    rate, n = _sampling(s, window, period, s.max_samples)
     skip = max(s.skip_periods * period, s.skip_s)
     return DwellPlan(w, rate, skip, n / rate, n)
+
+
+def _sampling(s: DwellSettings, window: float, period: float, max_samples: int) -> tuple[float, int]:
+    """Sample rate and count for a window: ``samples_per_period`` of ``period`` (the shortest
+    excited period), lowered to fit ``max_samples`` but never below ``min_samples_per_period``,
+    then the count capped (the window shortens)."""
+    rate = s.samples_per_period / period
+    if rate * window > max_samples:
+        rate = max(max_samples / window, s.min_samples_per_period / period)
+    return rate, min(int(math.ceil(window * rate)), max_samples)
 
 
 
@@ -380,14 +384,7 @@ def plan_multisine(settings: DwellSettings, model, omegas_rad_s) -> MultisinePla
         window = max(window, s.separation_cycles * 2 * math.pi / gap)
     longest = 2 * math.pi / ordered[0]
     window = min(window, max(s.max_window_s, s.min_periods * longest, s.min_window_s))
-    shortest = 2 * math.pi / ordered[-1]
-    rate = s.samples_per_period / shortest
-    if rate * window > s.multisine_max_samples:
-        rate = max(s.multisine_max_samples / window, s.min_samples_per_period / shortest)
-    n = int(math.ceil(window * rate))
-    if n > s.multisine_max_samples:
-        n = s.multisine_max_samples
-        window = n / rate
+    rate, n = _sampling(s, window, 2 * math.pi / ordered[-1], s.multisine_max_samples)
     skip = max(s.skip_periods * longest, s.skip_s)
     return MultisinePlan(lines, rate, skip, n / rate, n)
 
