@@ -87,19 +87,12 @@ def install_fast_analysis(monkeypatch=None) -> None:
         ra.analyze_robust_performance = fast_analysis
 
 
-class InterruptingExperiment:
-    """Wraps an experiment; raises KeyboardInterrupt (or DeviceError) on its ``interrupt_at``-th dwell.
+class ForwardingExperiment:
+    """Base of the test doubles that wrap an experiment: ``n_measured`` is the inner one's (the
+    campaign sets it when it resumes)."""
 
-    Records whether ``close()`` (exciter to zero) was called; ``delay_s`` makes each dwell take time.
-    """
-
-    def __init__(self, inner, interrupt_at: int | None, error: type[BaseException] = KeyboardInterrupt, delay_s: float = 0.0):
+    def __init__(self, inner):
         self.inner = inner
-        self.delay_s = delay_s
-        self.interrupt_at = interrupt_at
-        self.error = error
-        self.calls = 0
-        self.closed = False
 
     @property
     def n_measured(self):
@@ -108,6 +101,21 @@ class InterruptingExperiment:
     @n_measured.setter
     def n_measured(self, value):
         self.inner.n_measured = value
+
+
+class InterruptingExperiment(ForwardingExperiment):
+    """Wraps an experiment; raises KeyboardInterrupt (or DeviceError) on its ``interrupt_at``-th dwell.
+
+    Records whether ``close()`` (exciter to zero) was called; ``delay_s`` makes each dwell take time.
+    """
+
+    def __init__(self, inner, interrupt_at: int | None, error: type[BaseException] = KeyboardInterrupt, delay_s: float = 0.0):
+        super().__init__(inner)
+        self.delay_s = delay_s
+        self.interrupt_at = interrupt_at
+        self.error = error
+        self.calls = 0
+        self.closed = False
 
     def total_bound(self, omega_rad_s):
         return self.inner.total_bound(omega_rad_s)

@@ -23,23 +23,15 @@ H = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(H)
 
 
-class RecordingExperiment:
+class RecordingExperiment(H.ForwardingExperiment):
     """Forwards to ``inner`` and records ``update_model`` calls; KeyboardInterrupt at dwell ``interrupt_at``."""
 
     def __init__(self, inner, interrupt_at=None):
-        self.inner = inner
+        super().__init__(inner)
         self.interrupt_at = interrupt_at
         self.calls = 0
         self.models: list[IntervalModel] = []
         self.measures_before_update: list[int] = []
-
-    @property
-    def n_measured(self):
-        return self.inner.n_measured
-
-    @n_measured.setter
-    def n_measured(self, value):
-        self.inner.n_measured = value
 
     def __getattr__(self, name):  # total_bound only when the inner experiment has it
         if name == "total_bound":

@@ -165,19 +165,12 @@ def test_dwell_signal_key_defaults_to_sine_and_refuses_single_sine_exciters(tmp_
         parse_procedure_text(base + '\n[dwell]\nsignal = "chirp"\n')
 
 
-class _Recording:
+class _Recording(H.ForwardingExperiment):
     """Counts how the campaign asks for measurements (single dwells or records)."""
 
     def __init__(self, inner):
-        self.inner, self.records, self.singles = inner, [], []
-
-    @property
-    def n_measured(self):
-        return self.inner.n_measured
-
-    @n_measured.setter
-    def n_measured(self, value):
-        self.inner.n_measured = value
+        super().__init__(inner)
+        self.records, self.singles = [], []
 
     def update_model(self, model):
         self.inner.update_model(model)
