@@ -55,7 +55,6 @@ from __future__ import annotations
 import atexit
 import dataclasses
 import logging
-import math
 import weakref
 from typing import Callable
 
@@ -84,6 +83,7 @@ from setmem_hil.estimation.dwell_estimate import (
     estimate_multisine,
     plan_dwell,
     plan_multisine,
+    record_duration_s,
     replan_fixed_rate,
 )
 from setmem_hil.estimation.multisine import design_multisine
@@ -185,12 +185,7 @@ class SineDwellExperiment:
             return estimate_dwell(self.settings, self.model, self.pole_tracker, self.extra_bound, plan, block, attempt, dwell_s, extensions)
 
         result = self._attempts(f"sine dwell at {w:g} rad/s", plan, start, estimate)
-        self.n_measured += 1
-        self.last_result = result
-        if self.settings.learn_poles:
-            self._learn(result.response_fit)
-        self.rig_s += self._device_s
-        return dataclasses.replace(result.measurement, rig_s=self._device_s)
+        return self._finish([result])[0]
 
     def measure_multisine(self, omegas_rad_s) -> list[Measurement]:
         """One multisine record measuring every frequency of ``omegas_rad_s`` (distinct).
@@ -211,7 +206,7 @@ class SineDwellExperiment:
         for w in lines:
             check_sine_command(self.limits, w, self.settings.amplitude_n)
         plan = plan_multisine(self.settings, self.model, lines)
-        longest = plan.skip_s + plan.window_s * (1 + self.settings.max_extensions)
+        longest = record_duration_s(self.settings, plan)
         check_dwell(self.limits, plan.skip_s + plan.window_s)
         signal = design_multisine(lines, self.settings.amplitude_n, longest)
 
@@ -223,13 +218,17 @@ class SineDwellExperiment:
                                       dwell_s, extensions)
 
         label = f"multisine record at {', '.join(f'{w:g}' for w in lines)} rad/s"
-        results = self._attempts(label, plan, start, estimate)
-        self.n_measured += len(lines)
+        return self._finish(self._attempts(label, plan, start, estimate))
+
+    def _finish(self, results: list[DwellResult]) -> list[Measurement]:
+        """Count a finished dwell or record, learn its poles, add its device time; each of its
+        points carries an equal share of that time."""
+        self.n_measured += len(results)
         self.last_result = results[0]
         if self.settings.learn_poles:
             self._learn(results[0].response_fit)
         self.rig_s += self._device_s
-        share = self._device_s / len(lines)
+        share = self._device_s / len(results)
         return [dataclasses.replace(r.measurement, rig_s=share) for r in results]
 
     def _attempts(self, label: str, plan, start, estimate):
@@ -295,11 +294,7 @@ class SineDwellExperiment:
         if isinstance(sensor, RateConfigurableSensor):
             sensor.set_sample_rate(plan.sample_rate_hz)
         elif abs(rig.metadata.sample_rate_hz - plan.sample_rate_hz) > 1e-9 * plan.sample_rate_hz:
-            if isinstance(plan, MultisinePlan):
-                plan = dataclasses.replace(plan, sample_rate_hz=rig.metadata.sample_rate_hz,
-                                           n_samples=int(math.ceil(plan.window_s * rig.metadata.sample_rate_hz)))
-            else:
-                plan = replan_fixed_rate(plan, rig.metadata.sample_rate_hz)
+            plan = replan_fixed_rate(plan, rig.metadata.sample_rate_hz)
         # output_guard: zero output however the block ends; a failing stop during an abort is
         # logged and never replaces the original exception (so Ctrl-C stays Ctrl-C)
         with output_guard(self.exciter):
@@ -319,7 +314,7 @@ class SineDwellExperiment:
                     return result
                 if extensions >= self.settings.max_extensions or dwell_s + plan.window_s > self.limits.max_dwell_s:
                     raise DataQualityError(
-                        f"response at {', '.join(f'{w:g}' for w in getattr(plan, 'omegas_rad_s', (plan.omega_rad_s,)))} rad/s not settled after {dwell_s:.1f} s "
+                        f"response at {', '.join(f'{w:g}' for w in plan.omegas_rad_s)} rad/s not settled after {dwell_s:.1f} s "
                         "(the halves of the window disagree beyond their uncertainty)"
                     )
                 # consecutive windows: the next estimate uses the newest window only

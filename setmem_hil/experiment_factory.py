@@ -45,11 +45,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from setmem_hil.model.experiment import Experiment
-from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
 import numpy as np
 
-from setmem_hil.estimation.dwell_estimate import plan_dwell, plan_multisine
+from setmem_hil.model.experiment import Experiment
+from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
+from setmem_hil.estimation.dwell_estimate import plan_dwell, plan_multisine, record_duration_s
 from setmem_hil.estimation.multisine import design_multisine
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import BACKENDS, Procedure
@@ -105,7 +105,7 @@ class ManagedSimulatedBeam(SimulatedBeamExperiment):
             return self.measure_many(lines)
         settings = DwellSettings()
         plan = plan_multisine(settings, self.dwell_model, lines)
-        signal = design_multisine(lines, settings.amplitude_n, plan.skip_s + plan.window_s * (1 + settings.max_extensions))
+        signal = design_multisine(lines, settings.amplitude_n, record_duration_s(settings, plan))
         gains = settings.amplitude_n / np.asarray(signal.amplitudes_n)
         measured = SimulatedBeamExperiment.measure_many(self, lines, gains)
         share = (plan.skip_s + plan.window_s) / len(lines)

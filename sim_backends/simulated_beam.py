@@ -71,9 +71,10 @@ class SimulatedBeamExperiment:
         """The true parameters of the modes the identification models."""
         return self.truth.truncated(self.n_modelled)
 
-    def total_bound(self, omega_rad_s) -> np.ndarray:
+    def total_bound(self, omega_rad_s, noise_gain=1.0) -> np.ndarray:
+        """Noise bound (times ``noise_gain``, see :meth:`measure_many`) plus the W1 term, if any."""
         w = np.asarray(omega_rad_s, dtype=float)
-        bound = self._noise_bound(w)
+        bound = self._noise_bound(w) * noise_gain
         if self.unmodelled_dynamics:
             bound = bound + polynomial_magnitude(self.w1_num, self.w1_den, w)
         return bound
@@ -99,7 +100,7 @@ class SimulatedBeamExperiment:
         bound = self._noise_bound(w) * gain
         noise = np.array([bounded_complex_noise(bound[i : i + 1], self.noise_generator(self.n_measured + i))[0] for i in range(w.size)])
         g = self.truth.frequency_response(w) + noise
-        bounds = bound + polynomial_magnitude(self.w1_num, self.w1_den, w) if self.unmodelled_dynamics else bound
+        bounds = self.total_bound(w, gain)
         self.n_measured += w.size
         return [Measurement(float(wi), complex(gi), float(bi)) for wi, gi, bi in zip(w, g, bounds)]
 

@@ -67,7 +67,8 @@ class TimeDomainBeam:
     amplitude_n : float
         Current force amplitude (a multisine: the sum of its lines' amplitudes, a bound of its peak).
     line_omegas_rad_s : tuple of float
-        The lines being played (one for a sine, none when stopped).
+        The lines of the exosystem (one for a sine; ``(0.0,)`` after :meth:`reset`; kept by
+        :meth:`stop`, whose exosystem state is zero).
     """
 
     params: ModalParameters
@@ -162,7 +163,7 @@ class TimeDomainBeam:
             states[k] = s
             s = phi @ s
         self.x, self.z = s[:n].copy(), s[n:].copy()
-        force = states[:, n] if s.size == n + 2 else states[:, n::2].sum(axis=1)
+        force = states[:, n::2].sum(axis=1)  # the lines' first states (one line: exactly z[0])
         disp = states[:, :n] @ self._C[0]
         return force, disp
 

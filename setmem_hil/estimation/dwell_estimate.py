@@ -34,8 +34,8 @@ from setmem_hil.model.experiment import Measurement
 from setmem_hil.model.modal_model import IntervalModel, ModalParameters
 
 __all__ = ["DwellSettings", "DwellPlan", "DwellResult", "PoleTracker", "pole_bands", "plan_dwell", "replan_fixed_rate",
-           "fit_response", "estimate_dwell", "fixed_pole_term", "check_block", "MultisinePlan", "plan_multisine",
-           "estimate_multisine"]
+           "fit_response", "estimate_dwell", "fixed_pole_terms", "check_block", "MultisinePlan", "plan_multisine",
+           "record_duration_s", "estimate_multisine"]
 
 
 @dataclass(frozen=True)
@@ -122,6 +122,11 @@ class DwellPlan:
     skip_s: float
     window_s: float
     n_samples: int
+
+    @property
+    def omegas_rad_s(self) -> tuple[float, ...]:
+        """The excited frequencies (one; a :class:`MultisinePlan` has several)."""
+        return (self.omega_rad_s,)
 
 
 @dataclass(frozen=True)
@@ -231,15 +236,16 @@ def _sampling(s: DwellSettings, window: float, period: float, max_samples: int) 
 
 
 
-def replan_fixed_rate(plan: DwellPlan, rate_hz: float) -> DwellPlan:
-    """The same dwell at a rate the sensor cannot change."""
+def replan_fixed_rate(plan: DwellPlan | MultisinePlan, rate_hz: float) -> DwellPlan | MultisinePlan:
+    """The same dwell or multisine record at a rate the sensor cannot change."""
     n = int(math.ceil(plan.window_s * rate_hz))
-    return DwellPlan(plan.omega_rad_s, rate_hz, plan.skip_s, n / rate_hz, n)
+    return dataclasses.replace(plan, sample_rate_hz=rate_hz, window_s=n / rate_hz, n_samples=n)
 
 
 
-def fit_response(settings: DwellSettings, model, tracker: PoleTracker, t, y, w, t_ref, window_s) -> tuple[SineFit, float]:
-    """Response fit with transients; returns the fit and the worst-case fixed-pole term.
+def fit_response(settings: DwellSettings, model, tracker: PoleTracker, t, y, w, t_ref, window_s) -> tuple[SineFit, np.ndarray]:
+    """Response fit with transients; returns the fit and the worst-case fixed-pole term of each
+    line of ``w`` (:func:`fixed_pole_terms`).
 
     Per modelled mode: with ``learn_poles`` and an estimate from earlier dwells, the pole is
     refined with that estimate as a Gaussian prior; else a pole whose model interval is
@@ -291,7 +297,7 @@ def fit_response(settings: DwellSettings, model, tracker: PoleTracker, t, y, w, 
     terms = np.zeros(lines.size)
     if any(h != (0.0, 0.0) for h in halfwidths):
         terms = fixed_pole_terms(t, y, w, t_ref, fit.poles, halfwidths)
-    return fit, (float(terms[0]) if np.ndim(w) == 0 else terms)
+    return fit, terms
 
 
 
@@ -299,21 +305,17 @@ def estimate_dwell(settings: DwellSettings, model, tracker: PoleTracker, extra_b
                    attempt: int, dwell_s: float, extensions: int) -> DwellResult | None:
     """The frequency-response point of one settled window with its guaranteed-coverage bound, or
     None when the window's halves disagree (not settled yet: extend the dwell)."""
-    results = _estimate_lines(settings, model, tracker, extra_bound, plan, (plan.omega_rad_s,), block, attempt, dwell_s, extensions)
+    results = _estimate_lines(settings, model, tracker, extra_bound, plan, plan.omegas_rad_s, block, attempt, dwell_s, extensions)
     return None if results is None else results[0]
 
 
-def fixed_pole_term(t, y, w, t_ref, poles, halfwidths) -> float:
-    """Worst-case linearised phasor error from fixed poles known to within half-widths.
+def fixed_pole_terms(t, y, w, t_ref, poles, halfwidths) -> np.ndarray:
+    """Worst-case linearised phasor error of each line of ``w`` from fixed poles known to within
+    half-widths.
 
-    ``dY = G dtheta`` with ``G`` the first two rows of ``-X^+ J_pole`` (the change of the
+    ``dY = G dtheta`` with ``G`` the line's two rows of ``-X^+ J_pole`` (the change of the
     linear coefficients when the pole parameters move); ``|dY| <= sum_i |G_i| h_i``.
     """
-    return float(fixed_pole_terms(t, y, w, t_ref, poles, halfwidths)[0])
-
-
-def fixed_pole_terms(t, y, w, t_ref, poles, halfwidths) -> np.ndarray:
-    """:func:`fixed_pole_term` for each line of ``w`` (one frequency or a multisine's lines)."""
     from setmem_hil.estimation.sine_fit import _design, _n_steady, _pole_jacobian_columns, _solve
 
     n_lines = np.atleast_1d(w).size
@@ -361,11 +363,6 @@ class MultisinePlan:
     window_s: float
     n_samples: int
 
-    @property
-    def omega_rad_s(self) -> float:
-        """The first line (what a single-sine plan calls its frequency)."""
-        return self.omegas_rad_s[0]
-
 
 def plan_multisine(settings: DwellSettings, model, omegas_rad_s) -> MultisinePlan:
     """One record for several lines: the longest of the lines' own windows (:func:`plan_dwell`)
@@ -387,6 +384,12 @@ def plan_multisine(settings: DwellSettings, model, omegas_rad_s) -> MultisinePla
     rate, n = _sampling(s, window, 2 * math.pi / ordered[-1], s.multisine_max_samples)
     skip = max(s.skip_periods * longest, s.skip_s)
     return MultisinePlan(lines, rate, skip, n / rate, n)
+
+
+def record_duration_s(settings: DwellSettings, plan: MultisinePlan) -> float:
+    """The longest a record may play: its skip, window and every allowed extension (its
+    multisine's peak guarantee must hold that long)."""
+    return plan.skip_s + plan.window_s * (1 + settings.max_extensions)
 
 
 def estimate_multisine(settings: DwellSettings, model, tracker: PoleTracker, extra_bound, plan: MultisinePlan, block,

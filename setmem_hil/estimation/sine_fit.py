@@ -177,7 +177,7 @@ def _design(t: np.ndarray, omega, t_ref: float, poles, t_start: float) -> np.nda
     return np.column_stack(cols)
 
 
-def _pole_jacobian_columns(t, poles, coef, t_start, first: int = 3) -> list[np.ndarray]:
+def _pole_jacobian_columns(t, poles, coef, t_start, first: int) -> list[np.ndarray]:
     """d(model)/d(sigma_k), d(model)/d(omega_dk) at the fitted linear coefficients (the first
     pole's coefficients at index ``first``, :func:`_n_steady`)."""
     ts = t - t_start
