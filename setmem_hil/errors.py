@@ -110,6 +110,15 @@ class ModbusExceptionError(DeviceRejectedError):
                          retryable=code in self.RETRYABLE)
 
 
+class OutputNotConfirmedOffError(DeviceError):
+    """Switching an exciter's output off could not be confirmed, on the open link nor on a fresh
+    one: the output may still be on. The message says to switch it off at the instrument."""
+
+    def __init__(self, instrument: str, message: str):
+        self.instrument = instrument
+        super().__init__(message)
+
+
 class DeviceIdentityError(DeviceError):
     """An instrument answered its identity query with something other than what the profile expects."""
 

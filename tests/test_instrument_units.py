@@ -192,10 +192,11 @@ def test_auto_range_picks_the_smallest_full_scale_with_room():
 
 
 def test_overload_at_the_largest_range_stops_with_the_output_off():
-    from setmem_hil.drivers.instruments.lockin import LockInOverload
+    from setmem_hil.errors import DeviceRejectedError
 
     with _emulated_experiment(0.1) as exp:  # 4 V peak at 0.95 rad/s: beyond the 1 V full scale
-        with pytest.raises(LockInOverload, match=r"lia_response .*overload.*1 V full scale"):
+        # a device fault (exit 4), not a data-quality error (exit 1)
+        with pytest.raises(DeviceRejectedError, match=r"lia_response .*overload.*1 V full scale.*largest full scale"):
             exp.measure(0.95)
         assert not exp.bench.output_on
 
@@ -216,7 +217,7 @@ def test_a_fault_mid_dwell_propagates_even_when_output_off_also_fails(caplog):
         exp.source.set_output = refuse_off
         with pytest.raises(DeviceTimeoutError, match="no reply"):
             exp.measure(3.0)
-        assert "output off failed during an abort" in caplog.text
+        assert "could not be confirmed off" in caplog.text and "switch it off at the instrument" in caplog.text
         exp.closed = True
         with pytest.raises(DeviceError, match=r"measure\(\) after close\(\)"):
             exp.measure(3.0)

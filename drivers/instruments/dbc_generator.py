@@ -182,6 +182,9 @@ class DbcGenerator:
         self._send()
         self._read_back()
 
+    def reconnect(self) -> None:
+        """A CAN bus has no connection to re-open: the next frames go out on the same bus."""
+
     def _stop_task(self) -> None:
         if self._task is not None:
             task, self._task = self._task, None

@@ -8,11 +8,16 @@ from setmem_hil.drivers.instruments.scpi_instrument import ScpiInstrument
 from setmem_hil.drivers.instruments.visa_link import VisaLink
 from setmem_hil.errors import DataQualityError, DeviceRejectedError
 
-__all__ = ["LockIn", "LockInOverload", "filter_settling_time_constants"]
+__all__ = ["LockIn", "LockInOverload", "ReferenceUnlocked", "filter_settling_time_constants"]
 
 
 class LockInOverload(DataQualityError):
     """The lock-in's input or output is overloaded at its present full scale."""
+
+
+class ReferenceUnlocked(DataQualityError):
+    """The lock-in's reference is not (yet) locked: it relocks after every frequency step, so
+    the dwell waits (:meth:`PhasorDwellExperiment._wait_locked`) before this is a fault."""
 
 # Time, in time constants, for the output filter to settle within 1 % after a step, by filter
 # order (SR830 manual, "Time constants and settling": 5, 7, 9 and 10 tau for 6-24 dB/oct).
@@ -94,38 +99,36 @@ class LockIn(ScpiInstrument):
         command = setting.set.format(index=index)
         self.link.write(command)
         if setting.query:
-            reply = self.link.query(setting.query)
-            if int(parse_number(reply)) != index:
-                raise DeviceRejectedError("instrument", f"{self.where}: {what} index {index} sent, the instrument reads back {reply!r}")
+            got = self.query_parsed(setting.query, self._picker(setting, lambda t: int(parse_number(t))), f"{what} read-back")
+            if got != index:
+                raise DeviceRejectedError("instrument", f"{self.where}: {what} index {index} sent, the instrument reads back {got}")
         self.check_errors(command)
 
     def near_full_scale(self, reading_v: complex) -> bool:
         return max(abs(reading_v.real), abs(reading_v.imag)) > self.RANGE_UP_FRACTION * self.full_scale_v
 
     def reference_frequency_hz(self) -> float:
-        return parse_number(self.link.query(self.profile.reference_frequency_query))
+        return self.query_parsed(self.profile.reference_frequency_query, parse_number, "reference frequency")
 
     def read_xy(self) -> complex:
         """One reading ``X + jY`` in volts RMS; overload or reference unlock raise."""
-        reply = self.link.query(self.profile.read_xy)
-        try:
-            x, y = parse_numbers(reply, 2)
-        except ValueError as exc:
-            raise DeviceRejectedError("instrument", f"{self.where}: {self.profile.read_xy!r}: {exc}") from None
+        x, y = self.query_parsed(self.profile.read_xy, lambda r: parse_numbers(r, 2), "reading X, Y")
         self.check_status()
         return complex(x, y)
+
+    def _status(self) -> int:
+        return self.query_parsed(self.profile.status_query, lambda r: int(parse_number(r)), "status")
+
+    def locked(self) -> bool:
+        """Is the reference locked now? (True when the profile has no status query to tell.)"""
+        return not (self.profile.status_query and self.profile.unlock_mask and self._status() & self.profile.unlock_mask)
 
     def check_status(self) -> None:
         if not self.profile.status_query:
             return
-        reply = self.link.query(self.profile.status_query)
-        try:
-            status = int(parse_number(reply))
-        except ValueError as exc:
-            raise DeviceRejectedError("instrument", f"{self.where}: {self.profile.status_query!r}: {exc}") from None
+        status = self._status()
         if status & self.profile.unlock_mask:
-            raise DataQualityError(f"{self.where}: reference unlocked (status {status}): is the generator's sync output "
-                                   "wired to the lock-in's reference input?")
+            raise ReferenceUnlocked(f"{self.where}: reference unlocked (status {status})")
         if status & self.profile.overload_mask:
             raise LockInOverload(f"{self.where}: overload (status {status}): the signal exceeds the lock-in's "
                                  f"{self.full_scale_v:g} V full scale{'' if self.can_range else ''}; lower volt_per_unit or the force level")

@@ -86,6 +86,14 @@ class ModbusGenerator:
             raise DeviceDisconnectedError(f"{self.where}: cannot connect")
         return client
 
+    def reconnect(self) -> None:
+        """A fresh client to the same resource (after the link failed)."""
+        try:
+            self._client.close()
+        except Exception as exc:  # noqa: BLE001 - the old client is being dropped
+            log.debug("%s: closing the old client: %r", self.where, exc)
+        self._client = self._connect(parse_modbus_resource(self.resource))
+
     # -- registers ------------------------------------------------------------------------------
     def _reply(self, response, what: str):
         if response is None or response.isError():

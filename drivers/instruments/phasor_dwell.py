@@ -45,10 +45,10 @@ from typing import Callable
 import numpy as np
 
 from setmem_hil.drivers.clock import Clock
-from setmem_hil.drivers.instruments.lockin import LockIn, LockInOverload
+from setmem_hil.drivers.instruments.lockin import LockIn, LockInOverload, ReferenceUnlocked
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.safety import check_sine_command
-from setmem_hil.errors import DeviceError, DeviceRejectedError, SafetyLimitError
+from setmem_hil.errors import DeviceError, DeviceRejectedError, OutputNotConfirmedOffError, SafetyLimitError
 from setmem_hil.estimation.phasor_estimate import phasor_point, settling_test
 from setmem_hil.io.procedure import SafetyLimits
 from setmem_hil.model.experiment import Measurement
@@ -118,12 +118,19 @@ class PhasorDwellExperiment:
     on_measurement: Callable[[int], None] | None = None  # simulation control (noise reseeding)
     owned: tuple = ()  # closed after the instruments (emulators)
     n_measured: int = 0
-    counters: dict = field(default_factory=lambda: {"dwells": 0, "level_corrections": 0, "unsettled_dwells": 0})
+    counters: dict = field(default_factory=lambda: {"dwells": 0, "level_corrections": 0, "unsettled_dwells": 0, "relocks": 0,
+                                                    "reconnects": 0})
+    _frequency_hz: float = field(default=1.0, init=False, repr=False)  # the drive frequency set last
+    output_confirmed_off: bool = True  # the instruments were opened with the output forced off and read back
     last_dwell_s: float = 0.0
     rig_s: float = 0.0
     gain_estimate: float = 0.0
     closed: bool = False
     identities: dict = field(default_factory=dict)  # instrument name -> identity answer (journaled)
+
+    @property
+    def exciter(self) -> str:
+        return getattr(self.source, "where", self.source.name)
 
     def __post_init__(self) -> None:
         if self.force_sensor.quantity != "force":
@@ -142,6 +149,7 @@ class PhasorDwellExperiment:
         try:
             self.source.set_frequency_hz(frequency_hz)
             tau = self._set_time_constants(omega_rad_s)
+            self._wait_locked(frequency_hz)
             self._level_up(target)
             self._check_reference(frequency_hz)
             self._auto_range()
@@ -168,6 +176,11 @@ class PhasorDwellExperiment:
         log.info("dwell at %.6g rad/s: tau %.3g s, %d readings, %.1f s, force %.4g N, |g| %.4g, bound %.3g",
                  omega_rad_s, tau, point.n_readings, self.last_dwell_s, point.force_amplitude, abs(g), bound)
         return Measurement(float(omega_rad_s), complex(g), float(bound), rig_s=float(self.last_dwell_s))
+
+    def confirm_output_off(self) -> None:
+        """Output off, read back (a fresh connection if the link failed); raises when it cannot
+        be confirmed (:class:`~setmem_hil.errors.OutputNotConfirmedOffError`)."""
+        self._output_off()
 
     def close(self) -> None:
         if self.closed:
@@ -251,6 +264,7 @@ class PhasorDwellExperiment:
         measured force, then correct the level until the force is on target."""
         volts = self._drive_volts(self.settings.ramp_fractions[0] * target / self.gain_estimate)
         self.source.set_amplitude_v(volts)
+        self.output_confirmed_off = False  # from the moment the command may have taken effect
         self.source.set_output(True)
         for fraction in (*self.settings.ramp_fractions[1:], 1.0):
             self._wait(self._settle_time())
@@ -292,9 +306,13 @@ class PhasorDwellExperiment:
         for _ in range(self.MAX_RANGE_STEPS):
             try:
                 z = li.read_xy()
-            except LockInOverload:
+            except ReferenceUnlocked:  # a momentary unlock: wait for the lock, then for the filter
+                self.counters["relocks"] += 1
+                self._wait_locked(self.source_frequency_hz, after_unlock=True)
+                continue
+            except LockInOverload as exc:
                 if not li.range_up():
-                    raise
+                    raise DeviceRejectedError("overload", f"{exc} at the largest full scale: lower volt_per_unit or the force level") from None
                 self._wait(self._settle_time() / 10.0)
                 continue
             if li.near_full_scale(z) and li.range_up():
@@ -302,6 +320,40 @@ class PhasorDwellExperiment:
                 continue
             return z
         return li.read_xy()
+
+    # the reference relocks after every frequency (and time constant) change: wait at most
+    # RELOCK_MIN_S, or RELOCK_PERIODS reference periods plus RELOCK_TAUS time constants if longer
+    # (a PLL needs a number of cycles to lock; the output filter then needs its settling time).
+    # A judgement, not a datasheet figure: the SR830 and SR860 lock within a few cycles above 10 Hz.
+    RELOCK_MIN_S = 1.0
+    RELOCK_PERIODS = 50.0
+    RELOCK_TAUS = 10.0
+
+    @property
+    def source_frequency_hz(self) -> float:
+        return self._frequency_hz
+
+    def relock_timeout_s(self, frequency_hz: float) -> float:
+        tau = max(self.force.time_constant_s, self.response.time_constant_s)
+        return max(self.RELOCK_MIN_S, self.RELOCK_PERIODS / frequency_hz + self.RELOCK_TAUS * tau)
+
+    def _wait_locked(self, frequency_hz: float, after_unlock: bool = False) -> None:
+        """Poll both lock-ins until their reference is locked; a lock regained after an unlock
+        also waits the filters' settling time (the output holds the unlocked stretch)."""
+        self._frequency_hz = frequency_hz
+        timeout = self.relock_timeout_s(frequency_hz)
+        poll = max(0.005, timeout / 200.0)
+        start = self.clock.now()
+        waited = False
+        for li in (self.force, self.response):
+            while not li.locked():
+                waited = True
+                if self.clock.now() - start > timeout:
+                    raise DeviceRejectedError("unlocked", f"{li.where}: reference not locked {timeout:.3g} s after setting "
+                                              f"{frequency_hz:.6g} Hz: is the generator's sync output wired to the reference input?")
+                self._wait(poll)
+        if waited or after_unlock:
+            self._wait(self._settle_time())
 
     def _check_reference(self, frequency_hz: float) -> None:
         for li in (self.force, self.response):
@@ -354,12 +406,32 @@ class PhasorDwellExperiment:
         try:
             self._output_off()
         except BaseException as exc:  # noqa: BLE001 - the original exception must propagate
-            log.error("%s: output off failed during an abort: %r; switch the output off at the instrument", self.source.name, exc)
+            log.error("%s", exc)
 
     def _output_off(self) -> None:
-        """Switch the output off; a failure is logged, retried once, then raised."""
+        """Switch the output off and read it back; when that fails (the link dropped), open a
+        fresh connection and try once more. Raises :class:`OutputNotConfirmedOffError` when
+        neither is confirmed: the output may still be on."""
         try:
             self.source.set_output(False)
-        except Exception as first:  # noqa: BLE001
-            log.error("%s: switching the output off failed (%r); retrying", self.source.name, first)
+            self.output_confirmed_off = True
+            return
+        except Exception as first:  # noqa: BLE001 - any failure: try a fresh connection
+            log.error("%s: switching the output off failed (%s); opening a fresh connection", self.exciter, first)
+            cause = first
+        try:
+            self.counters["reconnects"] += 1
+            self.source.reconnect()
             self.source.set_output(False)
+            self.output_confirmed_off = True
+            log.warning("%s: output switched off (read back) on a fresh connection", self.exciter)
+        except Exception as second:  # noqa: BLE001
+            self.output_confirmed_off = False
+            raise OutputNotConfirmedOffError(self.source.name, f"{self.exciter}: the output could not be confirmed off "
+                                             f"({_short(cause)}; a fresh connection failed too: {_short(second)}): it may still "
+                                             "be on: switch it off at the instrument or at the amplifier") from None
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) < 160 else text[:157] + "..."

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from setmem_hil.drivers.instruments.scpi_commands import template_fields
+from setmem_hil.drivers.instruments.scpi_commands import fill_fields, template_fields
 from setmem_hil.errors import ProcedureError
 from setmem_hil.model.prior import parse_toml_text
 
@@ -58,7 +58,10 @@ class Setting:
     """A command template and how to check it took effect.
 
     ``query`` reads the value back; a numeric read-back must agree within ``tolerance_rel``
-    (relative), a text one must equal ``expect`` (after stripping, case-insensitive).
+    (relative), a text one must equal ``expect`` (after stripping, case-insensitive). ``reply``
+    (a regular expression searched in the answer) picks the value out of a compound answer
+    (Siglent's ``C1:BSWV WVTP,SINE,FRQ,100HZ,...``): its group 1 (or the whole match) is the
+    number, or the text compared with ``expect``. ``{ch}`` is filled in ``expect`` and ``reply``.
     """
 
     set: str
@@ -66,6 +69,7 @@ class Setting:
     expect: str = ""
     tolerance_rel: float = 1e-6
     unit: str = ""
+    reply: str = ""
 
 
 @dataclass(frozen=True)
@@ -89,6 +93,7 @@ class ScpiGeneratorProfile:
     timeout_s: float = 2.0
     kind: str = "scpi-generator"
     dead_man: str = ""
+    high_z: str = "INF"  # what the instrument calls a high-impedance load ({load} without load_ohms)
 
 
 @dataclass(frozen=True)
@@ -202,9 +207,9 @@ class DaqProfile:
 
 Profile = ScpiGeneratorProfile | LockInProfile | ModbusProfile | DbcProfile | DaqProfile
 
-_COMMON = {"kind", "model", "description"}
+_COMMON = {"kind", "model", "description", "extends"}
 PROFILE_KEYS: dict[str, set[str]] = {
-    "scpi-generator": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "commands", "limits", "dead_man"},
+    "scpi-generator": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "commands", "limits", "dead_man", "high_z"},
     "scpi-lockin": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "reference", "time_constant", "read", "status", "filter_slope_db_per_octave", "full_scale_v", "sensitivity"},
     "modbus": _COMMON | {"device_id", "identity", "frequency_hz", "amplitude_v", "output", "watchdog_s", "watchdog_timeout_s", "limits", "timeout_s"},
     "dbc": _COMMON | {"dbc", "command", "status", "identity", "canopen_identity", "limits"},
@@ -214,11 +219,11 @@ _TABLE_KEYS = {
     "identity": {"query", "expect"},
     "errors": {"query", "no_error", "error_mask"},
     "commands": {"frequency_hz", "amplitude", "output_on", "output_off"},
-    "setting": {"set", "query", "expect", "tolerance_rel", "unit"},
+    "setting": {"set", "query", "expect", "tolerance_rel", "unit", "reply"},
     "limits": {"frequency_hz", "amplitude_v", "channels"},
-    "reference": {"set", "query", "expect", "frequency_query"},
-    "time_constant": {"set", "query", "values_s"},
-    "sensitivity": {"set", "query", "values_v"},
+    "reference": {"set", "query", "expect", "reply", "frequency_query"},
+    "time_constant": {"set", "query", "reply", "values_s"},
+    "sensitivity": {"set", "query", "reply", "values_v"},
     "read": {"xy"},
     "status": {"query", "overload_mask", "unlock_mask"},
     "register": {"table", "address", "type", "scale", "word_order", "expect"},
@@ -265,7 +270,7 @@ class _Reader:
     def regex(self, key: str, default: str | None = None) -> str:
         v = self.string(key, default)
         try:
-            re.compile(v)
+            re.compile(fill_fields(v, ch=1, load="INF"))
         except re.error as exc:
             raise self.error(f"{key}: not a valid regular expression ({exc})") from None
         return v
@@ -325,9 +330,18 @@ def _setting(parent: _Reader, key: str, fields: set[str], *, units: bool = False
         set=r.template("set", fields),
         query=r.template("query", fields - {"value"}, ""),
         expect=r.string("expect", ""),
-        tolerance_rel=r.number("tolerance_rel", 1e-6),
+        tolerance_rel=r.number("tolerance_rel", 1e-6, positive=True),
         unit=unit,
+        reply=_reply(r),
     )
+
+
+def _reply(r: _Reader) -> str:
+    """The ``reply`` regular expression (at most one group: the value), or ""."""
+    text = r.regex("reply", "")
+    if text and re.compile(fill_fields(text, ch=1, load="INF")).groups > 1:
+        raise r.error(f"reply: at most one group (the value) in {text!r}; make the others non-capturing: (?:...)")
+    return text
 
 
 def _identity_and_errors(top: _Reader) -> tuple[str, str, str, str]:
@@ -354,7 +368,7 @@ def _generator(name: str, source: str, top: _Reader) -> ScpiGeneratorProfile:
         if bad:
             raise top.error(f"init[{i}]: unknown field {{{sorted(bad)[0]}}} in {command!r} (fields: {{ch}}, {{load}})")
     return ScpiGeneratorProfile(
-        name=name, source=source, model=top.string("model"),
+        name=name, source=source, model=top.string("model", name),
         identity_query=identity_query, identity_expect=identity_expect, error_query=error_query, no_error=no_error,
         init=init,
         frequency=_setting(commands, "frequency_hz", _GENERATOR_FIELDS),
@@ -367,7 +381,15 @@ def _generator(name: str, source: str, top: _Reader) -> ScpiGeneratorProfile:
         termination=top.string("termination", "\n"),
         timeout_s=top.number("timeout_s", 2.0, positive=True),
         dead_man=top.string("dead_man", ""),
+        high_z=_high_z(top),
     )
+
+
+def _high_z(top: _Reader) -> str:
+    token = top.string("high_z", "INF")
+    if not re.fullmatch(r"[A-Za-z0-9_.+-]+", token):
+        raise top.error(f"high_z: expected the instrument's word for a high-impedance load (INF, HZ, ...), found {token!r}")
+    return token
 
 
 def _lockin(name: str, source: str, top: _Reader) -> LockInProfile:
@@ -385,18 +407,18 @@ def _lockin(name: str, source: str, top: _Reader) -> LockInProfile:
         values_v = sens.mapping.get("values_v")
         if not isinstance(values_v, list) or not values_v or any(isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0 for v in values_v):
             raise sens.error(f"values_v: expected the full scale of each index in volts, found {values_v!r}")
-        sensitivity = Setting(set=sens.template("set", {"index"}), query=sens.string("query", ""))
+        sensitivity = Setting(set=sens.template("set", {"index"}), query=sens.string("query", ""), reply=_reply(sens))
         sensitivities = tuple(float(v) for v in values_v)
     slope = top.integer("filter_slope_db_per_octave", 24, 6, 24)
     if slope not in SLOPE_ORDERS:
         raise top.error(f"filter_slope_db_per_octave: expected 6, 12, 18 or 24, found {slope}")
     return LockInProfile(
-        name=name, source=source, model=top.string("model"),
+        name=name, source=source, model=top.string("model", name),
         identity_query=identity_query, identity_expect=identity_expect, error_query=error_query, no_error=no_error,
         init=top.strings("init"),
-        reference=Setting(set=ref.string("set"), query=ref.string("query", ""), expect=ref.string("expect", "")),
+        reference=Setting(set=ref.string("set"), query=ref.string("query", ""), expect=ref.string("expect", ""), reply=_reply(ref)),
         reference_frequency_query=ref.string("frequency_query"),
-        time_constant=Setting(set=tc.template("set", {"index"}), query=tc.string("query", "")),
+        time_constant=Setting(set=tc.template("set", {"index"}), query=tc.string("query", ""), reply=_reply(tc)),
         time_constants_s=tuple(float(v) for v in values),
         filter_order=SLOPE_ORDERS[slope],
         read_xy=top.sub("read", "read").string("xy"),
@@ -446,7 +468,7 @@ def _modbus(name: str, source: str, top: _Reader) -> ModbusProfile:
             raise top.error(f"{role}: expected a holding register (it is written), found table {top.mapping[role].get('table')!r}")
     watchdog = register_spec(top, "watchdog_s") if "watchdog_s" in top.mapping else None
     return ModbusProfile(
-        name=name, source=source, model=top.string("model"),
+        name=name, source=source, model=top.string("model", name),
         device_id=top.integer("device_id", None, 0, 247),
         identity=register_spec(top, "identity", with_expect=True),
         frequency_hz=register_spec(top, "frequency_hz"),
@@ -512,7 +534,7 @@ def _dbc(name: str, source: str, top: _Reader) -> DbcProfile:
         co = CanopenIdentity(c.integer("node", None, 1, 127), c.integer("vendor_id", None, 0, 2**32 - 1), c.integer("product_code", None, 0, 2**32 - 1))
     limits = top.sub("limits", "limits") if "limits" in top.mapping else _Reader(source, "[limits]", {}, _TABLE_KEYS["limits"])
     return DbcProfile(
-        name=name, source=source, model=top.string("model"), dbc_path=str(dbc_path),
+        name=name, source=source, model=top.string("model", name), dbc_path=str(dbc_path),
         command_message=command, command_signals=signals(cmd, command), period_s=cmd.number("period_s", 0.1, positive=True),
         status_message=status, status_signals=signals(st, status), status_timeout_s=st.number("timeout_s", 0.5, positive=True),
         identity_message=ident_msg, identity_signal=ident_signal, identity_expect=ident.number("expect"), identity_request=request,
@@ -526,7 +548,7 @@ def _daq(name: str, source: str, top: _Reader) -> DaqProfile:
     terminal = top.string("terminal", "DIFF")
     if terminal not in ("DIFF", "RSE", "NRSE", "PSEUDO_DIFF", "DEFAULT"):
         raise top.error(f"terminal: expected DIFF, RSE, NRSE, PSEUDO_DIFF or DEFAULT, found {terminal!r}")
-    return DaqProfile(name=name, source=source, model=top.string("model"), range_v=top.number("range_v", 10.0, positive=True),
+    return DaqProfile(name=name, source=source, model=top.string("model", name), range_v=top.number("range_v", 10.0, positive=True),
                       terminal=terminal, max_sample_rate_hz=top.number("max_sample_rate_hz", 100e3, positive=True))
 
 
@@ -534,13 +556,61 @@ _BUILDERS = {"scpi-generator": _generator, "scpi-lockin": _lockin, "modbus": _mo
 
 
 def parse_profile(text: str, source: str, name: str = "") -> Profile:
-    """Validate profile TOML text (``source`` names the file in messages)."""
-    doc = parse_toml_text(text, source)
+    """Validate profile TOML text (``source`` names the file in messages; ``extends`` is
+    resolved relative to its folder)."""
+    doc = _with_base(parse_toml_text(text, source), source, (source,))
     kind = doc.get("kind") if isinstance(doc, Mapping) else None
     if kind not in PROFILE_KEYS:
         raise ProcedureError(source, "top level", f"kind: expected one of {', '.join(repr(k) for k in PROFILE_KEYS)}, found {kind!r}")
     top = _Reader(source, "top level", doc, PROFILE_KEYS[kind])
     return _BUILDERS[kind](name or Path(source).stem, source, top)
+
+
+def _with_base(doc: dict, source: str, chain: tuple[str, ...]) -> dict:
+    """``extends = "<shipped profile or path>"``: the base profile's tables with this file's keys
+    laid over them (tables merge key by key; any other value, arrays included, replaces)."""
+    if "extends" not in doc:
+        return doc
+    spec = doc["extends"]
+    if not isinstance(spec, str) or not spec:
+        raise ProcedureError(source, "top level", f"extends: expected a shipped profile name or a path, found {spec!r}")
+    path, _ = _profile_path(spec, relative_to=source, asked_in=source)
+    if str(path) in chain:
+        raise ProcedureError(source, "top level", f"extends: {spec!r} extends this profile again ({' -> '.join(chain)} -> {path})")
+    base = _with_base(parse_toml_text(_read_profile_text(path), str(path)), str(path), (*chain, str(path)))
+    return _merged(base, {k: v for k, v in doc.items() if k != "extends"})
+
+
+def _merged(base: Mapping, over: Mapping) -> dict:
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = _merged(out[key], value) if isinstance(value, Mapping) and isinstance(out.get(key), Mapping) else value
+    return out
+
+
+def _profile_path(spec: str, relative_to: str | Path | None, asked_in: str = "") -> tuple[Path, str]:
+    """A shipped profile's file, or a path (relative to ``relative_to``'s folder); and its name."""
+    looks_like_path = "/" in spec or "\\" in spec or spec.endswith(".toml")
+    if not looks_like_path:
+        shipped = SHIPPED_PROFILE_DIR / f"{spec}.toml"
+        if not shipped.is_file():
+            close = difflib.get_close_matches(spec, shipped_profiles(), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise ProcedureError(asked_in or spec, "" if not asked_in else "key 'extends'",
+                                 f"unknown instrument profile {spec!r}{hint} (shipped: {', '.join(shipped_profiles())}; "
+                                 "or give the path of a profile .toml file)")
+        return shipped, spec
+    path = Path(spec)
+    if not path.is_absolute() and relative_to:
+        path = Path(relative_to).parent / path
+    return path, path.stem
+
+
+def _read_profile_text(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProcedureError(str(path), "", f"cannot read the instrument profile: {exc}") from None
 
 
 def load_profile(spec: str, relative_to: str | Path | None = None) -> Profile:
@@ -551,21 +621,18 @@ def load_profile(spec: str, relative_to: str | Path | None = None) -> Profile:
     ProcedureError
         Unknown name, unreadable file, or a profile that does not validate.
     """
-    shipped = SHIPPED_PROFILE_DIR / f"{spec}.toml"
-    looks_like_path = "/" in spec or "\\" in spec or spec.endswith(".toml")
-    if not looks_like_path:
-        if not shipped.is_file():
-            close = difflib.get_close_matches(spec, shipped_profiles(), n=1)
-            hint = f"; did you mean {close[0]!r}?" if close else ""
-            raise ProcedureError(spec, "", f"unknown instrument profile {spec!r}{hint} (shipped: {', '.join(shipped_profiles())}; "
-                                           "or give the path of a profile .toml file)")
-        path = shipped
-    else:
-        path = Path(spec)
-        if not path.is_absolute() and relative_to:
-            path = Path(relative_to).parent / path
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ProcedureError(str(path), "", f"cannot read the instrument profile: {exc}") from None
-    return parse_profile(text, str(path), name=spec if not looks_like_path else path.stem)
+    path, name = _profile_path(spec, relative_to)
+    return parse_profile(_read_profile_text(path), str(path), name=name)
+
+
+def profile_warnings(profile: Profile) -> list[str]:
+    """What ``run --check`` warns about: a command that sets a value without a read-back (the
+    driver cannot tell that the instrument did what it was told)."""
+    settings: dict[str, Setting | None] = {}
+    if isinstance(profile, ScpiGeneratorProfile):
+        settings = {"[commands] frequency_hz": profile.frequency, "[commands] amplitude": profile.amplitude,
+                    "[commands] output_on": profile.output_on, "[commands] output_off": profile.output_off}
+    elif isinstance(profile, LockInProfile):
+        settings = {"[reference]": profile.reference, "[time_constant]": profile.time_constant, "[sensitivity]": profile.sensitivity}
+    return [f"{profile.source}: {where}: {s.set!r} has no read-back (no 'query'): the instrument's state is not checked "
+            "after it is set" for where, s in settings.items() if s is not None and not s.query]

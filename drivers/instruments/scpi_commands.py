@@ -17,7 +17,7 @@ import math
 import re
 import string
 
-__all__ = ["canonical_header", "split_command", "render", "template_fields", "parse_number", "parse_numbers"]
+__all__ = ["canonical_header", "split_command", "render", "template_fields", "fill_fields", "pick_reply", "parse_number", "parse_numbers"]
 
 _VOWELS = set("AEIOU")
 
@@ -57,6 +57,25 @@ def render(template: str, **fields) -> str:
         return template.format(**fields)
     except KeyError as exc:
         raise KeyError(f"template {template!r} needs field {exc.args[0]!r}") from None
+
+
+def fill_fields(text: str, **fields) -> str:
+    """Fill ``{name}`` for the given names only, leaving every other brace alone: for regular
+    expressions and expected replies (``C{ch}:OUTP (ON|OFF)``, ``\\d{2}``)."""
+    for name, value in fields.items():
+        text = text.replace("{" + name + "}", str(value))
+    return text
+
+
+def pick_reply(reply: str, pattern: str) -> str | None:
+    """The value in an instrument's answer: group 1 of ``pattern`` searched in it (or the whole
+    match); the stripped answer when there is no pattern; None when the pattern is not found."""
+    if not pattern:
+        return reply.strip()
+    m = re.search(pattern, reply)
+    if m is None:
+        return None
+    return (m.group(1) if m.re.groups else m.group(0)).strip()
 
 
 def parse_number(text: str) -> float:

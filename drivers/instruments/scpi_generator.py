@@ -20,7 +20,8 @@ class ScpiGenerator(ScpiInstrument):
     """:class:`~setmem_hil.drivers.instruments.source.SignalSource` over a SCPI generator.
 
     ``channel`` selects the output (``{ch}`` in the templates); ``load_ohms`` the output load
-    setting (``{load}``; ``None``: ``INF``, high impedance, right for an amplifier input).
+    setting (``{load}``; ``None``: the profile's ``high_z`` word, ``INF`` by default: high
+    impedance, right for an amplifier input).
     """
 
     profile: ScpiGeneratorProfile
@@ -28,7 +29,7 @@ class ScpiGenerator(ScpiInstrument):
     def __init__(self, name: str, profile: ScpiGeneratorProfile, link: VisaLink, channel: int = 1, load_ohms: float | None = None):
         if channel not in profile.channels:
             raise SafetyLimitError(f"{name}: channel {channel} does not exist on a {profile.model} (channels {list(profile.channels)})")
-        load = "INF" if load_ohms is None else f"{load_ohms:g}"
+        load = profile.high_z if load_ohms is None else f"{load_ohms:g}"
         super().__init__(name, profile, link, {"ch": channel, "load": load})
         self.frequency_limits_hz = profile.frequency_limits_hz
         self.amplitude_limits_v = profile.amplitude_limits_v

@@ -58,3 +58,8 @@ class SignalSource(IdentifiedInstrument, Protocol):
     def keepalive(self) -> None:
         """Refresh the instrument's dead-man (watchdog), if it has one."""
         ...
+
+    def reconnect(self) -> None:
+        """Drop the present connection and open a fresh one (a dropped link: the output may
+        still be on, and the switch-off must reach the instrument)."""
+        ...

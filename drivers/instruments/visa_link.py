@@ -12,6 +12,7 @@ link raises a :class:`~setmem_hil.errors.DeviceError` that says so.
 from __future__ import annotations
 
 import logging
+import socket
 
 from setmem_hil.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError
 
@@ -25,38 +26,88 @@ class VisaLink:
 
     def __init__(self, name: str, resource: str, *, visa_library: str = "@py", termination: str = "\n", timeout_s: float = 2.0):
         self.name, self.resource, self.timeout_s = name, resource, timeout_s
+        self.visa_library, self.termination = visa_library, termination
         self.transcript: list[str] = []  # commands sent (for the run log and tests)
         try:
             import pyvisa
         except ImportError:  # pragma: no cover - the [instruments] extra is in [test]
             raise DeviceError(f"{name}: PyVISA is not installed; install it with pip install 'setmem-hil[instruments]'") from None
         self._pyvisa = pyvisa
+        self.answered = False  # has this session ever exchanged a message? (a lost link vs. never reached)
+        self._open()
+
+    def _open(self) -> None:
         try:
-            self._rm = pyvisa.ResourceManager(visa_library)
-            self._inst = self._rm.open_resource(resource, read_termination=termination, write_termination=termination,
-                                                timeout=int(timeout_s * 1000))
+            self._rm = self._pyvisa.ResourceManager(self.visa_library)
+            self._inst = self._rm.open_resource(self.resource, read_termination=self.termination, write_termination=self.termination,
+                                                timeout=int(self.timeout_s * 1000))
         except Exception as exc:  # noqa: BLE001 - pyvisa raises VisaIOError, ValueError, OSError, LibraryError...
-            raise DeviceDisconnectedError(f"{name}: cannot open {resource!r} ({_reason(exc)})") from None
+            raise DeviceDisconnectedError(f"{self.name}: cannot open {self.resource!r} ({_reason(exc)})") from None
+
+    def reopen(self) -> None:
+        """Drop this session and open a fresh one to the same resource (after a dropped link)."""
+        self.close()
+        self.answered = False
+        self._open()
 
     def write(self, command: str) -> None:
         self.transcript.append(command)
+        self._refuse_if_closed(command)
         try:
             self._inst.write(command)
         except Exception as exc:  # noqa: BLE001
             raise self._error(command, exc) from None
+        self.answered = True
 
     def query(self, command: str) -> str:
         self.transcript.append(command)
+        self._refuse_if_closed(command)
         try:
-            return str(self._inst.query(command)).strip()
+            reply = str(self._inst.query(command)).strip()
         except Exception as exc:  # noqa: BLE001
             raise self._error(command, exc) from None
+        self.answered = True
+        return reply
+
+    def _socket(self) -> socket.socket | None:
+        """The TCP socket under a pyvisa-py session (raw SOCKET resources), else None."""
+        try:
+            sock = self._inst.visalib.sessions[self._inst.session].interface
+        except Exception:  # noqa: BLE001 - another backend, or a session without a socket
+            return None
+        return sock if isinstance(sock, socket.socket) else None
+
+    def peer_closed(self) -> bool:
+        """Has the instrument closed the connection? pyvisa-py reads an orderly close as silence
+        and reports a timeout after ``timeout_s``; a non-blocking peek tells at once."""
+        sock = self._socket()
+        if sock is None:
+            return False
+        try:
+            return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+        except (ConnectionResetError, ConnectionAbortedError, BrokenPipeError):
+            return True
+        except OSError:  # would block (open, nothing to read), not connected yet, refused: not a close
+            return False
+
+    def _refuse_if_closed(self, command: str) -> None:
+        if self.answered and self.peer_closed():
+            raise self._closed(command)
+
+    def _closed(self, command: str) -> DeviceDisconnectedError:
+        return DeviceDisconnectedError(f"{self.name} ({self.resource}): the instrument closed the connection "
+                                       f"({command!r} was not delivered)")
 
     def _error(self, command: str, exc: Exception) -> DeviceError:
         errors = self._pyvisa.errors
         if isinstance(exc, errors.VisaIOError) and exc.error_code == self._pyvisa.constants.StatusCode.error_timeout:
+            if self.peer_closed():
+                return self._closed(command)
             return DeviceTimeoutError(f"{self.name} ({self.resource}): no reply to {command!r} within {self.timeout_s:g} s")
-        if isinstance(exc, OSError):  # pyvisa-py connects on first use: refused, unreachable, reset
+        if self.answered and isinstance(exc, (ConnectionResetError, BrokenPipeError, ConnectionAbortedError)):
+            return DeviceDisconnectedError(f"{self.name} ({self.resource}): the connection was lost ({_reason(exc)}); "
+                                           f"{command!r} may not have been delivered")
+        if isinstance(exc, OSError):  # pyvisa-py connects on first use: refused, unreachable
             return DeviceDisconnectedError(f"{self.name}: cannot reach {self.resource!r} ({_reason(exc)}); is the instrument on and "
                                            f"the resource string right? ({command!r} was not delivered)")
         return DeviceDisconnectedError(f"{self.name} ({self.resource}): {command!r} failed ({_reason(exc)})")

@@ -58,6 +58,7 @@ from setmem_hil.model.experiment import (
     ModelAwareExperiment,
     PlanningExperiment,
     MultisineExperiment,
+    OutputConfirmingExperiment,
     ResumableExperiment,
 )
 from setmem_hil.model.frequency_data import FrequencyData
@@ -181,6 +182,11 @@ class _Replay:
         self.count = 0
         self._synced = False
 
+    def _make_safe(self) -> None:
+        """What a pause waits for: every exciter output confirmed off (read back)."""
+        if isinstance(self.experiment, OutputConfirmingExperiment):
+            self.experiment.confirm_output_off()
+
     def measure(self, omega_rad_s: float, *, iteration: int, role: str) -> Measurement:
         index = self.count
         self.count += 1
@@ -196,7 +202,7 @@ class _Replay:
             self.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=True)
             return m
         if self.control is not None:
-            self.control.checkpoint()  # may wait (paused) or raise CampaignAborted, between dwells
+            self.control.checkpoint(self._make_safe)  # may wait (paused) or raise CampaignAborted, between dwells
         if not self._synced:
             if self.stored and isinstance(self.experiment, ResumableExperiment):
                 self.experiment.n_measured = len(self.stored)
@@ -227,7 +233,7 @@ class _Replay:
             raise DeviceError(f"{type(self.experiment).__name__} cannot measure a multisine record "
                               "([dwell] signal = \"multisine\" needs backend kind 'sim' or 'time-domain')")
         if self.control is not None:
-            self.control.checkpoint()
+            self.control.checkpoint(self._make_safe)
         if isinstance(self.experiment, ResumableExperiment):
             self.experiment.n_measured = start  # the record's noise is seeded with its first line's index
         self._synced = True

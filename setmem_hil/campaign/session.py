@@ -351,14 +351,53 @@ def _journal_identities(journal: Journal, experiment: Any) -> None:
         journal.add_event(INSTRUMENTS_EVENT, "; ".join(f"{name}: {answer}" for name, answer in experiment.identities.items()))
 
 
+EXCITER_ARMED_EVENT = "exciter-armed"
+"""Journal event: a session with an exciter began (its output may be switched on from here)."""
+OUTPUT_OFF_EVENT = "output-off"
+"""Journal event at the end of a session: whether the exciter's output was confirmed off; its
+message starts with ``confirmed`` or ``NOT confirmed``. An ``exciter-armed`` event with no
+``output-off ... confirmed`` after it is a session that ended without a confirmed output-off
+(SIGKILL, power loss, a dead link): the next ``run --resume`` switches the output off first."""
+
+
+def unconfirmed_output_off(journal: Journal) -> str | None:
+    """Why the journal's last session did not end with a confirmed output-off (None if it did,
+    or never drove an exciter)."""
+    last = None
+    for event in journal.events():
+        if event["kind"] in (EXCITER_ARMED_EVENT, OUTPUT_OFF_EVENT):
+            last = event
+    if last is None or (last["kind"] == OUTPUT_OFF_EVENT and last["message"].startswith("confirmed")):
+        return None
+    if last["kind"] == EXCITER_ARMED_EVENT:
+        return f"the session started {last['utc']} ended without a confirmed output-off (killed, power loss?)"
+    return f"its last session could not confirm the output off ({last['message']})"
+
+
+def _arm_exciter(journal: Journal, experiment: Any, console: Console, previous_unconfirmed: str | None) -> None:
+    from setmem_hil.model.experiment import OutputConfirmingExperiment
+
+    if not isinstance(experiment, OutputConfirmingExperiment):
+        return
+    if previous_unconfirmed is not None:
+        experiment.confirm_output_off()  # opening forced it off already: read it back once more, and say so
+        line = f"output switched off: {experiment.exciter} (read back), because {previous_unconfirmed}"
+        console.print(line, highlight=False)
+        journal.add_event(OUTPUT_OFF_EVENT, f"confirmed at resume: {line}")
+    journal.add_event(EXCITER_ARMED_EVENT, f"{experiment.exciter}: the output may be switched on from here")
+
+
 def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
                      opener: ExperimentOpener, display: Display | None, experiment: Any = None,
                      continue_stored: bool = False, quiet_report_hint: bool = False, control=None,
                      observers: Sequence[Observer] = ()) -> RunOutcome:
+    resume = f"continue with `setmem-hil run --resume {run_dir}`"
     try:
+        previous_unconfirmed = unconfirmed_output_off(journal)
         if experiment is None:
             experiment = opener(procedure, seed)
         _journal_identities(journal, experiment)
+        _arm_exciter(journal, experiment, console, previous_unconfirmed)
         with (display(experiment) if display is not None else contextlib.nullcontext(None)) as shown:
             summary = run_journaled_campaign(procedure, experiment, journal, seed=seed, strategy=strategy,
                                              observers=([shown] if shown is not None else []) + list(observers),
@@ -367,33 +406,35 @@ def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, s
     except KeyboardInterrupt as exc:
         why = "SIGTERM: stopped by a signal" if isinstance(exc, _Terminated) else "Ctrl-C: stopped by the operator"
         with _sigint_deferred():
-            _shutdown(experiment, journal, "interrupted", why)
+            safety, _ = _shutdown(experiment, journal, "interrupted", why)
         # one line says what was made safe, what is kept and how to go on (the CLI prints it)
-        raise RunInterrupted(f"interrupted ({why.split(':')[0]}); exciter at zero, journal closed with "
-                             f"{_stored(journal)} measurements; continue with `setmem-hil run --resume {run_dir}`") from exc
+        raise RunInterrupted(f"interrupted ({why.split(':')[0]}); {safety}, journal closed with "
+                             f"{_stored(journal)} measurements; {resume}") from exc
     except CampaignAborted as exc:
         with _sigint_deferred():
-            _shutdown(experiment, journal, "aborted", f"aborted: {exc}")
-        raise CampaignAborted(f"aborted ({exc}); exciter at zero, journal closed with {_stored(journal)} measurements; "
-                              f"continue with `setmem-hil run --resume {run_dir}`") from exc
+            safety, _ = _shutdown(experiment, journal, "aborted", f"aborted: {exc}")
+        raise CampaignAborted(f"aborted ({exc}); {safety}, journal closed with {_stored(journal)} measurements; {resume}") from exc
     except DeviceError as exc:
         with _sigint_deferred():
-            _shutdown(experiment, journal, "device-fault", str(exc))
-        exc.resume_hint = f"journal closed; after fixing the rig continue with `setmem-hil run --resume {run_dir}`"
+            safety, _ = _shutdown(experiment, journal, "device-fault", str(exc))
+        exc.safety_note = safety  # the first fault stays the message; what the clean-up achieved follows it
+        exc.resume_hint = f"journal closed with {_stored(journal)} measurements; after fixing the rig {resume}"
         raise
     except BaseException as exc:
         with _sigint_deferred():
-            _shutdown(experiment, journal, "error", f"{type(exc).__name__}: {exc}")
+            safety, _ = _shutdown(experiment, journal, "error", f"{type(exc).__name__}: {exc}")
         if isinstance(exc, Exception):
             fix = " --procedure FIXED.toml" if isinstance(exc, (InconsistentDataError, InputFormatError)) else ""
-            exc.resume_hint = (f"exciter at zero, journal closed with {_stored(journal)} measurements; continue with "
+            exc.resume_hint = (f"{safety}, journal closed with {_stored(journal)} measurements; continue with "
                                f"`setmem-hil run --resume {run_dir}{fix}`")
         raise
     with _sigint_deferred():
-        _shutdown(experiment, journal, None, "")
+        safety, close_error = _shutdown(experiment, journal, None, "")
     write_json_atomic(doc, run_dir / SUMMARY_FILENAME)
     console.print(f"summary: {run_dir / SUMMARY_FILENAME}" + ("" if quiet_report_hint else f" (report: setmem-hil report {run_dir})"),
                   highlight=False)
+    if close_error is not None:  # every point is kept; the rig is not known to be safe
+        raise DeviceError(f"the campaign finished, but {safety}") from close_error
     return RunOutcome(run_dir, doc)
 
 
@@ -408,16 +449,42 @@ def _stored(journal: Journal) -> str:
         return "all completed"
 
 
-def _shutdown(experiment: Any, journal: Journal, kind: str | None, message: str) -> None:
-    """Exciter to zero first, then record why we stopped, then close the journal."""
+def _shutdown(experiment: Any, journal: Journal, kind: str | None, message: str) -> tuple[str, BaseException | None]:
+    """Exciter to zero first, then record why we stopped and whether the output is confirmed
+    off, then close the journal. A failing clean-up never replaces the cause: it is returned
+    (with the sentence that says what state the rig is in) for the caller's message."""
+    close_error: BaseException | None = None
     try:
         if experiment is not None:
             experiment.close()
+    except BaseException as exc:  # noqa: BLE001 - reported in the safety sentence, never raised over the cause
+        close_error = exc
+    safety, confirmed = output_safety(experiment, close_error)
+    try:
+        if kind is not None and not journal.closed:
+            journal.add_event(kind, message)
+        if confirmed is not None and not journal.closed:
+            journal.add_event(OUTPUT_OFF_EVENT, f"{'confirmed' if confirmed else 'NOT confirmed'}: {safety}")
     finally:
-        try:
-            if kind is not None and not journal.closed:
-                journal.add_event(kind, message)
-        finally:
-            journal.close()
+        journal.close()
+    return safety, close_error
 
 
+def output_safety(experiment: Any, close_error: BaseException | None) -> tuple[str, bool | None]:
+    """The sentence that says what state the exciter was left in, and whether its output is
+    confirmed off (None: the experiment cannot read its output back)."""
+    from setmem_hil.errors import OutputNotConfirmedOffError
+    from setmem_hil.model.experiment import OutputConfirmingExperiment
+
+    if isinstance(close_error, OutputNotConfirmedOffError):
+        return " ".join(str(close_error).split()), False
+    if isinstance(experiment, OutputConfirmingExperiment):
+        if experiment.output_confirmed_off:
+            return f"output of {experiment.exciter} confirmed off", True
+        cause = f" ({' '.join(str(close_error).split())})" if close_error is not None else ""
+        return (f"the output of {experiment.exciter} could not be confirmed off{cause}: it may still be on: "
+                "switch it off at the instrument or at the amplifier"), False
+    if close_error is not None:
+        return (f"the exciter could not be commanded to zero ({' '.join(str(close_error).split())}): "
+                "switch it off at the instrument or at the amplifier"), None
+    return "exciter at zero", None

@@ -4,7 +4,8 @@ Subcommands live one per module in :mod:`setmem_hil.cli.commands` and are discov
 
 Exit codes (public contract): 0 success; 2 malformed input (the message names file, line or
 key); 3 data inconsistent with the prior (the message names the frequencies); 4 device fault
-(the exciter was commanded to zero); 130 interrupted or aborted (the exciter is at zero and
+(the message says whether the exciter's output was confirmed off, and when it could not be:
+"switch it off at the instrument"); 130 interrupted or aborted (the exciter is at zero and
 the journal closed); 1 any other failure. Every failure is reported as one line
 ``setmem-hil: ...`` on stderr; ``--debug`` adds the Python traceback.
 """
@@ -60,8 +61,10 @@ def exit_code_and_message(exc: BaseException, interrupted: str = "interrupted") 
     if isinstance(exc, (InputFormatError, SafetyLimitError)):
         return EXIT_BAD_INPUT, str(exc)
     if isinstance(exc, DeviceError):
+        # what the clean-up achieved, as the session established it (never claimed when unknown)
+        safety = getattr(exc, "safety_note", "")
         hint = getattr(exc, "resume_hint", "")
-        return EXIT_DEVICE, f"device fault: {exc} (exciter commanded to zero){'; ' + hint if hint else ''}"
+        return EXIT_DEVICE, "; ".join(part for part in (f"device fault: {exc}", safety, hint) if part)
     if isinstance(exc, (RunInterrupted, CampaignAborted)) and exc.args:
         return EXIT_INTERRUPTED, str(exc)
     if isinstance(exc, (KeyboardInterrupt, CampaignAborted)):

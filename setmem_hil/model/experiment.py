@@ -3,7 +3,7 @@
 Optional capabilities are declared protocols too (checked with ``isinstance``, never probed
 with ``getattr``): :class:`ResumableExperiment`, :class:`ModelAwareExperiment`,
 :class:`BoundPredictingExperiment`, :class:`CountingExperiment`, :class:`PlanningExperiment`,
-:class:`IdentifiedExperiment`, :class:`MultisineExperiment`.
+:class:`IdentifiedExperiment`, :class:`MultisineExperiment`, :class:`OutputConfirmingExperiment`.
 
 One call applies a unit-amplitude sinusoid at ``omega_rad_s`` and returns the steady-state
 complex response ``G(j omega)`` with an absolute bound on its total error (noise, estimation
@@ -107,11 +107,25 @@ class IdentifiedExperiment(Protocol):
 
 
 @runtime_checkable
+class OutputConfirmingExperiment(Protocol):
+    """Drives an exciter whose output state can be read back: ``output_confirmed_off`` is True
+    only after an output-off was read back from the instrument (False from the moment the output
+    is switched on, and after a switch-off that could not be confirmed). ``exciter`` names the
+    instrument in messages; ``confirm_output_off()`` switches the output off and reads it back
+    (a fresh connection if the link failed), raising when it cannot be confirmed."""
+
+    output_confirmed_off: bool
+    exciter: str
+
+    def confirm_output_off(self) -> None: ...
+
+
+@runtime_checkable
 class CampaignControl(Protocol):
     """Steers a running campaign between dwells (the live view's Pause/Resume/Abort).
 
-    ``checkpoint()`` is called before every new dwell: it returns at once to go on, blocks while
-    paused (the exciter is at zero between dwells), or raises
-    :class:`setmem_hil.errors.CampaignAborted` to stop (journal closed, resumable)."""
+    ``checkpoint(make_safe)`` is called before every new dwell: it returns at once to go on,
+    blocks while paused (calling ``make_safe()`` first, which confirms every exciter output off),
+    or raises :class:`setmem_hil.errors.CampaignAborted` to stop (journal closed, resumable)."""
 
-    def checkpoint(self) -> None: ...
+    def checkpoint(self, make_safe=None) -> None: ...
