@@ -94,6 +94,7 @@ class BenchSettings:
     sensitivity_error: tuple[float, float] = (0.0, 0.0)  # true / declared - 1 (force, response)
     noise_v_per_rthz: tuple[float, float] = (2e-6, 2e-6)  # at the lock-in inputs (force, response)
     seed: int = 0
+    relock_s: float = 0.0  # the lock-ins report "unlocked" this long after every frequency step
 
 
 class EmulatedBench:
@@ -107,6 +108,7 @@ class EmulatedBench:
         self._A, self._B, self._C = A, B[:, 0], C[0]
         self.x = np.zeros(A.shape[0])
         self.frequency_hz = 1000.0
+        self.frequency_set_at = -math.inf  # clock time of the last frequency change (lock-in relock)
         self.amplitude_v = 0.0  # peak
         self.output_on = False
         self.phase = 0.0
@@ -135,6 +137,8 @@ class EmulatedBench:
         with self.lock:
             self.advance()
             if frequency_hz is not None:
+                if float(frequency_hz) != self.frequency_hz:
+                    self.frequency_set_at = self.clock.now()
                 self.frequency_hz = float(frequency_hz)
             if amplitude_v is not None:
                 self.amplitude_v = float(amplitude_v)
@@ -153,6 +157,11 @@ class EmulatedBench:
             self.advance()
             li = self.lockins[name]
             return complex(li.filters[-1] + li.noise[-1])
+
+    def reference_locked(self) -> bool:
+        """A lock-in's PLL follows a frequency step only after ``relock_s``."""
+        with self.lock:
+            return self.clock.now() - self.frequency_set_at >= self.settings.relock_s
 
     def true_response(self, omega_rad_s: float) -> complex:
         return complex(np.ravel(self.params.frequency_response(np.array([float(omega_rad_s)])))[0])

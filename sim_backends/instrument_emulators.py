@@ -33,7 +33,7 @@ from typing import Callable
 from setmem_hil.drivers.instruments.scpi_commands import canonical_header
 from setmem_hil.sim_backends.instrument_bench import EmulatedBench
 
-__all__ = ["GeneratorEmulator", "LockInEmulator", "InstrumentServer", "SR830_TIME_CONSTANTS", "SR860_TIME_CONSTANTS"]
+__all__ = ["GeneratorEmulator", "SiglentGeneratorEmulator", "LockInEmulator", "InstrumentServer", "SR830_TIME_CONSTANTS", "SR860_TIME_CONSTANTS"]
 
 log = logging.getLogger(__name__)
 
@@ -206,6 +206,136 @@ class GeneratorEmulator(_Emulator):
         return None
 
 
+class SiglentGeneratorEmulator(_Emulator):
+    """A Siglent SDG1000X/SDG2000X two-channel generator, in Siglent's own syntax.
+
+    Written from Siglent's SDG series programming guide: parameters are comma-separated
+    name/value pairs after a ``C<n>:`` channel header (``C1:BSWV FRQ,100``), and queries answer
+    with the header and every parameter of the group, with units (``C1:BSWV
+    WVTP,SINE,FRQ,100HZ,PERI,0.01S,AMP,0.5V,...``, ``C1:OUTP ON,LOAD,HZ,PLRT,NOR``). Values out of
+    the instrument's range set the execution-error bit of ``*ESR?``; unknown headers the
+    command-error bit. Only the channel wired to the amplifier (``channel``) drives the bench.
+    """
+
+    IDN = {"SDG2000X": "Siglent Technologies,SDG2042X,SDG2XCAQ1R1234,2.01.01.35R3B2",
+           "SDG1000X": "Siglent Technologies,SDG1032X,SDG1XCAD2R3456,1.01.01.33R1B6"}
+    FREQUENCY_HZ = {"SDG2000X": (1e-6, 40e6), "SDG1000X": (1e-6, 30e6)}
+
+    def __init__(self, bench: EmulatedBench, model: str = "SDG2000X", channel: int = 1):
+        super().__init__(bench)
+        if model not in self.IDN:
+            raise ValueError(f"unknown Siglent model {model!r}")
+        self.model, self.channel, self.idn = model, channel, self.IDN[model]
+        self.channels = {ch: {"WVTP": "SINE", "FRQ": 1000.0, "AMP": 4.0, "OFST": 0.0, "PHSE": 0.0,
+                              "OUTP": False, "LOAD": "HZ", "PLRT": "NOR", "SYNC": False} for ch in (1, 2)}
+
+    def handle(self, command: str) -> str | None:
+        head, args = _split(command)
+        up = head.upper()
+        query = up.endswith("?")
+        name = up.rstrip("?")
+        if name in ("*IDN", "*OPC", "*ESR", "*CLS", "*RST", "SYST:ERR", "SYSTEM:ERROR"):
+            return self._common(name, query)
+        m = re.fullmatch(r"C([12]):(BSWV|BASIC_WAVE|OUTP|OUTPUT|SYNC)", name)
+        if not m:
+            return self._command_error()
+        ch, group = int(m.group(1)), {"BASIC_WAVE": "BSWV", "OUTPUT": "OUTP"}.get(m.group(2), m.group(2))
+        s = self.channels[ch]
+        if query:
+            return self._describe(ch, group)
+        parts = [p.strip() for p in args.split(",") if p.strip()]
+        if group == "BSWV":
+            if len(parts) % 2:
+                return self._command_error()
+            for key, value in zip(parts[::2], parts[1::2]):
+                self._set_wave(s, key.upper(), value)
+        elif group == "OUTP":
+            self._set_output(s, parts)
+        else:
+            if [p.upper() for p in parts] not in (["ON"], ["OFF"]):
+                raise ValueError(args)
+            s["SYNC"] = parts[0].upper() == "ON"
+        self._drive()
+        return None
+
+    def _set_wave(self, s: dict, key: str, value: str) -> None:
+        if key == "WVTP":
+            if value.upper() not in ("SINE", "SQUARE", "RAMP", "PULSE", "NOISE", "ARB", "DC", "PRBS"):
+                raise ValueError(value)
+            s["WVTP"] = value.upper()
+            return
+        units = {"FRQ": "HZ", "AMP": "V", "OFST": "V", "PHSE": ""}
+        if key not in units:
+            raise ValueError(key)
+        number = _number(re.sub(f"{units[key]}$", "", value.strip().upper()) if units[key] else value)
+        lo, hi = {"FRQ": self.FREQUENCY_HZ[self.model], "AMP": (0.002, 20.0), "OFST": (-10.0, 10.0), "PHSE": (0.0, 360.0)}[key]
+        if not lo <= number <= hi:
+            raise ValueError(value)
+        s[key] = round(number, 6) if key == "FRQ" else number  # 1 uHz frequency resolution
+
+    @staticmethod
+    def _set_output(s: dict, parts: list[str]) -> None:
+        i = 0
+        while i < len(parts):
+            word = parts[i].upper()
+            if word in ("ON", "OFF"):
+                s["OUTP"] = word == "ON"
+                i += 1
+            elif word == "LOAD" and i + 1 < len(parts):
+                load = parts[i + 1].upper()
+                if load != "HZ" and not (load.replace(".", "", 1).isdigit() and 50 <= float(load) <= 100000):
+                    raise ValueError(load)
+                s["LOAD"] = load
+                i += 2
+            elif word == "PLRT" and i + 1 < len(parts) and parts[i + 1].upper() in ("NOR", "INVT"):
+                s["PLRT"] = parts[i + 1].upper()
+                i += 2
+            else:
+                raise ValueError(word)
+
+    def _describe(self, ch: int, group: str) -> str:
+        s = self.channels[ch]
+        if group == "OUTP":
+            return f"C{ch}:OUTP {'ON' if s['OUTP'] else 'OFF'},LOAD,{s['LOAD']},PLRT,{s['PLRT']}"
+        if group == "SYNC":
+            return f"C{ch}:SYNC {'ON' if s['SYNC'] else 'OFF'}"
+        f, amp, off = s["FRQ"], s["AMP"], s["OFST"]
+        return (f"C{ch}:BSWV WVTP,{s['WVTP']},FRQ,{f:.12g}HZ,PERI,{1.0 / f:.6g}S,AMP,{amp:.5g}V,"
+                f"AMPVRMS,{amp / (2 * math.sqrt(2.0)):.4g}V,OFST,{off:.5g}V,HLEV,{off + amp / 2:.5g}V,"
+                f"LLEV,{off - amp / 2:.5g}V,PHSE,{s['PHSE']:.4g}")
+
+    def _drive(self) -> None:
+        s = self.channels[self.channel]
+        on = s["OUTP"] and s["WVTP"] == "SINE" and s["OFST"] == 0.0
+        self.bench.set_generator(frequency_hz=s["FRQ"], amplitude_v=s["AMP"] / 2.0, output_on=on)
+
+    def _common(self, name: str, query: bool) -> str | None:
+        if name == "*IDN" and query:
+            return self.idn
+        if name == "*OPC" and query:
+            return "1"
+        if name == "*ESR" and query:
+            value, self.esr = self.esr, 0
+            return str(value)
+        if name in ("SYST:ERR", "SYSTEM:ERROR") and query:
+            return self.errors.pop(0) if self.errors else '0,"No error"'
+        if name == "*CLS" and not query:
+            self.errors.clear()
+            self.esr = 0
+            return None
+        if name == "*RST" and not query:
+            for ch in (1, 2):
+                self.channels[ch].update(WVTP="SINE", FRQ=1000.0, AMP=4.0, OFST=0.0, OUTP=False, LOAD="HZ")
+            self._drive()
+            return None
+        return self._command_error()
+
+    def _command_error(self) -> None:
+        self.errors.append(UNDEFINED_HEADER)
+        self.esr |= 1 << 5  # command error
+        return None
+
+
 class LockInEmulator(_Emulator):
     """An SR830 (``model = "SR830"``) or SR860 (``model = "SR860"``) reading one bench signal.
 
@@ -216,11 +346,15 @@ class LockInEmulator(_Emulator):
 
     def __init__(self, bench: EmulatedBench, signal: str, model: str = "SR830"):
         super().__init__(bench)
-        if model not in ("SR830", "SR860"):
+        if model not in ("SR830", "SR860", "SR865A"):
             raise ValueError(f"unknown lock-in model {model!r}")
+        # the SR865A (4 MHz) has the SR860's command set (SR865A manual, chapter 4): it answers
+        # as the SR860 does, except for its identity
+        self.idn = {"SR830": "Stanford_Research_Systems,SR830,s/n86021,ver1.07",
+                    "SR860": "Stanford_Research_Systems,SR860,004512,v1.51",
+                    "SR865A": "Stanford_Research_Systems,SR865A,003245,v1.47"}[model]
+        model = "SR830" if model == "SR830" else "SR860"
         self.model, self.signal = model, signal
-        self.idn = ("Stanford_Research_Systems,SR830,s/n86021,ver1.07" if model == "SR830"
-                    else "Stanford_Research_Systems,SR860,004512,v1.51")
         self.taus = SR830_TIME_CONSTANTS if model == "SR830" else SR860_TIME_CONSTANTS
         self.sens = SR830_SENSITIVITIES if model == "SR830" else SR860_SENSITIVITIES
         self.external = False
@@ -242,10 +376,17 @@ class LockInEmulator(_Emulator):
             self.state.set_filter(self.taus[self.tau_index], self.slope_index + 1)
             self.state.sensitivity_v = self.sens[self.sens_index]
 
+    @property
+    def locked(self) -> bool:
+        """On the external reference and not relocking after a frequency step."""
+        return self.external and self.bench.reference_locked()
+
     def _reading(self) -> complex:
         if not self.external:
             return complex(0.0, 0.0)
-        return self.bench.read_lockin(self.signal)
+        z = self.bench.read_lockin(self.signal)
+        # while the PLL relocks the reference phase slips: the output is meaningless
+        return z if self.bench.reference_locked() else z * complex(0.0, -0.5)
 
     def _overloaded(self) -> bool:
         z = self._reading()
@@ -311,12 +452,12 @@ class LockInEmulator(_Emulator):
         if name in ("FREQ", "FREQEXT") and query:
             return f"{self.bench.frequency_hz:.7e}" if self.external else f"{1000.0:.7e}"
         if name == "LIAS" and query and self.model == "SR830":
-            status = (1 if self._overloaded() else 0) | (0 if self.external else 8)
+            status = (1 if self._overloaded() else 0) | (0 if self.locked else 8)
             return str(status)
         if name == "ERRS" and query and self.model == "SR830":
             return "0"
         if name == "CUROVLDSTAT" and query and self.model == "SR860":
-            status = (1 << 4 if self._overloaded() else 0) | (0 if self.external else 1 << 3)
+            status = (1 << 4 if self._overloaded() else 0) | (0 if self.locked else 1 << 3)
             return str(status)
         return self._bad(query)
 
@@ -330,25 +471,43 @@ class InstrumentServer:
     """A newline-terminated text instrument on ``127.0.0.1:port`` (0: a free port), in a thread.
 
     ``close()`` stops it; a client then sees the connection refused, as with an instrument
-    switched off.
+    switched off. Link faults, for tests (the instrument itself keeps its state, output
+    included, as a real one does when its LAN cable is pulled):
+
+    * :meth:`drop_link` closes the connection after ``after`` more commands, and with
+      ``reconnectable = False`` every later connection too (the link stays down);
+    * :meth:`garble_replies` sends the next ``count`` replies as line noise.
     """
+
+    GARBLE = "#\x15?~\x7f"
 
     def __init__(self, emulator: _Emulator, port: int = 0, host: str = "127.0.0.1",
                  on_disconnect: Callable[[], None] | None = None):
         self.emulator = emulator
         lock = emulator.bench.lock
         emu = emulator
+        server = self
+        self._drop_in: int | None = None
+        self._link_down = False
+        self._garble = 0
 
         class Handler(socketserver.StreamRequestHandler):
             def handle(self):  # noqa: D401 - socketserver API
                 try:
+                    if server._link_down:
+                        return
                     for raw in self.rfile:
                         line = raw.decode("ascii", errors="replace").strip()
                         if not line:
                             continue
+                        if server._dropping_now():
+                            return  # the command is lost with the link
                         with lock:
                             reply = emu.handle_line(line)
                         if reply is not None:
+                            if server._garble > 0:
+                                server._garble -= 1
+                                reply = server.GARBLE
                             self.wfile.write((reply + "\n").encode("ascii"))
                 except (ConnectionError, OSError):
                     pass
@@ -364,6 +523,24 @@ class InstrumentServer:
         self.host, self.port = self._server.server_address[:2]
         self._thread = threading.Thread(target=self._server.serve_forever, name=f"emulator-{self.port}", daemon=True)
         self._thread.start()
+
+    def drop_link(self, after: int = 0, reconnectable: bool = True) -> None:
+        """Close the connection when ``after`` more commands have been received."""
+        self._drop_in = after
+        self._reconnectable = reconnectable
+
+    def garble_replies(self, count: int = 1) -> None:
+        self._garble = count
+
+    def _dropping_now(self) -> bool:
+        if self._drop_in is None:
+            return False
+        if self._drop_in > 0:
+            self._drop_in -= 1
+            return False
+        self._drop_in = None
+        self._link_down = not self._reconnectable
+        return True
 
     @property
     def resource(self) -> str:

@@ -26,13 +26,13 @@ from setmem_hil.drivers.clock import Clock, WallClock
 from setmem_hil.drivers.instruments.lockin import LockIn
 from setmem_hil.drivers.instruments.modbus_generator import ModbusGenerator, parse_modbus_resource
 from setmem_hil.drivers.instruments.phasor_dwell import DriveChannel, PhasorDwellExperiment, PhasorDwellSettings, SensorChannel
-from setmem_hil.drivers.instruments.profile import DaqProfile, DbcProfile, LockInProfile, ModbusProfile, Profile, ScpiGeneratorProfile, load_profile
+from setmem_hil.drivers.instruments.profile import DaqProfile, DbcProfile, LockInProfile, ModbusProfile, Profile, ScpiGeneratorProfile, load_profile, profile_warnings
 from setmem_hil.drivers.instruments.scpi_generator import ScpiGenerator
 from setmem_hil.drivers.instruments.visa_link import VisaLink
 from setmem_hil.errors import DeviceError, ProcedureError
 from setmem_hil.io.procedure import InstrumentSettings, Procedure
 
-__all__ = ["ROLES", "check_instruments", "open_instrument", "probe_instruments", "ProbeResult", "open_instrument_experiment"]
+__all__ = ["ROLES", "check_instruments", "instrument_warnings", "open_instrument", "probe_instruments", "ProbeResult", "open_instrument_experiment"]
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +81,12 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
         raise ProcedureError(_source(procedure), "[backend] key 'response'", "force and response must both be lock-ins or both "
                              f"DAQ channels, found {' and '.join(sorted(kinds))}")
     return found
+
+
+def instrument_warnings(procedure: Procedure) -> list[str]:
+    """What ``run --check`` warns about in the instruments' profiles (see :func:`profile_warnings`)."""
+    return [f"[instruments.{name}] {warning}" for name, (_, profile, _) in check_instruments(procedure).items()
+            for warning in profile_warnings(profile)]
 
 
 def open_instrument(settings: InstrumentSettings, profile: Profile):

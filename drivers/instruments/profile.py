@@ -70,6 +70,7 @@ class Setting:
     tolerance_rel: float = 1e-6
     unit: str = ""
     reply: str = ""
+    resolution: float = 0.0  # the instrument's step in the setting's unit: read-backs agree within it
 
 
 @dataclass(frozen=True)
@@ -219,7 +220,7 @@ _TABLE_KEYS = {
     "identity": {"query", "expect"},
     "errors": {"query", "no_error", "error_mask"},
     "commands": {"frequency_hz", "amplitude", "output_on", "output_off"},
-    "setting": {"set", "query", "expect", "tolerance_rel", "unit", "reply"},
+    "setting": {"set", "query", "expect", "tolerance_rel", "resolution", "unit", "reply"},
     "limits": {"frequency_hz", "amplitude_v", "channels"},
     "reference": {"set", "query", "expect", "reply", "frequency_query"},
     "time_constant": {"set", "query", "reply", "values_s"},
@@ -333,6 +334,7 @@ def _setting(parent: _Reader, key: str, fields: set[str], *, units: bool = False
         tolerance_rel=r.number("tolerance_rel", 1e-6, positive=True),
         unit=unit,
         reply=_reply(r),
+        resolution=r.number("resolution", 0.0),
     )
 
 

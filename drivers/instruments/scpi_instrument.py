@@ -104,9 +104,9 @@ class ScpiInstrument:
                     raise DeviceRejectedError("instrument", f"{self.where}: after {command!r} the instrument reads back {got_text!r}, expected {expect!r}")
             elif value is not None:
                 got = self.query_parsed(query, self._picker(setting, parse_number), f"read-back of {command!r}")
-                if not math.isclose(got, value, rel_tol=max(setting.tolerance_rel, 1e-12), abs_tol=0.0):
+                if not math.isclose(got, value, rel_tol=max(setting.tolerance_rel, 1e-12), abs_tol=setting.resolution):
                     raise DeviceRejectedError("instrument", f"{self.where}: {label or 'value'} set to {value:.10g}, the instrument reads back "
-                                                            f"{got:.10g} (after {command!r}; tolerance_rel {setting.tolerance_rel:g})")
+                                                            f"{got:.10g} (after {command!r}; tolerance_rel {setting.tolerance_rel:g}, resolution {setting.resolution:g})")
         self.check_errors(command)
 
     def _picker(self, setting: Setting, convert: Callable[[str], T]) -> Callable[[str], T]:

@@ -12,7 +12,9 @@ link raises a :class:`~setmem_hil.errors.DeviceError` that says so.
 from __future__ import annotations
 
 import logging
+import select
 import socket
+import time
 
 from setmem_hil.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError
 
@@ -63,7 +65,15 @@ class VisaLink:
         self.transcript.append(command)
         self._refuse_if_closed(command)
         try:
-            reply = str(self._inst.query(command)).strip()
+            sock = self._socket()
+            if sock is None or self._pending():
+                reply = str(self._inst.query(command)).strip()
+            else:
+                self._inst.write(command)
+                self._await_reply(sock, command)
+                reply = str(self._inst.read()).strip()
+        except DeviceError:
+            raise
         except Exception as exc:  # noqa: BLE001
             raise self._error(command, exc) from None
         self.answered = True
@@ -77,6 +87,13 @@ class VisaLink:
             return None
         return sock if isinstance(sock, socket.socket) else None
 
+    def _pending(self) -> bool:
+        """Bytes pyvisa-py already holds (a reply longer than one line): no need to wait."""
+        try:
+            return bool(self._inst.visalib.sessions[self._inst.session]._pending_buffer)
+        except Exception:  # noqa: BLE001
+            return False
+
     def peer_closed(self) -> bool:
         """Has the instrument closed the connection? pyvisa-py reads an orderly close as silence
         and reports a timeout after ``timeout_s``; a non-blocking peek tells at once."""
@@ -89,6 +106,18 @@ class VisaLink:
             return True
         except OSError:  # would block (open, nothing to read), not connected yet, refused: not a close
             return False
+
+    def _await_reply(self, sock: socket.socket, command: str) -> None:
+        """Wait for the reply to start arriving; an instrument that closes the connection
+        instead is reported at once (pyvisa-py would wait out its timeout first)."""
+        deadline = time.monotonic() + self.timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            readable, _, _ = select.select([sock], [], [], min(left, 0.5))
+            if readable:
+                if self.peer_closed():
+                    raise self._closed(command)
+                return
+        raise DeviceTimeoutError(f"{self.name} ({self.resource}): no reply to {command!r} within {self.timeout_s:g} s")
 
     def _refuse_if_closed(self, command: str) -> None:
         if self.answered and self.peer_closed():

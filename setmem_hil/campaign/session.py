@@ -18,6 +18,7 @@ import contextlib
 import os
 import re
 import signal
+import sys
 import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -382,7 +383,10 @@ def _arm_exciter(journal: Journal, experiment: Any, console: Console, previous_u
     if previous_unconfirmed is not None:
         experiment.confirm_output_off()  # opening forced it off already: read it back once more, and say so
         line = f"output switched off: {experiment.exciter} (read back), because {previous_unconfirmed}"
-        console.print(line, highlight=False)
+        if console.quiet:  # a safety action is always said, --quiet or not
+            print(f"setmem-hil: {line}", file=sys.stderr, flush=True)
+        else:
+            console.print(line, highlight=False)
         journal.add_event(OUTPUT_OFF_EVENT, f"confirmed at resume: {line}")
     journal.add_event(EXCITER_ARMED_EVENT, f"{experiment.exciter}: the output may be switched on from here")
 

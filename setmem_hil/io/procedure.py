@@ -74,6 +74,8 @@ class EmulationSettings:
 
     drive_gain_ratio: float = 1.0  # true drive gain / the declared newton_per_volt
     noise_v_per_rthz: float = 2e-6  # lock-in input noise density
+    damping: float | None = None  # damping ratio of every emulated mode (None: the beam's 0.01)
+    relock_s: float = 0.0  # the emulated lock-ins relock this long after every frequency step
 
 
 @dataclass(frozen=True)

@@ -70,7 +70,11 @@ def format_procedure(procedure: Procedure) -> str:
         out += ["[backend.faults]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in b.faults.items()] + [""]
     if b.emulation is not None:
         out += ["[backend.emulation]", f"drive_gain_ratio = {_toml_value(float(b.emulation.drive_gain_ratio))}",
-                f"noise_v_per_rthz = {_toml_value(float(b.emulation.noise_v_per_rthz))}", ""]
+                f"noise_v_per_rthz = {_toml_value(float(b.emulation.noise_v_per_rthz))}",
+                f"relock_s = {_toml_value(float(b.emulation.relock_s))}"]
+        if b.emulation.damping is not None:
+            out.append(f"damping = {_toml_value(float(b.emulation.damping))}")
+        out.append("")
     for name, inst in p.instruments.items():
         out.append(f"[instruments.{_toml_key(name)}]")
         for key in ("profile", "resource", "channel", "newton_per_volt", "max_drive_v", "load_ohms", "volt_per_unit",

@@ -6,8 +6,8 @@ For each instrument a procedure names, an emulator of its model listens on the r
 clock). The drivers then open the instruments exactly as on a real rig, through PyVISA
 (pyvisa-py) and pymodbus, and share the bench's clock, so a campaign runs in seconds.
 
-Which emulator: SCPI generator profiles whose model names the 33500B (or 33600A) or a DG800,
-lock-in profiles for the SR830 or SR860, and any Modbus profile (the emulated controller
+Which emulator: SCPI generator profiles whose model names the 33500B (or 33600A), a DG800 or a
+Siglent SDG1000X/2000X, lock-in profiles for the SR830, SR860 or SR865A, and any Modbus profile (the emulated controller
 implements the profile's own register map). The emulated response sensor measures displacement.
 """
 
@@ -21,9 +21,10 @@ from setmem_hil.drivers.instruments.phasor_dwell import PhasorDwellExperiment
 from setmem_hil.drivers.instruments.profile import LockInProfile, ModbusProfile, ScpiGeneratorProfile
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import Procedure
-from setmem_hil.sim_backends.beam import beam_parameters
+from setmem_hil.model.modal_model import ModalParameters
+from setmem_hil.sim_backends.beam import BEAM_DAMPING_RATIO, BEAM_RESIDUE, beam_natural_frequencies
 from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBench
-from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer, LockInEmulator
+from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer, LockInEmulator, SiglentGeneratorEmulator
 from setmem_hil.sim_backends.modbus_controller_emulator import ModbusControllerEmulator
 
 __all__ = ["open_emulated_instruments", "start_emulators", "emulator_model"]
@@ -36,8 +37,9 @@ def emulator_model(profile) -> str | None:
     """The emulator that answers for a profile's model (None: no emulator for it)."""
     if isinstance(profile, ModbusProfile):
         return "modbus"
-    for pattern, model in ((r"335\d\d|33500|336\d\d", "33500B"), (r"DG8", "DG800"), (r"SR830", "SR830"), (r"SR860", "SR860")):
-        if re.search(pattern, profile.model):
+    for pattern, model in ((r"335\d\d|33500|336\d\d", "33500B"), (r"DG8", "DG800"), (r"SR830", "SR830"), (r"SR860", "SR860"),
+                           (r"SR865A", "SR865A"), (r"SDG2\d*0*X", "SDG2000X"), (r"SDG1\d*0*X", "SDG1000X")):
+        if re.search(pattern, profile.model, re.IGNORECASE):
             return model
     return None
 
@@ -52,10 +54,13 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
     exciter, force, response = (procedure.instruments[getattr(backend, r)] for r in ("exciter", "force", "response"))
     if (response.quantity or "displacement") != "displacement":
         raise ProcedureError(source, f"[instruments.{response.name}] key 'quantity'", "the emulated response sensor measures displacement")
-    bench = EmulatedBench(beam_parameters(), BenchSettings(
+    damping = emulation.damping if emulation.damping is not None else BEAM_DAMPING_RATIO
+    beam = ModalParameters.from_modal(beam_natural_frequencies(), damping, BEAM_RESIDUE, 0.0)
+    bench = EmulatedBench(beam, BenchSettings(
         newton_per_volt=exciter.newton_per_volt, drive_gain_ratio=emulation.drive_gain_ratio,
         force_volt_per_unit=force.volt_per_unit, response_volt_per_unit=response.volt_per_unit,
         noise_v_per_rthz=(emulation.noise_v_per_rthz, emulation.noise_v_per_rthz), seed=seed,
+        relock_s=emulation.relock_s,
     ))
     servers = []
     resources = {}
@@ -64,7 +69,7 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
             model = emulator_model(profile)
             if model is None:
                 raise ProcedureError(source, f"[instruments.{name}] key 'profile'", f"no emulator for a {profile.model}; "
-                                     "emulation knows the 33500B, DG800, SR830, SR860 and Modbus register maps")
+                                     "emulation knows the 33500B, DG800, Siglent SDG1000X/2000X, SR830, SR860, SR865A and Modbus register maps")
             if isinstance(profile, ModbusProfile):
                 m = _MODBUS_TCP.match(settings.resource)
                 if not m:
@@ -75,7 +80,9 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
                 m = _SOCKET.match(settings.resource)
                 if not m:
                     raise ProcedureError(source, f"[instruments.{name}] key 'resource'", f"emulation listens on TCPIP::127.0.0.1::PORT::SOCKET, found {settings.resource!r}")
-                if isinstance(profile, ScpiGeneratorProfile):
+                if isinstance(profile, ScpiGeneratorProfile) and model.startswith("SDG"):
+                    emulator = SiglentGeneratorEmulator(bench, model, channel=settings.channel)
+                elif isinstance(profile, ScpiGeneratorProfile):
                     emulator = GeneratorEmulator(bench, model, channel=settings.channel)
                 else:
                     assert isinstance(profile, LockInProfile)

@@ -75,6 +75,11 @@ def run(args: argparse.Namespace) -> int:
         if args.check:
             session.preflight(procedure)
             describe_procedure(procedure, console)
+            if procedure.backend.kind == "instruments":
+                from setmem_hil.drivers.instruments.instrument_set import instrument_warnings
+
+                for warning in instrument_warnings(procedure):
+                    console.print(f"warning: {warning}", highlight=False, markup=False)
             console.print(f"{args.procedure}: OK", highlight=False)
             return 0
         out = Path(args.out) if args.out else default_run_dir(procedure)
