@@ -207,4 +207,5 @@ def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = No
         on_measurement=on_measurement,
         owned=owned,
         identities=identities,
+        model=procedure.prior.initial_bounds(),
     )

@@ -50,6 +50,7 @@ from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.safety import check_sine_command
 from setmem_hil.errors import DeviceError, DeviceRejectedError, OutputNotConfirmedOffError, SafetyLimitError
 from setmem_hil.estimation.phasor_estimate import phasor_point, settling_test
+from setmem_hil.estimation.ringdown import FreeResponseBound, ringdown_wait_s, ringing_modes
 from setmem_hil.io.procedure import SafetyLimits
 from setmem_hil.model.experiment import Measurement
 
@@ -59,6 +60,8 @@ log = logging.getLogger(__name__)
 
 QUANTITIES = ("force", "displacement", "velocity", "acceleration")
 FORCE_LIMIT_MARGIN = 1.05  # the measured force may never exceed max_amplitude_n by more than 5 %
+# reading spacings in settling times: no common period, so no beat aliases into a constant in all of them
+SPACING_PATTERN = (1.0, 1.31, 1.12, 1.47, 1.23)
 
 
 @dataclass(frozen=True)
@@ -120,7 +123,12 @@ class PhasorDwellExperiment:
     n_measured: int = 0
     counters: dict = field(default_factory=lambda: {"dwells": 0, "level_corrections": 0, "unsettled_dwells": 0, "relocks": 0,
                                                     "reconnects": 0})
+    model: object = None  # the current IntervalModel (the prior's box at first): ringing modes to wait out
     _frequency_hz: float = field(default=1.0, init=False, repr=False)  # the drive frequency set last
+    _drive_changed_at: float = field(default=0.0, init=False, repr=False)
+    _dwell_start: float = field(default=0.0, init=False, repr=False)
+    _free: FreeResponseBound | None = field(default=None, init=False, repr=False)  # clock time of the last level change
+    last_ringdown: dict = field(default_factory=dict)  # the last dwell's wait and allowance (benchmarks, log)
     output_confirmed_off: bool = True  # the instruments were opened with the output forced off and read back
     last_dwell_s: float = 0.0
     rig_s: float = 0.0
@@ -145,15 +153,19 @@ class PhasorDwellExperiment:
         frequency_hz = self._check_command(omega_rad_s, target)
         if self.on_measurement is not None:
             self.on_measurement(self.n_measured)
-        start = self.clock.now()
+        start = self._dwell_start = self.clock.now()
         try:
             self.source.set_frequency_hz(frequency_hz)
             tau = self._set_time_constants(omega_rad_s)
+            for li in (self.force, self.response):  # every dwell starts on the largest full scale
+                li.set_range_for(complex(math.inf, 0.0))
             self._wait_locked(frequency_hz)
             self._level_up(target)
             self._check_reference(frequency_hz)
-            self._auto_range()
-            force_v, response_v = self._settle_and_read(omega_rad_s, target)
+            modes = self._wait_out_ringing(omega_rad_s, tau)
+            self._auto_range()  # after the wait: a lightly damped response is still growing before it
+            force_v, response_v, reading_times = self._settle_and_read(omega_rad_s, target)
+            allowance = self._free_response_allowance(omega_rad_s, tau, reading_times, force_v)
             self._ramp_down(target)
         except BaseException:
             self._output_off_keeping_the_cause()  # Ctrl-C stays Ctrl-C, a fault stays that fault
@@ -171,11 +183,47 @@ class PhasorDwellExperiment:
         quantity = self.response_sensor.quantity
         g = to_receptance(point.response, omega_rad_s, quantity)
         bound = point.bound * _receptance_scale(omega_rad_s, quantity)
+        bound += allowance * _receptance_scale(omega_rad_s, "displacement")
         if self.extra_bound is not None:
             bound += float(self.extra_bound(omega_rad_s))
         log.info("dwell at %.6g rad/s: tau %.3g s, %d readings, %.1f s, force %.4g N, |g| %.4g, bound %.3g",
                  omega_rad_s, tau, point.n_readings, self.last_dwell_s, point.force_amplitude, abs(g), bound)
         return Measurement(float(omega_rad_s), complex(g), float(bound), rig_s=float(self.last_dwell_s))
+
+    def update_model(self, model) -> None:
+        """The campaign's interval model after each identification: tighter damping bounds
+        shorten the wait and the allowance of later dwells."""
+        self.model = model
+
+    def _wait_out_ringing(self, omega_rad_s: float, tau: float) -> list:
+        """Wait ``DECAY_TIMES`` decay times of every mode whose beat passes the output filter
+        (counted from the last level change; capped so that the readings still fit in
+        ``max_dwell_s``); returns the modes, for the allowance of what is left."""
+        if self.model is None:
+            return []
+        order = max(self.force.profile.filter_order, self.response.profile.filter_order)
+        modes = ringing_modes(self.model, omega_rad_s, tau, order)
+        wanted = ringdown_wait_s(modes)
+        readings_s = 2 * self.settings.readings_per_half * self._settle_time() * max(SPACING_PATTERN)
+        room = self.limits.max_dwell_s - (self.clock.now() - self._dwell_start) - readings_s
+        elapsed = self.clock.now() - self._drive_changed_at
+        wait = max(0.0, min(wanted - elapsed, room))
+        self.last_ringdown = {"omega_rad_s": omega_rad_s, "wanted_s": wanted, "waited_s": wait,
+                              "decay_times_s": [m.decay_time_s for m in modes if m.passes]}
+        if wait > 0:
+            self._wait(wait)
+        return modes
+
+    def _free_response_allowance(self, omega_rad_s: float, tau: float, times: np.ndarray, force_v: np.ndarray) -> float:
+        """What the modes' free response may still add to the mean of the readings (receptance
+        units; :class:`~setmem_hil.estimation.ringdown.FreeResponseBound`)."""
+        allowance = 0.0
+        if self._free is not None:
+            order = max(self.force.profile.filter_order, self.response.profile.filter_order)
+            force_n = self._force_amplitude(complex(np.mean(force_v)))
+            allowance = self._free.allowance(self.model, times, omega_rad_s, tau, order, force_n)
+        self.last_ringdown["allowance"] = allowance
+        return allowance
 
     def confirm_output_off(self) -> None:
         """Output off, read back (a fresh connection if the link failed); raises when it cannot
@@ -266,21 +314,41 @@ class PhasorDwellExperiment:
         self.source.set_amplitude_v(volts)
         self.output_confirmed_off = False  # from the moment the command may have taken effect
         self.source.set_output(True)
+        self._drive_changed(volts)
         for fraction in (*self.settings.ramp_fractions[1:], 1.0):
             self._wait(self._settle_time())
             self._update_gain(volts)
-            volts = self._drive_volts(fraction * target / self.gain_estimate)
-            self.source.set_amplitude_v(volts)
+            volts = self._set_drive(fraction * target / self.gain_estimate)
         for _ in range(self.settings.max_level_corrections):
             self._wait(self._settle_time())
             force = self._update_gain(volts)
             if abs(force / target - 1.0) <= self.settings.level_tolerance:
                 return
-            volts = self._drive_volts(target / self.gain_estimate)
-            self.source.set_amplitude_v(volts)
+            volts = self._set_drive(target / self.gain_estimate)
             self.counters["level_corrections"] += 1
         log.warning("%s: force level not within %.0f %% of %.3g N after %d corrections", self.source.name,
                     100 * self.settings.level_tolerance, target, self.settings.max_level_corrections)
+
+    # the force a drive voltage may produce, for the free-response bound: the gain estimate with
+    # room for its error (the first steps use the nominal gain), never above the force abort limit
+    GAIN_ROOM = 1.25
+
+    def _set_drive(self, volts: float) -> float:
+        volts = self._drive_volts(volts)
+        self.source.set_amplitude_v(volts)
+        self._drive_changed(volts)
+        return volts
+
+    def _drive_changed(self, volts: float) -> None:
+        """Record a change of the drive (for the wait and the free-response bound)."""
+        self._drive_changed_at = self.clock.now()
+        if self.model is None:
+            return
+        force_max = FORCE_LIMIT_MARGIN * self.limits.max_amplitude_n
+        if self._free is None:
+            self._free = FreeResponseBound(force_max)
+        force = min(force_max, volts * self.gain_estimate * self.GAIN_ROOM * (1.0 + self.force_sensor.calibration_uncertainty))
+        self._free.drive(self._drive_changed_at, 2 * math.pi * self._frequency_hz, force)
 
     def _update_gain(self, volts: float) -> float:
         force = self._force_amplitude(self._read_force())
@@ -319,7 +387,10 @@ class PhasorDwellExperiment:
                 self._wait(self._settle_time() / 10.0)
                 continue
             return z
-        return li.read_xy()
+        try:
+            return li.read_xy()
+        except LockInOverload as exc:
+            raise DeviceRejectedError("overload", f"{exc} after {self.MAX_RANGE_STEPS} range changes") from None
 
     # the reference relocks after every frequency (and time constant) change: wait at most
     # RELOCK_MIN_S, or RELOCK_PERIODS reference periods plus RELOCK_TAUS time constants if longer
@@ -362,28 +433,34 @@ class PhasorDwellExperiment:
                 raise DeviceRejectedError("instrument", f"{li.where}: reference at {ref:.6g} Hz, the drive at {frequency_hz:.6g} Hz: "
                                           "is the generator's sync output wired to the reference input?")
 
-    def _settle_and_read(self, omega_rad_s: float, target: float) -> tuple[np.ndarray, np.ndarray]:
+    def _settle_and_read(self, omega_rad_s: float, target: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Readings spaced irregularly (``SPACING_PATTERN`` times the filters' settling time, so
+        that a ringing mode's beat cannot alias into a constant) until the settling test passes
+        twice in a row; returns the window's force and response readings and their clock times."""
         m = self.settings.readings_per_half
-        spacing = self._settle_time()
         start = self.clock.now()
         forces: list[complex] = []
         responses: list[complex] = []
+        times: list[float] = []
         passes = 0
         while True:
+            times.append(self.clock.now())
             forces.append(self._read_force())
             responses.append(self._read(self.response))
             self._check_response(responses[-1], omega_rad_s)
+            spacing = self._settle_time() * SPACING_PATTERN[len(forces) % len(SPACING_PATTERN)]
             if len(forces) >= 2 * m:
                 window_f, window_r = np.array(forces[-2 * m:]), np.array(responses[-2 * m:])
+                window_t = np.array(times[-2 * m:])
                 ratio = (window_r / self.response_sensor.volt_per_unit) / (window_f / self.force_sensor.volt_per_unit)
                 passes = passes + 1 if settling_test(ratio, self.settings.confidence) else 0
                 if passes >= 2:  # two windows in a row: one lucky draw does not end the dwell
-                    return window_f, window_r
+                    return window_f, window_r, window_t
                 if self.clock.now() - start + spacing > self.limits.max_dwell_s:
                     self.counters["unsettled_dwells"] += 1
                     log.warning("dwell at %.6g rad/s not settled within max_dwell_s = %g s; the bound includes the drift",
                                 omega_rad_s, self.limits.max_dwell_s)
-                    return window_f, window_r
+                    return window_f, window_r, window_t
             self._wait(spacing)
 
     def _check_response(self, r_v: complex, omega_rad_s: float) -> None:
@@ -398,7 +475,7 @@ class PhasorDwellExperiment:
     def _ramp_down(self, target: float) -> None:
         volts = target / self.gain_estimate
         for fraction in reversed(self.settings.ramp_fractions):
-            self.source.set_amplitude_v(self._drive_volts(fraction * volts))
+            self._set_drive(fraction * volts)
             self._wait(self._settle_time() / 10.0)
 
     def _output_off_keeping_the_cause(self) -> None:
@@ -415,6 +492,7 @@ class PhasorDwellExperiment:
         try:
             self.source.set_output(False)
             self.output_confirmed_off = True
+            self._drive_changed(0.0)
             return
         except Exception as first:  # noqa: BLE001 - any failure: try a fresh connection
             log.error("%s: switching the output off failed (%s); opening a fresh connection", self.exciter, first)

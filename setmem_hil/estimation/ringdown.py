@@ -1,0 +1,166 @@
+"""Ringing modes seen through a lock-in: how long to wait, and what the readings may still hold.
+
+After the last change of the drive (a level step, the output switched on) the response of mode
+``i`` is the steady state plus a free oscillation at the mode's pole ``p_i = -sigma_i + j w_d``.
+A lock-in demodulating at the drive frequency ``w`` shows that free part at the *beat*
+``w_d - w``, decaying at ``sigma_i``, through its output filter (``n`` first-order stages of time
+constant ``tau``). Pure numerics of the interval model (no I/O); the dwell
+(:mod:`setmem_hil.drivers.instruments.phasor_dwell`) decides with it.
+
+**Amplitude** (:class:`FreeResponseBound`; rigorous for the drive history the dwell applied).
+With the modal coordinate ``xi' = p xi + f`` and ``y_i = 2 Re(r_i xi)`` (``r_i`` the pole's residue
+of thesis eq. 2.6) the free part ``h = xi - xi_ss`` (the deviation from the present sine's steady
+state ``xi_ss = F e^{j w t} / (j w - p)``) decays as ``|h| e^{-sigma t}`` while the drive is
+constant, and jumps by at most ``|F_old| / |j w_old - p| + |F_new| / |j w_new - p|`` (the same
+frequency: ``|F_new - F_old| / |j w - p|``) when the drive changes. Any input bounded by
+``F_max`` also keeps ``|h| <= 2 F_max / sigma``. The tracker follows every drive change of every
+dwell (the structure is assumed at rest when the experiment is opened) and the free response is
+``|y_free| <= 2 |r| |h|``. Over the interval model every factor takes its worst value: ``sigma`` its
+lower bound ``a1_min / 2`` (eq. 2.3: ``a1 = 2 zeta w_n``), ``|j w - p| >= sqrt(sigma_min^2 +
+beat_min^2)``, ``|r| <= (|b1|max sqrt(a0max) + |b0|max) / (2 w_d,min)``.
+
+**Filter.** An input ``exp(s t)`` with ``s = -sigma + j beat`` leaves the cascade as
+``exp(s t) / (1 + s tau)^n`` once the filter's own transient (``tau``) has passed, so the gain is
+``|1 + s tau|^-n`` at the beat the frequency interval allows nearest the drive.
+
+**Wait.** ``k`` decay times ``1 / sigma_min`` of every mode whose filter gain is at least
+``PASSING_GAIN`` (``k = DECAY_TIMES``: ``exp(-6) = 0.25 %`` of the worst-case amplitude is left);
+a mode whose damping lower bound is still 0 (the prior, before the first identification) has no
+finite decay time: its readings rely on the settling test, and no allowance can be computed for
+it. The allowance for what is left (:meth:`FreeResponseBound.allowance`) is added to the point's bound.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from setmem_hil.model.modal_model import IntervalModel
+
+__all__ = ["DECAY_TIMES", "PASSING_GAIN", "RingingMode", "ringing_modes", "ringdown_wait_s", "FreeResponseBound"]
+
+DECAY_TIMES = 6.0
+PASSING_GAIN = 1e-2  # a beat attenuated below 1 % by the output filter is not waited for (its allowance still counts)
+
+
+@dataclass(frozen=True)
+class RingingMode:
+    """One mode's worst case at a drive frequency, per newton of the largest drive."""
+
+    mode: int  # 0-based
+    sigma_min: float  # decay rate lower bound (1/s); 0: unknown
+    filter_gain: float  # the output filter's gain at the nearest beat the interval allows
+
+    @property
+    def passes(self) -> bool:
+        return self.filter_gain >= PASSING_GAIN
+
+    @property
+    def decay_time_s(self) -> float:
+        return math.inf if self.sigma_min <= 0 else 1.0 / self.sigma_min
+
+
+def _filter_gain(sigma: float, beat: float, tau: float, order: int) -> float:
+    return float(abs(1.0 + complex(-sigma, beat) * tau) ** -order)
+
+
+def ringing_modes(model: IntervalModel, omega_rad_s: float, tau_s: float, order: int) -> list[RingingMode]:
+    """Every modelled mode's decay rate bound and filter gain at drive frequency ``omega_rad_s``."""
+    out = []
+    for i in range(model.n_modes):
+        sigma_min, _, _ = _mode_box(model, i, omega_rad_s)
+        sigma_max = max(model.upper[i, 0], 0.0) / 2.0
+        beat = _beat(model, i, omega_rad_s)
+        gain = _filter_gain(min(sigma_max, 0.99 / tau_s), beat, tau_s, order)  # a larger sigma attenuates less (worst case)
+        out.append(RingingMode(i, sigma_min, gain))
+    return out
+
+
+def _beat(model: IntervalModel, i: int, omega: float) -> float:
+    """The smallest |w_d - omega| the interval box allows."""
+    sigma_max = max(model.upper[i, 0], 0.0) / 2.0
+    wd_lo = math.sqrt(max(model.lower[i, 1] - sigma_max**2, 0.0))
+    wd_hi = math.sqrt(max(model.upper[i, 1], 0.0))
+    return 0.0 if wd_lo <= omega <= wd_hi else min(abs(omega - wd_lo), abs(omega - wd_hi))
+
+
+def ringdown_wait_s(modes: list[RingingMode]) -> float:
+    """``DECAY_TIMES`` decay times of the slowest passing mode with a known decay rate (0 if none)."""
+    times = [m.decay_time_s for m in modes if m.passes and m.sigma_min > 0]
+    return DECAY_TIMES * max(times) if times else 0.0
+
+
+def _mode_box(model: IntervalModel, i: int, omega: float) -> tuple[float, float, float]:
+    """(sigma_min, min |j omega - p|, |r|max) of mode ``i`` over the interval box."""
+    a1_lo, a0_lo, b1_lo, b0_lo = model.lower[i]
+    _, a0_hi, b1_hi, b0_hi = model.upper[i]
+    sigma_min, sigma_max = max(a1_lo, 0.0) / 2.0, max(model.upper[i, 0], 0.0) / 2.0
+    wd_lo = math.sqrt(max(a0_lo - sigma_max**2, 0.0))
+    b1, b0 = max(abs(b1_lo), abs(b1_hi)), max(abs(b0_lo), abs(b0_hi))
+    residue = (b1 * math.sqrt(a0_hi) + b0) / (2.0 * wd_lo) if wd_lo > 0 else math.inf
+    return sigma_min, math.hypot(sigma_min, _beat(model, i, omega)), residue
+
+
+def _per_distance(force: float, distance: float) -> float:
+    if force == 0:
+        return 0.0
+    return force / distance if distance > 0 else math.inf
+
+
+class FreeResponseBound:
+    """Bounds the free part of every modelled mode through the drive history (module docstring).
+
+    :meth:`drive` records every change of the drive (frequency, level, output on or off);
+    :meth:`bound` replays the whole history with the *current* interval model: the true
+    parameters lie in it (and intervals never loosen, eq. 5.4-5.5), so decays and jumps computed
+    with it bound what happened, also before the model knew as much. A jump the model cannot
+    bound (a drive at a frequency the mode's interval allows) restarts from the any-input bound
+    ``2 F_max / sigma``; a mode whose damping lower bound is still 0 has no bound.
+    """
+
+    def __init__(self, force_max_n: float):
+        self.events: list[tuple[float, float, float]] = []  # (time, omega, force) from time on
+        self.force_max = force_max_n
+
+    def drive(self, t: float, omega: float, force: float) -> None:
+        """The drive became ``force`` (amplitude, N; 0: output off) at ``omega`` at time ``t``."""
+        self.events.append((float(t), float(omega), float(force)))
+
+    def bound(self, model: IntervalModel, i: int, t: float) -> float:
+        """``|xi - xi_ss|`` bound of mode ``i`` at time ``t`` (inf: not boundable yet)."""
+        sigma = max(model.lower[i, 0], 0.0) / 2.0
+        if sigma <= 0:  # no damping lower bound: nothing decays in the worst case; the settling test decides
+            return math.inf
+        cap = 2.0 * self.force_max / sigma
+        h, last_t, omega, force = 0.0, 0.0, 0.0, 0.0  # at rest when the experiment was opened
+        for when, new_omega, new_force in self.events:
+            if when > t:
+                break
+            h *= math.exp(-sigma * (when - last_t))
+            dist_old = _mode_box(model, i, omega)[1]
+            dist_new = _mode_box(model, i, new_omega)[1]
+            if new_omega == omega:
+                jump = _per_distance(abs(new_force - force), dist_new)
+            else:
+                jump = _per_distance(force, dist_old) + _per_distance(new_force, dist_new)
+            h = min(h + jump, cap)
+            last_t, omega, force = when, new_omega, new_force
+        return min(h * math.exp(-sigma * (t - last_t)), cap)
+
+    def allowance(self, model: IntervalModel, times_s: np.ndarray, omega: float, tau_s: float, order: int,
+                  force_n: float) -> float:
+        """Worst-case error, in receptance units, of the mean of readings taken at ``times_s``
+        (clock times after the last drive change) through the output filter, relative to the
+        measured force amplitude ``force_n``. Modes not boundable yet (no damping lower bound,
+        drive near them) are left out: they rely on the settling test."""
+        times = np.asarray(times_s, dtype=float)
+        start = float(times.min())
+        total = 0.0
+        for mode in ringing_modes(model, omega, tau_s, order):
+            residue = _mode_box(model, mode.mode, omega)[2]
+            h = self.bound(model, mode.mode, start)
+            if math.isfinite(h) and math.isfinite(residue):
+                total += 2.0 * residue * h * mode.filter_gain * float(np.mean(np.exp(-mode.sigma_min * (times - start))))
+        return total / force_n
