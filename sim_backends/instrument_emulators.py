@@ -494,6 +494,7 @@ class InstrumentServer:
         class Handler(socketserver.StreamRequestHandler):
             def handle(self):  # noqa: D401 - socketserver API
                 try:
+                    self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                     if server._link_down:
                         return
                     for raw in self.rfile:

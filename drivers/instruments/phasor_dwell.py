@@ -49,7 +49,7 @@ from setmem_hil.drivers.instruments.lockin import LockIn, LockInOverload, Refere
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.safety import check_sine_command
 from setmem_hil.errors import DeviceError, DeviceRejectedError, OutputNotConfirmedOffError, SafetyLimitError
-from setmem_hil.estimation.phasor_estimate import phasor_point, settling_test
+from setmem_hil.estimation.phasor_estimate import exponential_gap, phasor_point, settling_test
 from setmem_hil.estimation.ringdown import FreeResponseBound, ringdown_wait_s, ringing_modes
 from setmem_hil.io.procedure import SafetyLimits
 from setmem_hil.model.experiment import Measurement
@@ -164,8 +164,11 @@ class PhasorDwellExperiment:
             self._check_reference(frequency_hz)
             modes = self._wait_out_ringing(omega_rad_s, tau)
             self._auto_range()  # after the wait: a lightly damped response is still growing before it
-            force_v, response_v, reading_times = self._settle_and_read(omega_rad_s, target)
-            allowance = self._free_response_allowance(omega_rad_s, tau, reading_times, force_v)
+            all_f, all_r, times = self._settle_and_read(omega_rad_s, target)
+            window = slice(-2 * self.settings.readings_per_half, None)
+            force_v, response_v = all_f[window], all_r[window]
+            allowance = self._free_response_allowance(omega_rad_s, tau, times[window], force_v)
+            trend = self._trend_gap(all_f, all_r, times)
             self._ramp_down(target)
         except BaseException:
             self._output_off_keeping_the_cause()  # Ctrl-C stays Ctrl-C, a fault stays that fault
@@ -182,8 +185,9 @@ class PhasorDwellExperiment:
                              self.settings.confidence)
         quantity = self.response_sensor.quantity
         g = to_receptance(point.response, omega_rad_s, quantity)
-        bound = point.bound * _receptance_scale(omega_rad_s, quantity)
+        bound = (point.bound + trend) * _receptance_scale(omega_rad_s, quantity)
         bound += allowance * _receptance_scale(omega_rad_s, "displacement")
+        self.last_ringdown["trend"] = trend
         if self.extra_bound is not None:
             bound += float(self.extra_bound(omega_rad_s))
         log.info("dwell at %.6g rad/s: tau %.3g s, %d readings, %.1f s, force %.4g N, |g| %.4g, bound %.3g",
@@ -224,6 +228,13 @@ class PhasorDwellExperiment:
             allowance = self._free.allowance(self.model, times, omega_rad_s, tau, order, force_n)
         self.last_ringdown["allowance"] = allowance
         return allowance
+
+    def _trend_gap(self, force_v: np.ndarray, response_v: np.ndarray, times: np.ndarray) -> float:
+        """The exponential trend of every reading of the dwell (:func:`exponential_gap`), in the
+        ratio's units: what a transient slower than the window may still hide."""
+        ratio = (response_v / self.response_sensor.volt_per_unit) / (force_v / self.force_sensor.volt_per_unit)
+        window = ratio[-2 * self.settings.readings_per_half:]
+        return exponential_gap(times, ratio, complex(window.mean()), self.settings.confidence)
 
     def confirm_output_off(self) -> None:
         """Output off, read back (a fresh connection if the link failed); raises when it cannot
@@ -436,7 +447,8 @@ class PhasorDwellExperiment:
     def _settle_and_read(self, omega_rad_s: float, target: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Readings spaced irregularly (``SPACING_PATTERN`` times the filters' settling time, so
         that a ringing mode's beat cannot alias into a constant) until the settling test passes
-        twice in a row; returns the window's force and response readings and their clock times."""
+        twice in a row; returns every force and response reading and their clock times (the
+        window is the last ``2 m``)."""
         m = self.settings.readings_per_half
         start = self.clock.now()
         forces: list[complex] = []
@@ -451,16 +463,15 @@ class PhasorDwellExperiment:
             spacing = self._settle_time() * SPACING_PATTERN[len(forces) % len(SPACING_PATTERN)]
             if len(forces) >= 2 * m:
                 window_f, window_r = np.array(forces[-2 * m:]), np.array(responses[-2 * m:])
-                window_t = np.array(times[-2 * m:])
                 ratio = (window_r / self.response_sensor.volt_per_unit) / (window_f / self.force_sensor.volt_per_unit)
                 passes = passes + 1 if settling_test(ratio, self.settings.confidence) else 0
                 if passes >= 2:  # two windows in a row: one lucky draw does not end the dwell
-                    return window_f, window_r, window_t
+                    return np.array(forces), np.array(responses), np.array(times)
                 if self.clock.now() - start + spacing > self.limits.max_dwell_s:
                     self.counters["unsettled_dwells"] += 1
                     log.warning("dwell at %.6g rad/s not settled within max_dwell_s = %g s; the bound includes the drift",
                                 omega_rad_s, self.limits.max_dwell_s)
-                    return window_f, window_r, window_t
+                    return np.array(forces), np.array(responses), np.array(times)
             self._wait(spacing)
 
     def _check_response(self, r_v: complex, omega_rad_s: float) -> None:

@@ -45,6 +45,12 @@ class VisaLink:
                                                 timeout=int(self.timeout_s * 1000))
         except Exception as exc:  # noqa: BLE001 - pyvisa raises VisaIOError, ValueError, OSError, LibraryError...
             raise DeviceDisconnectedError(f"{self.name}: cannot open {self.resource!r} ({_reason(exc)})") from None
+        sock = self._socket()
+        if sock is not None:  # short commands go out at once (Nagle would hold a write behind the last one's ACK)
+            try:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            except OSError:
+                pass
 
     def reopen(self) -> None:
         """Drop this session and open a fresh one to the same resource (after a dropped link)."""

@@ -25,8 +25,11 @@ the prior's damping lower bound is 0.
   is within ``|g| (c_f + c_r) / (1 - c_r)`` of the truth.
 
 Readings of a transient that decays much slower than the window lasts cannot be told from
-steady state by any test on the window; the bound is then not guaranteed (say so in the report:
-the window length is recorded).
+steady state by any test on the window. Two things cover it: the dwell's wait and allowance from
+the pole intervals (:mod:`setmem_hil.estimation.ringdown`), and, where the intervals do not bound
+the damping yet, :func:`exponential_gap`: every reading since the last drive change is fitted
+with one decaying (or beating) exponential, and where that fit is significantly better than a
+constant, the distance from the window's mean to the fit's limit joins the bound.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-__all__ = ["PhasorPoint", "settling_test", "noise_radius", "calibration_radius", "phasor_point"]
+__all__ = ["PhasorPoint", "settling_test", "noise_radius", "calibration_radius", "phasor_point", "exponential_gap"]
 
 
 @dataclass(frozen=True)
@@ -117,3 +120,48 @@ def phasor_point(force_v: np.ndarray, response_v: np.ndarray, force_volt_per_uni
         response=mean, bound=noise + drift + cal, noise=noise, drift=drift, calibration=cal,
         force_amplitude=math.sqrt(2.0) * abs(complex(F.mean())), n_readings=int(g.size),
     )
+
+
+def exponential_gap(times_s: np.ndarray, ratios: np.ndarray, window_mean: complex, confidence: float = 0.99) -> float:
+    """How far the steady state may lie from ``window_mean`` by the trend of all readings.
+
+    Fits ``g + c exp(s t)`` (``s = -sigma + j beat``; a free oscillation of one mode seen by the
+    lock-in) to the readings ``ratios`` at ``times_s`` by least squares over a grid of ``s``
+    (decay times from a tenth to 20 times the span; beats up to a quarter of the readings per
+    span), ``g`` and ``c`` linear. When the fit explains significantly more than a constant (F
+    test with 4 and ``2 n - 6`` degrees of freedom at ``confidence``), returns ``|g - window_mean|``;
+    else 0. A judgement where the thesis is silent: one exponential, the slowest mode's, is what a
+    lock-in dwell's trend shows; more would need more readings than a dwell takes.
+    """
+    t = np.asarray(times_s, dtype=float)
+    z = np.asarray(ratios, dtype=complex)
+    n = z.size
+    if n < 8:
+        return 0.0
+    t = t - t[0]
+    span = float(t[-1])
+    if span <= 0:
+        return 0.0
+    rss0 = float(np.sum(np.abs(z - z.mean()) ** 2))
+    sigmas = np.geomspace(0.05 / span, 20.0 / span, 30)
+    beats = np.linspace(-0.5 * np.pi * n / span, 0.5 * np.pi * n / span, 41)
+    s = (-sigmas[:, None] + 1j * beats[None, :]).ravel()
+    e = np.exp(np.outer(s, t))  # (grid, n)
+    # least squares of z on [1, e] for every grid point, in closed form (2 x 2 normal equations)
+    se, see = e.sum(axis=1), np.sum(np.abs(e) ** 2, axis=1)
+    sz, sez = z.sum(), e.conj() @ z
+    det = n * see - np.abs(se) ** 2
+    ok = det > 1e-12 * n * see
+    g = np.where(ok, (see * sz - se * sez) / np.where(ok, det, 1.0), z.mean())
+    c = np.where(ok, (n * sez - se.conj() * sz) / np.where(ok, det, 1.0), 0.0)
+    rss = np.sum(np.abs(z[None, :] - g[:, None] - c[:, None] * e) ** 2, axis=1)
+    rss = np.where(ok, rss, rss0)
+    best = int(np.argmin(rss))
+    rss1 = float(rss[best])
+    dof = 2 * n - 6
+    if rss1 <= 0 or dof <= 0:
+        return float(abs(g[best] - window_mean))
+    statistic = ((rss0 - rss1) / 4.0) / (rss1 / dof)
+    if statistic <= stats.f.ppf(confidence, 4, dof):
+        return 0.0
+    return float(abs(g[best] - window_mean))

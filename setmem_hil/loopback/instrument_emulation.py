@@ -27,7 +27,7 @@ from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBenc
 from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer, LockInEmulator, SiglentGeneratorEmulator
 from setmem_hil.sim_backends.modbus_controller_emulator import ModbusControllerEmulator
 
-__all__ = ["open_emulated_instruments", "start_emulators", "emulator_model"]
+__all__ = ["open_emulated_instruments", "start_emulators", "emulator_model", "with_damping"]
 
 _SOCKET = re.compile(r"^TCPIP0?::(127\.0\.0\.1|localhost)::(\d+)::SOCKET$", re.IGNORECASE)
 _MODBUS_TCP = re.compile(r"^tcp://(127\.0\.0\.1|localhost):(\d+)$")
@@ -105,3 +105,22 @@ def open_emulated_instruments(procedure: Procedure, seed: int, extra_bound=None)
                                             on_measurement=lambda index: bench.reseed((index,)), owned=tuple(servers))
     experiment.bench = bench  # tests read the emulated truth and the peak force through it
     return experiment
+
+
+def with_damping(procedure: Procedure, damping: float, calibration: float | None = None) -> Procedure:
+    """The emulated procedure with every mode at ``damping``; the response sensor's sensitivity
+    scaled by ``damping / 0.01`` so that the taller resonance still fits the lock-in's full scale
+    (what a technician does when the lock-in overloads); ``calibration`` replaces both sensors'
+    calibration uncertainty when given."""
+    backend = procedure.backend
+    if backend.emulation is None:
+        raise ProcedureError(procedure.source_path or procedure.name, "[backend.emulation]", "with_damping needs an emulated procedure")
+    instruments = dict(procedure.instruments)
+    for role in ("force", "response"):
+        settings = instruments[getattr(backend, role)]
+        changes = {} if calibration is None else {"calibration_uncertainty": calibration}
+        if role == "response":
+            changes["volt_per_unit"] = settings.volt_per_unit * damping / BEAM_DAMPING_RATIO
+        instruments[settings.name] = dataclasses.replace(settings, **changes)
+    emulation = dataclasses.replace(backend.emulation, damping=damping)
+    return dataclasses.replace(procedure, instruments=instruments, backend=dataclasses.replace(backend, emulation=emulation))
