@@ -49,8 +49,8 @@ from setmem_hil.drivers.instruments.lockin import LockIn, LockInOverload, Refere
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.safety import check_sine_command
 from setmem_hil.errors import DeviceError, DeviceRejectedError, OutputNotConfirmedOffError, SafetyLimitError
-from setmem_hil.estimation.phasor_estimate import exponential_gap, phasor_point, settling_test
-from setmem_hil.estimation.ringdown import FreeResponseBound, ringdown_wait_s, ringing_modes
+from setmem_hil.estimation.phasor_estimate import exponential_gap, exponential_trend, phasor_point, settling_test
+from setmem_hil.estimation.ringdown import FreeResponseBound, leak_time_constant, leak_wait_s, ringdown_wait_s, ringing_modes
 from setmem_hil.io.procedure import SafetyLimits
 from setmem_hil.model.experiment import Measurement
 
@@ -188,11 +188,19 @@ class PhasorDwellExperiment:
         bound = (point.bound + trend) * _receptance_scale(omega_rad_s, quantity)
         bound += allowance * _receptance_scale(omega_rad_s, "displacement")
         self.last_ringdown["trend"] = trend
+        if self._free is not None:  # what the structure did: caps its free ringing from now on
+            own = point.bound * _receptance_scale(omega_rad_s, quantity)  # statistical: no allowance fed back
+            self._free.record_motion(self.clock.now(), (abs(g) + own) * point.force_amplitude)
         if self.extra_bound is not None:
             bound += float(self.extra_bound(omega_rad_s))
         log.info("dwell at %.6g rad/s: tau %.3g s, %d readings, %.1f s, force %.4g N, |g| %.4g, bound %.3g",
                  omega_rad_s, tau, point.n_readings, self.last_dwell_s, point.force_amplitude, abs(g), bound)
         return Measurement(float(omega_rad_s), complex(g), float(bound), rig_s=float(self.last_dwell_s))
+
+    def _expected_response(self, omega_rad_s: float) -> float:
+        """|G| of the model's midpoint (nan while residues are unbounded)."""
+        with np.errstate(invalid="ignore"):
+            return abs(complex(np.ravel(self.model.midpoint.frequency_response(np.array([omega_rad_s])))[0]))
 
     def update_model(self, model) -> None:
         """The campaign's interval model after each identification: tighter damping bounds
@@ -207,12 +215,16 @@ class PhasorDwellExperiment:
             return []
         order = max(self.force.profile.filter_order, self.response.profile.filter_order)
         modes = ringing_modes(self.model, omega_rad_s, tau, order)
+        elapsed = self.clock.now() - self._drive_changed_at
         wanted = ringdown_wait_s(modes)
+        leak = 0.0
+        if self._free is not None:
+            leak = leak_wait_s(self._free, self.model, omega_rad_s, tau, order, self.clock.now(), self._target_force(),
+                               self._expected_response(omega_rad_s))
         readings_s = 2 * self.settings.readings_per_half * self._settle_time() * max(SPACING_PATTERN)
         room = self.limits.max_dwell_s - (self.clock.now() - self._dwell_start) - readings_s
-        elapsed = self.clock.now() - self._drive_changed_at
-        wait = max(0.0, min(wanted - elapsed, room))
-        self.last_ringdown = {"omega_rad_s": omega_rad_s, "wanted_s": wanted, "waited_s": wait,
+        wait = max(0.0, min(max(wanted - elapsed, leak), room))
+        self.last_ringdown = {"omega_rad_s": omega_rad_s, "wanted_s": wanted, "leak_wait_s": leak, "waited_s": wait,
                               "decay_times_s": [m.decay_time_s for m in modes if m.passes]}
         if wait > 0:
             self._wait(wait)
@@ -228,6 +240,14 @@ class PhasorDwellExperiment:
             allowance = self._free.allowance(self.model, times, omega_rad_s, tau, order, force_n)
         self.last_ringdown["allowance"] = allowance
         return allowance
+
+    def _still_ringing(self, forces: list, responses: list, times: list, window: np.ndarray) -> bool:
+        """A ringing mode the halves test cannot see (its beat inflates the scatter instead of
+        shifting the mean): the exponential fit of every reading still shows a transient above
+        the fit's residual noise. Reading on lets it decay (up to ``max_dwell_s``)."""
+        ratio = (np.array(responses) / self.response_sensor.volt_per_unit) / (np.array(forces) / self.force_sensor.volt_per_unit)
+        _, ringing_now = exponential_trend(np.array(times), ratio, complex(window.mean()), self.settings.confidence)
+        return ringing_now > 0
 
     def _trend_gap(self, force_v: np.ndarray, response_v: np.ndarray, times: np.ndarray) -> float:
         """The exponential trend of every reading of the dwell (:func:`exponential_gap`), in the
@@ -282,7 +302,15 @@ class PhasorDwellExperiment:
         return frequency_hz
 
     def _set_time_constants(self, omega_rad_s: float) -> float:
+        """``time_constant_cycles / omega``, or longer where a mode still rings hard enough from
+        an earlier dwell that its beat would leak through (:func:`leak_time_constant`)."""
         wanted = self.settings.time_constant_cycles / omega_rad_s
+        if self._free is not None:
+            order = max(self.force.profile.filter_order, self.response.profile.filter_order)
+            values = self.response.profile.time_constants_s
+            base = next((v for v in values if v >= wanted), values[-1])
+            wanted = leak_time_constant(self._free, self.model, omega_rad_s, order, self.clock.now(), values, base,
+                                        self._target_force(), self._expected_response(omega_rad_s))
         tau = self.force.set_time_constant(wanted)
         tau_r = self.response.set_time_constant(tau)
         if tau_r != tau:  # different instruments: use the longer for both
@@ -464,7 +492,8 @@ class PhasorDwellExperiment:
             if len(forces) >= 2 * m:
                 window_f, window_r = np.array(forces[-2 * m:]), np.array(responses[-2 * m:])
                 ratio = (window_r / self.response_sensor.volt_per_unit) / (window_f / self.force_sensor.volt_per_unit)
-                passes = passes + 1 if settling_test(ratio, self.settings.confidence) else 0
+                settled = settling_test(ratio, self.settings.confidence) and not self._still_ringing(forces, responses, times, ratio)
+                passes = passes + 1 if settled else 0
                 if passes >= 2:  # two windows in a row: one lucky draw does not end the dwell
                     return np.array(forces), np.array(responses), np.array(times)
                 if self.clock.now() - start + spacing > self.limits.max_dwell_s:

@@ -40,7 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-__all__ = ["PhasorPoint", "settling_test", "noise_radius", "calibration_radius", "phasor_point", "exponential_gap"]
+__all__ = ["PhasorPoint", "settling_test", "noise_radius", "calibration_radius", "phasor_point", "exponential_gap",
+           "exponential_trend"]
 
 
 @dataclass(frozen=True)
@@ -123,28 +124,36 @@ def phasor_point(force_v: np.ndarray, response_v: np.ndarray, force_volt_per_uni
 
 
 def exponential_gap(times_s: np.ndarray, ratios: np.ndarray, window_mean: complex, confidence: float = 0.99) -> float:
+    """How far the steady state may lie from ``window_mean`` by the trend of all readings
+    (:func:`exponential_trend`'s gap)."""
+    return exponential_trend(times_s, ratios, window_mean, confidence)[0]
+
+
+def exponential_trend(times_s: np.ndarray, ratios: np.ndarray, window_mean: complex,
+                      confidence: float = 0.99) -> tuple[float, float]:
     """How far the steady state may lie from ``window_mean`` by the trend of all readings.
 
     Fits ``g + c exp(s t)`` (``s = -sigma + j beat``; a free oscillation of one mode seen by the
     lock-in) to the readings ``ratios`` at ``times_s`` by least squares over a grid of ``s``
-    (decay times from a tenth to 20 times the span; beats up to a quarter of the readings per
-    span), ``g`` and ``c`` linear. When the fit explains significantly more than a constant (F
-    test with 4 and ``2 n - 6`` degrees of freedom at ``confidence``), returns ``|g - window_mean|``;
-    else 0. A judgement where the thesis is silent: one exponential, the slowest mode's, is what a
+    (decay times from a twentieth to 20 times the span; beats up to four times the Nyquist
+    frequency of the mean spacing: irregular readings see past it), ``g`` and ``c`` linear. When the fit explains significantly more than a constant (F
+    test with 4 and ``2 n - 6`` degrees of freedom at ``confidence``), returns ``|g - window_mean|``
+    and the fitted transient's amplitude at the last reading ``|c exp(s t_n)|`` (0 where it is within
+    the fit's residual noise: decayed); else (0, 0). A judgement where the thesis is silent: one exponential, the slowest mode's, is what a
     lock-in dwell's trend shows; more would need more readings than a dwell takes.
     """
     t = np.asarray(times_s, dtype=float)
     z = np.asarray(ratios, dtype=complex)
     n = z.size
     if n < 8:
-        return 0.0
+        return 0.0, 0.0
     t = t - t[0]
     span = float(t[-1])
     if span <= 0:
-        return 0.0
+        return 0.0, 0.0
     rss0 = float(np.sum(np.abs(z - z.mean()) ** 2))
     sigmas = np.geomspace(0.05 / span, 20.0 / span, 30)
-    beats = np.linspace(-0.5 * np.pi * n / span, 0.5 * np.pi * n / span, 41)
+    beats = np.linspace(-4 * np.pi * n / span, 4 * np.pi * n / span, 321)  # irregular readings see past the mean Nyquist
     s = (-sigmas[:, None] + 1j * beats[None, :]).ravel()
     e = np.exp(np.outer(s, t))  # (grid, n)
     # least squares of z on [1, e] for every grid point, in closed form (2 x 2 normal equations)
@@ -159,9 +168,12 @@ def exponential_gap(times_s: np.ndarray, ratios: np.ndarray, window_mean: comple
     best = int(np.argmin(rss))
     rss1 = float(rss[best])
     dof = 2 * n - 6
+    now = float(abs(c[best] * e[best, -1]))
     if rss1 <= 0 or dof <= 0:
-        return float(abs(g[best] - window_mean))
+        return float(abs(g[best] - window_mean)), now
     statistic = ((rss0 - rss1) / 4.0) / (rss1 / dof)
     if statistic <= stats.f.ppf(confidence, 4, dof):
-        return 0.0
-    return float(abs(g[best] - window_mean))
+        return 0.0, 0.0
+    # the transient now, where it stands out of the fit's own residual noise (else it has decayed)
+    residual_radius = math.sqrt(2 * rss1 / dof * stats.f.ppf(confidence, 2, dof))
+    return float(abs(g[best] - window_mean)), (now if now > residual_radius else 0.0)

@@ -19,6 +19,12 @@ dwell (the structure is assumed at rest when the experiment is opened) and the f
 lower bound ``a1_min / 2`` (eq. 2.3: ``a1 = 2 zeta w_n``), ``|j w - p| >= sqrt(sigma_min^2 +
 beat_min^2)``, ``|r| <= (|b1|max sqrt(a0max) + |b0|max) / (2 w_d,min)``.
 
+**Measured motion.** With any damping >= 0 a free oscillation never grows: twice the largest
+response a dwell measured (its magnitude plus its bound, times the force) bounds every mode's free
+response from the end of that dwell on, decaying at ``sigma_min`` where that is known. It caps the
+replay above where the interval box is still loose, and bounds the ringing of a resonance dwell
+before the damping is bounded at all.
+
 **Filter.** An input ``exp(s t)`` with ``s = -sigma + j beat`` leaves the cascade as
 ``exp(s t) / (1 + s tau)^n`` once the filter's own transient (``tau``) has passed, so the gain is
 ``|1 + s tau|^-n`` at the beat the frequency interval allows nearest the drive.
@@ -28,6 +34,9 @@ beat_min^2)``, ``|r| <= (|b1|max sqrt(a0max) + |b0|max) / (2 w_d,min)``.
 a mode whose damping lower bound is still 0 (the prior, before the first identification) has no
 finite decay time: its readings rely on the settling test, and no allowance can be computed for
 it. The allowance for what is left (:meth:`FreeResponseBound.allowance`) is added to the point's bound.
+A mode whose beat the filter does attenuate may still ring so hard (a dwell at its resonance just
+before) that its leak swamps the signal: :func:`leak_wait_s` waits until its bounded leak is below
+``LEAK_FRACTION`` of the signal the model expects.
 """
 
 from __future__ import annotations
@@ -39,10 +48,12 @@ import numpy as np
 
 from setmem_hil.model.modal_model import IntervalModel
 
-__all__ = ["DECAY_TIMES", "PASSING_GAIN", "RingingMode", "ringing_modes", "ringdown_wait_s", "FreeResponseBound"]
+__all__ = ["DECAY_TIMES", "PASSING_GAIN", "LEAK_FRACTION", "RingingMode", "ringing_modes", "ringdown_wait_s", "leak_wait_s",
+           "leak_time_constant", "FreeResponseBound"]
 
 DECAY_TIMES = 6.0
-PASSING_GAIN = 1e-2  # a beat attenuated below 1 % by the output filter is not waited for (its allowance still counts)
+PASSING_GAIN = 1e-2  # a beat attenuated below 1 % by the output filter is not waited for by decay times
+LEAK_FRACTION = 0.01  # ...but a mode ringing so hard that even its filtered beat exceeds 1 % of the signal is
 
 
 @dataclass(frozen=True)
@@ -122,6 +133,7 @@ class FreeResponseBound:
 
     def __init__(self, force_max_n: float):
         self.events: list[tuple[float, float, float]] = []  # (time, omega, force) from time on
+        self.motions: list[tuple[float, float]] = []  # (time, measured response amplitude) at each dwell's end
         self.force_max = force_max_n
 
     def drive(self, t: float, omega: float, force: float) -> None:
@@ -149,18 +161,78 @@ class FreeResponseBound:
             last_t, omega, force = when, new_omega, new_force
         return min(h * math.exp(-sigma * (t - last_t)), cap)
 
+    def record_motion(self, t: float, amplitude: float) -> None:
+        """A dwell ending at ``t`` measured a response of ``amplitude`` (output units: the point's
+        magnitude plus its bound, times the force). With any damping >= 0 a free oscillation
+        never grows, so twice this bounds every mode's free response afterwards, also where the
+        intervals do not bound the damping yet."""
+        self.motions.append((float(t), float(amplitude)))
+
+    def free_output(self, model: IntervalModel, i: int, t: float, measured_cap: bool = True) -> float:
+        """Bound of mode ``i``'s free response (output units) at ``t``: the history replay
+        (:meth:`bound`), or the measured motions if smaller (``measured_cap``)."""
+        if not self.motions and not self.events:
+            return 0.0
+        sigma = max(model.lower[i, 0], 0.0) / 2.0
+        replay = 2.0 * _mode_box(model, i, 1.0)[2] * self.bound(model, i, t)
+        replay = math.inf if math.isnan(replay) else replay
+        if not measured_cap:
+            return replay
+        measured = max((2.0 * a * math.exp(-sigma * (t - when)) for when, a in self.motions if when <= t), default=math.inf)
+        return min(replay, measured)
+
     def allowance(self, model: IntervalModel, times_s: np.ndarray, omega: float, tau_s: float, order: int,
                   force_n: float) -> float:
         """Worst-case error, in receptance units, of the mean of readings taken at ``times_s``
         (clock times after the last drive change) through the output filter, relative to the
-        measured force amplitude ``force_n``. Modes not boundable yet (no damping lower bound,
-        drive near them) are left out: they rely on the settling test."""
+        measured force amplitude ``force_n``: every passing mode's free response (the history
+        replay of :meth:`free_output`) times the filter's gain at its beat. Modes with no finite
+        bound (no damping lower bound yet) are left out: they rely on the settling test and the
+        trend fit; filtered beats leak as fast oscillations the readings' scatter shows."""
         times = np.asarray(times_s, dtype=float)
         start = float(times.min())
         total = 0.0
         for mode in ringing_modes(model, omega, tau_s, order):
-            residue = _mode_box(model, mode.mode, omega)[2]
-            h = self.bound(model, mode.mode, start)
-            if math.isfinite(h) and math.isfinite(residue):
-                total += 2.0 * residue * h * mode.filter_gain * float(np.mean(np.exp(-mode.sigma_min * (times - start))))
+            if not mode.passes:  # a filtered beat leaks as a fast oscillation: the scatter sees it
+                continue         # (and the time constant was chosen to keep it small: leak_time_constant)
+            free = self.free_output(model, mode.mode, start, measured_cap=False)
+            if math.isfinite(free):
+                total += free * mode.filter_gain * float(np.mean(np.exp(-mode.sigma_min * (times - start))))
         return total / force_n
+
+
+def leak_wait_s(tracker: FreeResponseBound, model: IntervalModel, omega: float, tau_s: float, order: int, now: float,
+                force_n: float, expected: float) -> float:
+    """How long until every filtered (non-passing) mode's bounded leak through the output filter
+    is below ``LEAK_FRACTION`` of the ``expected`` response magnitude (receptance units, at
+    ``force_n``); 0 when nothing leaks that much or the model cannot tell (no damping bound,
+    no finite expectation)."""
+    if not (math.isfinite(expected) and expected > 0 and force_n > 0):
+        return 0.0
+    wait = 0.0
+    for mode in ringing_modes(model, omega, tau_s, order):
+        if mode.passes or mode.sigma_min <= 0:
+            continue
+        leak = tracker.free_output(model, mode.mode, now) * mode.filter_gain / force_n
+        if math.isfinite(leak) and leak > LEAK_FRACTION * expected:
+            wait = max(wait, math.log(leak / (LEAK_FRACTION * expected)) / mode.sigma_min)
+    return wait
+
+
+def leak_time_constant(tracker: FreeResponseBound, model: IntervalModel, omega: float, order: int, now: float,
+                       time_constants_s: tuple[float, ...], base_tau_s: float, force_n: float, expected: float,
+                       max_steps: int = 3) -> float:
+    """The shortest of the lock-in's time constants from ``base_tau_s`` up (at most ``max_steps``
+    longer) at which every mode's measured-motion bound (:meth:`FreeResponseBound.free_output`:
+    valid for any damping >= 0) leaks through the filter at less than ``LEAK_FRACTION`` of the
+    ``expected`` response; modes too near the drive for a longer filter to help are the wait's
+    business. ``base_tau_s`` where nothing leaks that much or nothing is known."""
+    if not (math.isfinite(expected) and expected > 0 and force_n > 0 and tracker.motions):
+        return base_tau_s
+    longer = [t for t in time_constants_s if t >= base_tau_s][: max_steps + 1]
+    for tau in longer:
+        leaks = [tracker.free_output(model, i, now) * _filter_gain(0.0, _beat(model, i, omega), tau, order)
+                 for i in range(model.n_modes) if _beat(model, i, omega) * tau > 3.0]
+        if all(leak <= LEAK_FRACTION * expected * force_n for leak in leaks):
+            return tau
+    return longer[-1] if longer else base_tau_s
