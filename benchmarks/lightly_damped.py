@@ -86,15 +86,17 @@ def main(argv: list[str] | None = None) -> int:
     reference = np.median([r["width"] for r in results[0.01]], axis=0)
     print(f"seeds {args.seeds[0]}-{args.seeds[-1]}; {time.perf_counter() - start:.0f} s wall\n")
     print("| damping | decay times 1/(zeta w), modes 1-3 (s) | rig s per dwell (median) | wait s per dwell (median) | "
-          "worst error/bound (no W1) | a1 width / at 0.01, modes 1-3 | a0 width / at 0.01, modes 1-3 | reached | added (median) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "wait s per dwell (max) | rig s per campaign (median) | worst error/bound (no W1) | a1 width / at 0.01, modes 1-3 | a0 width / at 0.01, modes 1-3 | reached | added (median) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for damping, runs in results.items():
         decay = ", ".join(f"{1 / (damping * w):.0f}" for w in wn)
         rig = statistics.median(x for r in runs for x in r["rig_per_dwell"])
         wait = statistics.median(x for r in runs for x in r["waits"])
         worst = max(r["worst"] for r in runs)
         width = np.median([r["width"] for r in runs], axis=0) / reference
-        print(f"| {damping:g} | {decay} | {rig:.0f} | {wait:.0f} | {worst:.3f} | "
+        wait_max = max(x for r in runs for x in r["waits"])
+        campaign_rig = statistics.median(sum(r["rig_per_dwell"]) for r in runs)
+        print(f"| {damping:g} | {decay} | {rig:.0f} | {wait:.0f} | {wait_max:.0f} | {campaign_rig:.0f} | {worst:.3f} | "
               f"{', '.join(f'{x:.2f}' for x in width[:, 0])} | {', '.join(f'{x:.2f}' for x in width[:, 1])} | "
               f"{sum(r['reached'] for r in runs)}/{len(runs)} | {statistics.median(r['added'] for r in runs):g} |")
     return 0

@@ -335,3 +335,54 @@ def test_an_init_error_names_the_command_and_run_check_warns_without_read_back(t
     code = main(["run", str(path), "--out", str(tmp_path / "r"), "--quiet"])
     err = capsys.readouterr().err
     assert code == 4 and "SOUR1:BOGUS 1" in err and "fgen" in err
+
+
+def test_probe_switches_a_left_on_output_off_and_says_so(tmp_path, capsys):
+    from setmem_hil.sim_backends.beam import beam_parameters
+    from setmem_hil.sim_backends.instrument_bench import EmulatedBench
+    from setmem_hil.sim_backends.instrument_emulators import InstrumentServer
+
+    bench = EmulatedBench(beam_parameters())
+    gen = GeneratorEmulator(bench, "33500B")
+    servers = [InstrumentServer(gen), InstrumentServer(LockInEmulator(bench, "force", "SR830")),
+               InstrumentServer(LockInEmulator(bench, "response", "SR860"))]
+    gen.handle_line("OUTP1 ON")  # what a killed run leaves behind
+    assert bench.output_on
+    try:
+        text = EMULATED.read_text().replace("[backend.emulation]\n", "[unused_emulation]\n")
+        text = text.replace("[unused_emulation]\ndrive_gain_ratio = 1.1        # the real amplifier gain is 10 % above the nominal one\nnoise_v_per_rthz = 2e-6\n", "")
+        for old, server in zip(('profile = "keysight-33500b"', 'profile = "srs-sr830"', 'profile = "srs-sr860"'), servers):
+            text = text.replace(f'{old}\nresource = "TCPIP::127.0.0.1::0::SOCKET"', f'{old}\nresource = "{server.resource}"')
+        path = _profile_file(tmp_path, "rig", text)
+        assert main(["probe", str(path)]) == 0
+        out = capsys.readouterr().out
+        assert "output switched off" in out
+        assert not bench.output_on
+        assert [c for c in gen.commands if not c.endswith("?")] == ["OUTP1 ON", "OUTP1 OFF"]  # nothing else is set
+    finally:
+        for s in servers:
+            s.close()
+
+
+def test_every_example_in_the_profile_docs_is_valid_and_realistic():
+    import re
+
+    import tomllib
+
+    from setmem_hil.drivers.instruments.profile import PROFILE_KEYS, load_profile, parse_profile
+
+    text = (REPO / "docs" / "instrument-profiles.md").read_text()
+    blocks = re.findall(r"```toml\n(.*?)```", text, re.S)
+    assert len(blocks) >= 5
+    for block in blocks:
+        doc = tomllib.loads(block)  # valid TOML: no "..." inside arrays
+        if doc.get("kind") in PROFILE_KEYS and doc.get("kind") != "dbc":
+            profile = parse_profile(block, "docs/instrument-profiles.md")
+            for setting in (getattr(profile, "frequency", None),):
+                if setting is not None:  # a frequency read-back tolerance no tighter than 1 uHz steps allow
+                    assert setting.resolution >= 1e-6 or setting.tolerance_rel >= 1e-5
+            if doc["kind"] == "scpi-generator":
+                assert any("SYNC" in c.upper() for c in profile.init), "the lock-ins need the generator's sync output"
+    shipped = load_profile("siglent-sdg2000x")
+    documented = next(parse_profile(b, "doc") for b in blocks if "SDG2000X" in b and "kind" in b)
+    assert documented.frequency == shipped.frequency and documented.output_on == shipped.output_on and documented.init == shipped.init

@@ -6,7 +6,8 @@ SCPI generator or a Modbus controller), and the force and response lock-ins. Thi
 * :func:`check_instruments`: loads every profile and checks it fits its role (``run --check``,
   ``probe`` and the run all start here; nothing is opened);
 * :func:`probe_instruments`: connects to each instrument, checks its identity, reads its status
-  and error queue, and never switches an output on (``setmem-hil probe``);
+  and error queue, switches the exciter's output *off* (read back: a run killed with the output
+  on may have left it so) and never switches an output on (``setmem-hil probe``);
 * :func:`open_instrument_experiment`: opens everything, checks every identity *before* any
   output is touched, forces the exciter's output off during its init, and returns the
   :class:`~setmem_hil.drivers.instruments.phasor_dwell.PhasorDwellExperiment`.
@@ -121,7 +122,7 @@ class ProbeResult:
 
 def probe_instruments(procedure: Procedure) -> list[ProbeResult]:
     """Connect to each instrument, check identity and error queue; no output is switched on
-    (no command but queries is sent)."""
+    (queries only, and the exciter's output switched off once its identity is confirmed)."""
     results = []
     for name, (settings, profile, role) in check_instruments(procedure).items():
         inst = None
@@ -133,6 +134,9 @@ def probe_instruments(procedure: Procedure) -> list[ProbeResult]:
             answer = inst.check_identity()
             if isinstance(inst, LockIn):
                 answer += f"; reference {inst.reference_frequency_hz():.6g} Hz"
+            elif role == "exciter" and isinstance(inst, (ScpiGenerator, ModbusGenerator)):
+                inst.set_output(False)  # the one command probe sends: safe always, and a killed run may have left it on
+                answer += "; output switched off (read back)"
             results.append(ProbeResult(name, role, profile.model, settings.resource, True, answer))
         except DeviceError as exc:
             results.append(ProbeResult(name, role, profile.model, settings.resource, False, str(exc)))

@@ -2,7 +2,8 @@
 
 Connects to every instrument the procedure names (``kind = "instruments"``), checks its
 identity against its profile, reads the lock-ins' reference frequency, prints what it found and
-never switches an output on (only queries are sent). Exit 0 when every instrument answers with
+never switches an output on: besides queries it sends one command, the exciter's output off (read
+back), once the exciter's identity is confirmed; a run killed with the output on leaves it so. Exit 0 when every instrument answers with
 its expected identity, 4 otherwise (2 for a malformed procedure or profile). With
 ``[backend.emulation]`` it probes the emulated instruments.
 """
@@ -50,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
         status = "[green]OK    [/]" if r.ok else "[red]FAILED[/]"
         console.print(f"  {status} " + escape(f"{r.name} ({r.role}, {r.model}) at {r.resource}: {r.answer}"))
     bad = [r for r in results if not r.ok]
-    console.print(f"{len(results) - len(bad)} of {len(results)} instruments answered as expected; no output was switched on",
+    console.print(f"{len(results) - len(bad)} of {len(results)} instruments answered as expected; no output was switched on"
+                  + ("; exciter output switched off" if any("output switched off" in r.answer for r in results) else ""),
                   highlight=False)
     return EXIT_DEVICE if bad else 0
