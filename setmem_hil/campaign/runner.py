@@ -246,6 +246,14 @@ class _Replay:
         return stored + list(record[len(stored):])
 
 
+def controller_matrices(K) -> dict | None:
+    """The compensator's ``A, B, C, D`` as lists (the journal's form; rad/s, ``u = K y``); None
+    for an analysis without a state-space compensator (test doubles of the analysis)."""
+    if not all(hasattr(K, name) for name in "ABCD"):
+        return None
+    return {name: np.atleast_2d(np.asarray(getattr(K, name), dtype=float)).tolist() for name in "ABCD"}
+
+
 def measure_batch(source: _Replay, procedure: Procedure, omegas, *, iteration: int, role: str) -> list[Measurement]:
     """The frequencies one after the other (``[dwell] signal = "sine"``) or in one multisine record."""
     if procedure.dwell_signal == "multisine":
@@ -509,6 +517,7 @@ def run_campaign(
                     wall_s=float(compute_s),
                     embedding_gamma=np.asarray(result.embedding_gamma, dtype=float),
                     mismatch_ratio=np.asarray(result.mismatch_ratio, dtype=float),
+                    controller=controller_matrices(analysis.controller),
                 ))
                 if choice is not None and np.size(choice.resolved_omega_rad_s):
                     import json

@@ -62,7 +62,7 @@ __all__ = ["Journal", "IterationRecord", "JournalError", "JournalSnapshot", "rea
 
 JOURNAL_FILENAME = "journal.sqlite"
 APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
-SCHEMA_VERSION = 2  # 2: measurement.rig_s (version-1 journals are upgraded when opened)
+SCHEMA_VERSION = 3  # 2: measurement.rig_s; 3: iteration.controller (older journals are upgraded when opened)
 ROLES = ("initial", "added")
 
 
@@ -96,6 +96,9 @@ class IterationRecord:
         Compute time of the iteration.
     embedding_gamma, mismatch_ratio : numpy.ndarray
         ``(n_modes,)`` conservatism measures of the identification (section 3.2.3).
+    controller : dict or None
+        The compensator the safeguard kept, ``{"A", "B", "C", "D"}`` (lists of lists; rad/s time
+        base, positive feedback ``u = K y``); None in journals written before it was stored.
     """
 
     k: int
@@ -116,6 +119,7 @@ class IterationRecord:
     wall_s: float
     embedding_gamma: np.ndarray
     mismatch_ratio: np.ndarray
+    controller: dict | None = None
 
 
 _ARRAY_FIELDS = ("lower", "upper", "omega", "mu", "candidate_omega", "estimated_improvement", "embedding_gamma", "mismatch_ratio")
@@ -162,7 +166,8 @@ CREATE TABLE iteration (
     wall_s REAL NOT NULL,
     embedding_gamma TEXT NOT NULL,
     mismatch_ratio TEXT NOT NULL,
-    utc TEXT NOT NULL
+    utc TEXT NOT NULL,
+    controller TEXT
 );
 CREATE TABLE discrepancy (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -341,15 +346,17 @@ class Journal:
         if app_id != APPLICATION_ID:
             conn.close()
             raise InputFormatError(str(p), "", "not a setmem-hil journal (SQLite application_id differs)")
-        if version == 1:  # add the rig-time column (0 for the measurements it holds)
+        upgrades = {1: "ALTER TABLE measurement ADD COLUMN rig_s REAL NOT NULL DEFAULT 0",  # rig time: 0 for what it holds
+                    2: "ALTER TABLE iteration ADD COLUMN controller TEXT"}  # compensators: NULL for what it holds
+        while version in upgrades:
             try:
-                conn.execute("ALTER TABLE measurement ADD COLUMN rig_s REAL NOT NULL DEFAULT 0")
-                conn.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+                conn.execute(upgrades[version])
+                conn.execute(f"PRAGMA user_version={version + 1}")
                 conn.commit()
-                version = SCHEMA_VERSION
+                version += 1
             except sqlite3.DatabaseError as exc:
                 conn.close()
-                raise InputFormatError(str(p), "", f"cannot upgrade the version-1 journal: {exc}") from None
+                raise InputFormatError(str(p), "", f"cannot upgrade the version-{version} journal: {exc}") from None
         if version != SCHEMA_VERSION:
             conn.close()
             raise InputFormatError(str(p), "", f"journal schema version {version}; this software reads version {SCHEMA_VERSION}")
@@ -488,6 +495,8 @@ class Journal:
                 v = int(v)
             elif name == "safeguard":
                 v = str(v)
+            elif name == "controller":
+                v = None if v is None else _to_json({key: np.asarray(v[key], dtype=float).tolist() for key in "ABCD"})
             else:
                 v = _opt_float(v)
             values.append(v)
@@ -511,6 +520,8 @@ class Journal:
                     v = {k: float(x) for k, x in json.loads(v).items()}
                 elif name in ("mu_peak", "mu_peak_omega", "mu_lower_peak", "wall_s"):
                     v = math.nan if v is None else float(v)
+                elif name == "controller":
+                    v = None if v is None else json.loads(v)
                 kw[name] = v
             for name in ("lower", "upper"):
                 kw[name] = kw[name].reshape(-1, 4)

@@ -1,0 +1,122 @@
+"""``setmem-hil controller RUN_DIR --out FILE [--format json|mat|sos|c] [--fs HZ] [--iteration K]``.
+
+Exports the compensator the campaign kept (the last iteration's, or iteration K's: after the
+safeguard of eq. 5.12, so "previous-controller" iterations give the controller actually kept) in
+physical units (rad/s), with the feedback sign (positive feedback, ``u = K y``) stated in every
+format. The journal stores each iteration's compensator; journals written before it did are
+upgraded on open and their compensators designed again from the stored intervals (H2 is
+deterministic), where the iteration kept a new design. File contracts:
+:mod:`setmem_hil.io.controller_file`; numerics: :mod:`setmem_hil.robust.controller_forms`.
+
+Exit codes: 0 written; 2 bad arguments or a run with no iteration yet (named).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from setmem_hil.errors import InputFormatError
+
+FORMAT_CHOICES = ("json", "mat", "sos", "c")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "controller",
+        help="export the compensator a run kept (JSON, .mat, second-order sections, C header)",
+        description="Export the compensator of a run's last iteration (or --iteration K) in physical units, positive "
+        "feedback u = K y: JSON (state space, poles, zeros), MATLAB .mat, second-order sections as CSV, or a C99 "
+        "header with a step function. --fs gives the discrete form (Tustin prewarped at the mu-bar peak).",
+        epilog="examples: setmem-hil controller runs/demo --out K.json --fs 1000;  "
+        "setmem-hil controller runs/demo --out controller.h --fs 1000",
+    )
+    p.add_argument("run_dir", metavar="RUN_DIR", help="run directory (holds journal.sqlite)")
+    p.add_argument("--out", required=True, metavar="FILE", help="output file; the format follows the extension "
+                   "(.json, .mat, .csv = second-order sections, .h = C header) unless --format is given")
+    p.add_argument("--format", choices=FORMAT_CHOICES, help="json, mat, sos (CSV of sections) or c (header); needs --fs for sos and c")
+    p.add_argument("--fs", type=float, metavar="HZ", help="sample rate of the real-time target: adds the discrete form and sections")
+    p.add_argument("--iteration", type=int, metavar="K", help="the compensator of iteration K (default: the last)")
+    p.set_defaults(func=run)
+
+
+def _error(where: str, problem: str) -> InputFormatError:
+    return InputFormatError(where, "", problem)
+
+
+def kept_controller(run_dir: str, iteration: int | None):
+    """``(record, StateSpace)`` of the compensator iteration K (or the last) kept."""
+    from setmem_hil.io.journal import Journal
+    from setmem_hil.robust.controller_forms import StateSpace
+
+    with Journal.open(run_dir) as journal:
+        records = journal.iterations()
+        procedure_text = journal.run_info()["procedure_text"]
+    if not records:
+        raise _error(str(run_dir), "the run has no iteration yet: no compensator was designed (let the campaign reach its first analysis)")
+    if iteration is None:
+        record = records[-1]
+    else:
+        found = [r for r in records if r.k == iteration]
+        if not found:
+            raise _error("setmem-hil controller", f"--iteration {iteration}: {run_dir} holds iterations 1-{records[-1].k}")
+        record = found[0]
+    if record.controller is not None:
+        return record, StateSpace.from_lists(record.controller)
+    return record, _designed_again(run_dir, record, procedure_text)
+
+
+def _designed_again(run_dir: str, record, procedure_text: str):
+    """A journal from before compensators were stored: the H2 design of the stored intervals."""
+    if record.safeguard != "new-design":
+        raise _error(str(run_dir), f"iteration {record.k} kept an earlier compensator (safeguard {record.safeguard!r}) and the "
+                     "journal predates stored compensators: export an iteration that kept a new design (--iteration)")
+    from setmem_hil.io.procedure_file import parse_procedure_text
+    from setmem_hil.model.modal_model import IntervalModel
+    from setmem_hil.robust.analysis import analyze_robust_performance
+    from setmem_hil.robust.controller_forms import StateSpace
+    from setmem_hil.campaign.runner import controller_matrices
+
+    weights = parse_procedure_text(procedure_text, f"{run_dir} (stored procedure)").weights
+    analysis = analyze_robust_performance(IntervalModel(record.lower, record.upper), weights)
+    return StateSpace.from_lists(controller_matrices(analysis.controller))
+
+
+def run(args: argparse.Namespace) -> int:
+    from setmem_hil.io.atomic_file import write_text_atomic
+    from setmem_hil.io.controller_file import c_header, controller_document, format_for, mat_variables, sos_csv
+    from setmem_hil.robust.controller_forms import second_order_sections, tustin_prewarped, zpk_of
+
+    fmt = format_for(args.out, args.format)
+    if fmt is None:
+        raise _error("setmem-hil controller", f"--out {args.out}: give a .json, .mat, .csv or .h file, or --format")
+    if fmt in ("sos", "c") and args.fs is None:
+        raise _error("setmem-hil controller", f"--format {fmt} needs --fs HZ (the sections are discrete)")
+    if args.fs is not None and not args.fs > 0:
+        raise _error("setmem-hil controller", f"--fs {args.fs:g}: expected a positive sample rate in Hz")
+    record, K = kept_controller(args.run_dir, args.iteration)
+    extra = {}
+    if args.fs is not None:
+        try:
+            discrete = tustin_prewarped(K, args.fs, float(record.mu_peak_omega))
+        except ValueError as exc:
+            raise _error("setmem-hil controller", f"--fs {args.fs:g}: {exc}") from None
+        sos, gain = second_order_sections(K, args.fs, float(record.mu_peak_omega))
+        extra = {"discrete": discrete, "prewarp_rad_s": float(record.mu_peak_omega), "sos": sos, "sos_gain": gain}
+    doc = controller_document(iteration=record.k, mu_peak=record.mu_peak, continuous=K, zpk=zpk_of(K), **extra)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if fmt == "json":
+        write_text_atomic(out, json.dumps(doc, indent=1) + "\n")
+    elif fmt == "sos":
+        write_text_atomic(out, sos_csv(doc))
+    elif fmt == "c":
+        write_text_atomic(out, c_header(doc))
+    else:
+        import scipy.io
+
+        scipy.io.savemat(str(out), mat_variables(doc))
+    print(f"{out}: compensator of iteration {record.k} (order {K.order}, mu-bar {record.mu_peak:.4g}), positive feedback u = K y"
+          + (f", discrete at {args.fs:g} Hz" if args.fs else ""))
+    return 0

@@ -1,0 +1,183 @@
+"""Issue 27 (export): the compensator a campaign kept, delivered in the forms a real-time target
+takes, each checked against an independent computation.
+
+Truths: the robust analysis run again with the exported compensator (it must give the stored
+mu-bar), the H2 design of the stored intervals (for a new-design iteration), scipy's own
+zero-pole bilinear map (``bilinear_zpk``, a different path from the state-space Tustin), the
+exactness of prewarping at its frequency, ``scipy.signal.sosfilt``/``sosfreqz`` for the sections,
+a C compiler for the header, and ``scipy.io.loadmat`` for the .mat file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+import scipy.signal
+
+from setmem_hil.cli.main import main
+from setmem_hil.io.journal import Journal
+from setmem_hil.io.procedure_file import load_procedure
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.robust.analysis import analyze_robust_performance
+from setmem_hil.robust.controller_forms import StateSpace, frequency_response
+
+REPO = Path(__file__).resolve().parents[1]
+FS = 1000.0
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("controller") / "run"
+    assert main(["run", str(REPO / "procedures" / "beam_6_3_2.toml"), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def exported(run_dir):
+    path = run_dir.parent / "K.json"
+    assert main(["controller", str(run_dir), "--out", str(path), "--fs", str(FS)]) == 0
+    return json.loads(path.read_text())
+
+
+def _last(run_dir):
+    with Journal.open(run_dir) as j:
+        return j.iterations()[-1]
+
+
+def test_json_contract_and_the_continuous_form_is_the_analysed_compensator(run_dir, exported):
+    assert exported["sign"] == "positive" and exported["iteration"] == _last(run_dir).k
+    assert {"A", "B", "C", "D"} <= set(exported["continuous"]) and {"A", "B", "C", "D", "Ts", "prewarp_rad_s"} <= set(exported["discrete"])
+    assert all(len(p) == 2 for p in exported["poles"] + exported["zeros"])
+    record = _last(run_dir)
+    K = StateSpace.from_lists(exported["continuous"])
+    weights = load_procedure(REPO / "procedures" / "beam_6_3_2.toml").weights
+    import control
+
+    again = analyze_robust_performance(IntervalModel(record.lower, record.upper), weights,
+                                       controller=control.ss(K.A, K.B, K.C, K.D))
+    assert again.mu_peak == pytest.approx(exported["mu_peak"], rel=1e-6)
+    if record.safeguard == "new-design":  # and it is the H2 design of the stored intervals
+        designed = analyze_robust_performance(IntervalModel(record.lower, record.upper), weights).controller
+        w = np.geomspace(0.05, 500, 300)
+        ours = frequency_response(K, w)
+        theirs = np.array([complex(np.squeeze(designed(1j * x))) for x in w])
+        assert np.max(np.abs(ours - theirs) / np.abs(theirs)) < 1e-6
+    # poles and zeros reproduce the response (gain included)
+    z = np.array([complex(*p) for p in exported["zeros"]])
+    p = np.array([complex(*q) for q in exported["poles"]])
+    w = np.geomspace(0.05, 500, 50)
+    zpk = exported["gain"] * np.array([np.prod(1j * x - z) / np.prod(1j * x - p) for x in w])
+    assert np.max(np.abs(zpk - frequency_response(K, w)) / np.abs(frequency_response(K, w))) < 1e-8
+
+
+def test_discrete_and_sections_match_an_independent_tustin_map(exported):
+    K = StateSpace.from_lists(exported["continuous"])
+    d = exported["discrete"]
+    Kd = StateSpace.from_lists(d, Ts=d["Ts"])
+    wp = d["prewarp_rad_s"]
+    assert abs(frequency_response(Kd, [wp])[0] / frequency_response(K, [wp])[0] - 1) < 1e-9  # exact at wp
+    # the Tustin map's defining identity: H_d(e^{j w Ts}) = H_c(j c tan(w Ts / 2)), c = wp / tan(wp Ts / 2),
+    # evaluated on the continuous state space only
+    Ts = 1 / FS
+    c = wp / math.tan(wp * Ts / 2)
+    w = np.linspace(0.01, 2 * math.pi * FS / 4, 400)  # below fs/4
+    truth = frequency_response(K, c * np.tan(w * Ts / 2))
+    assert np.max(np.abs(frequency_response(Kd, w) / truth - 1)) < 1e-9
+    _, h = scipy.signal.sosfreqz(np.array(exported["sos"]), worN=w / FS)
+    assert np.max(np.abs(exported["sos_gain"] * h / truth - 1)) < 1e-9
+    # scipy's dlti of the discrete matrices, simulated in state space (its freqresp goes through
+    # polynomials, which lose these poles near z = 1), gives the sections' output
+    x = np.random.default_rng(1).standard_normal(3000)
+    _, y, _ = scipy.signal.dlsim(scipy.signal.dlti(*(np.array(d[k]) for k in "ABCD"), dt=Ts), x)
+    out = exported["sos_gain"] * scipy.signal.sosfilt(np.array(exported["sos"]), x)
+    assert np.max(np.abs(out - y[:, 0])) <= 1e-9 * np.max(np.abs(y))
+
+
+def test_c_header_compiles_and_its_step_matches_sosfilt(run_dir, exported, tmp_path):
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler (cc) on this machine")
+    header = tmp_path / "controller.h"
+    assert main(["controller", str(run_dir), "--out", str(header), "--fs", str(FS)]) == 0
+    (tmp_path / "main.c").write_text("""#include <stdio.h>
+#include "controller.h"
+int main(void) {
+    setmem_controller_state s;
+    double y;
+    setmem_controller_init(&s);
+    while (scanf("%lf", &y) == 1) printf("%.17g\\n", setmem_controller_step(&s, y));
+    return 0;
+}
+""")
+    subprocess.run([cc, "-std=c99", "-Wall", "-Werror", "-pedantic", "-O2", "-o", str(tmp_path / "k"), str(tmp_path / "main.c")],
+                   check=True, capture_output=True, text=True)
+    x = np.random.default_rng(3).standard_normal(2000)
+    out = subprocess.run([str(tmp_path / "k")], input="\n".join(repr(float(v)) for v in x), capture_output=True, text=True, check=True)
+    y = np.array([float(v) for v in out.stdout.split()])
+    reference = exported["sos_gain"] * scipy.signal.sosfilt(np.array(exported["sos"]), x)
+    assert np.max(np.abs(y - reference)) <= 1e-12 * np.max(np.abs(reference))
+
+
+def test_mat_and_csv_round_trip(run_dir, exported, tmp_path):
+    mat = tmp_path / "K.mat"
+    assert main(["controller", str(run_dir), "--out", str(mat), "--fs", str(FS)]) == 0
+    m = scipy.io.loadmat(str(mat))
+    assert str(m["sign"][0]) == "positive" and m["Ts"].item() == pytest.approx(1 / FS)
+    np.testing.assert_allclose(m["A"], exported["discrete"]["A"])
+    np.testing.assert_allclose(m["Ac"], exported["continuous"]["A"])
+    np.testing.assert_allclose(m["sos"], exported["sos"])
+    csv = tmp_path / "K.csv"
+    assert main(["controller", str(run_dir), "--out", str(csv), "--fs", str(FS)]) == 0
+    rows = np.loadtxt(csv, delimiter=",", comments="#", skiprows=2)
+    np.testing.assert_allclose(rows, exported["sos"])
+    assert "b0,b1,b2,a0,a1,a2" in csv.read_text()
+
+
+def test_a_run_with_no_iteration_is_refused_naming_it(tmp_path, capsys):
+    Journal.create(tmp_path / "empty", procedure_text="x", procedure_name="x", seed=1, software_version="t", backend="sim",
+                   strategy="mu").close()
+    assert main(["controller", str(tmp_path / "empty"), "--out", str(tmp_path / "K.json")]) == 2
+    assert str(tmp_path / "empty") in capsys.readouterr().err
+    assert main(["controller", str(tmp_path / "empty"), "--out", str(tmp_path / "K.h")]) == 2  # sections need --fs
+
+
+def test_a_journal_from_before_stored_compensators_gets_the_h2_design_again(run_dir, exported):
+    from setmem_hil.cli.commands.controller import _designed_again
+
+    with Journal.open(run_dir) as j:
+        records, text = j.iterations(), j.run_info()["procedure_text"]
+    record = next(r for r in reversed(records) if r.safeguard == "new-design")
+    again = _designed_again(str(run_dir), dataclasses.replace(record, controller=None), text)
+    stored = StateSpace.from_lists(record.controller)
+    w = np.geomspace(0.05, 500, 100)
+    assert np.max(np.abs(frequency_response(again, w) / frequency_response(stored, w) - 1)) < 1e-8
+
+
+def test_version_2_journals_are_upgraded_and_export_designs_again(run_dir, tmp_path, capsys):
+    import sqlite3
+
+    old = tmp_path / "old"
+    shutil.copytree(run_dir, old)
+    conn = sqlite3.connect(old / "journal.sqlite")
+    conn.execute("ALTER TABLE iteration DROP COLUMN controller")  # as written before compensators were stored
+    conn.execute("PRAGMA user_version=2")
+    conn.commit()
+    conn.close()
+    with Journal.open(old) as j:  # upgraded on open
+        records = j.iterations()
+    assert records and all(r.controller is None for r in records)
+    k = next(r.k for r in reversed(records) if r.safeguard == "new-design")
+    assert main(["controller", str(old), "--out", str(tmp_path / "K.json"), "--iteration", str(k)]) == 0
+    redesigned = StateSpace.from_lists(json.loads((tmp_path / "K.json").read_text())["continuous"])
+    with Journal.open(run_dir) as j:
+        stored = StateSpace.from_lists(next(r for r in j.iterations() if r.k == k).controller)
+    w = np.geomspace(0.05, 500, 100)
+    assert np.max(np.abs(frequency_response(redesigned, w) / frequency_response(stored, w) - 1)) < 1e-8
