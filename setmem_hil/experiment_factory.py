@@ -201,3 +201,23 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
     except BaseException:
         rig.close()
         raise
+
+
+def true_structure(procedure: Procedure):
+    """The structure a simulating backend simulates (all its modes), or None for real
+    instruments: the truth ``setmem-hil validate`` checks the compensator against."""
+    from setmem_hil.model.modal_model import ModalParameters
+    from setmem_hil.sim_backends.beam import BEAM_DAMPING_RATIO, BEAM_RESIDUE, beam_natural_frequencies, beam_parameters
+
+    backend = procedure.backend
+    if backend.kind == "instruments":
+        if backend.emulation is None:
+            return None
+        damping = backend.emulation.damping if backend.emulation.damping is not None else BEAM_DAMPING_RATIO
+        return ModalParameters.from_modal(beam_natural_frequencies(), damping, BEAM_RESIDUE, 0.0)
+    sim = backend.simulation
+    full = beam_parameters()
+    if backend.kind == "sim" and sim.first_mode_rad_s != 1.0:
+        S = float(sim.first_mode_rad_s)
+        full = ModalParameters(full.values * np.array([S, S * S, S, S * S]))
+    return full if sim.unmodelled_dynamics else full.truncated(procedure.prior.n_modes)

@@ -150,12 +150,12 @@ def test_a_run_with_no_iteration_is_refused_naming_it(tmp_path, capsys):
 
 
 def test_a_journal_from_before_stored_compensators_gets_the_h2_design_again(run_dir, exported):
-    from setmem_hil.cli.commands.controller import _designed_again
+    from setmem_hil.campaign.compensator import designed_again
 
     with Journal.open(run_dir) as j:
         records, text = j.iterations(), j.run_info()["procedure_text"]
     record = next(r for r in reversed(records) if r.safeguard == "new-design")
-    again = _designed_again(str(run_dir), dataclasses.replace(record, controller=None), text)
+    again = designed_again(str(run_dir), dataclasses.replace(record, controller=None), text)
     stored = StateSpace.from_lists(record.controller)
     w = np.geomspace(0.05, 500, 100)
     assert np.max(np.abs(frequency_response(again, w) / frequency_response(stored, w) - 1)) < 1e-8
@@ -181,3 +181,48 @@ def test_version_2_journals_are_upgraded_and_export_designs_again(run_dir, tmp_p
         stored = StateSpace.from_lists(next(r for r in j.iterations() if r.k == k).controller)
     w = np.geomspace(0.05, 500, 100)
     assert np.max(np.abs(frequency_response(redesigned, w) / frequency_response(stored, w) - 1)) < 1e-8
+
+
+# -- setmem-hil validate -----------------------------------------------------------------------------
+
+def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(run_dir, tmp_path):
+    from setmem_hil.robust.validation import rp_curve
+    from setmem_hil.sim_backends.beam import beam_parameters
+
+    report = tmp_path / "REPORT.json"
+    assert main(["validate", str(run_dir), "--samples", "100", "--out", str(report)]) == 0
+    doc = json.loads(report.read_text())
+    assert doc["truth"]["stable"] and doc["truth"]["rp_peak"] < 1.0
+    assert doc["samples"]["violations"] == 0 and doc["samples"]["n"] >= 100
+    assert doc["samples"]["worst_rp_peak"] <= doc["claimed_mu_peak"] + 1e-6  # no plant of the box beyond the claim
+    # the truth's peak, independently: a 20000-point grid of the exact formula with python-control's K
+    import control
+
+    record = _last(run_dir)
+    K = StateSpace.from_lists(record.controller)
+    w = np.geomspace(0.1, 1000, 20000)
+    dense = rp_curve(beam_parameters(), control.ss(K.A, K.B, K.C, K.D), load_procedure(REPO / "procedures" / "beam_6_3_2.toml").weights, w)
+    assert doc["truth"]["rp_peak"] >= dense.max() - 1e-9 and doc["truth"]["rp_peak"] <= dense.max() * 1.001
+    sim = doc["closed_loop_sim"]
+    assert sim["stable"] and sim["settled"] and sim["relative_difference"] < 0.02  # the sampled loop agrees with the analysis
+    assert Path(doc["figure"]).is_file()
+
+
+def test_validate_exits_3_naming_the_plant_when_the_claim_is_false(run_dir, tmp_path, capsys):
+    """A journal whose last iteration claims mu-bar < 1 for a compensator with three times the
+    gain it was designed with: a claim made false on purpose."""
+    with Journal.open(run_dir) as j:
+        info, record = j.run_info(), j.iterations()[-1]
+    tampered = dict(record.controller)
+    tampered["C"] = (3.0 * np.asarray(record.controller["C"])).tolist()
+    tampered["D"] = (3.0 * np.asarray(record.controller["D"])).tolist()
+    false = tmp_path / "false"
+    j = Journal.create(false, procedure_text=info["procedure_text"], procedure_name="false", seed=1, software_version="t",
+                       backend="sim", strategy="mu")
+    j.add_iteration(dataclasses.replace(record, controller=tampered))
+    j.close()
+    assert main(["validate", str(false), "--samples", "20", "--out", str(tmp_path / "R.json")]) == 3
+    err = capsys.readouterr().err
+    assert "claim falsified" in err and ("mode 1: a1" in err or "true structure" in err)
+    doc = json.loads((tmp_path / "R.json").read_text())
+    assert doc["samples"]["violations"] > 0 or not doc["truth"]["stable"] or doc["truth"]["rp_peak"] >= 1

@@ -45,44 +45,6 @@ def _error(where: str, problem: str) -> InputFormatError:
     return InputFormatError(where, "", problem)
 
 
-def kept_controller(run_dir: str, iteration: int | None):
-    """``(record, StateSpace)`` of the compensator iteration K (or the last) kept."""
-    from setmem_hil.io.journal import Journal
-    from setmem_hil.robust.controller_forms import StateSpace
-
-    with Journal.open(run_dir) as journal:
-        records = journal.iterations()
-        procedure_text = journal.run_info()["procedure_text"]
-    if not records:
-        raise _error(str(run_dir), "the run has no iteration yet: no compensator was designed (let the campaign reach its first analysis)")
-    if iteration is None:
-        record = records[-1]
-    else:
-        found = [r for r in records if r.k == iteration]
-        if not found:
-            raise _error("setmem-hil controller", f"--iteration {iteration}: {run_dir} holds iterations 1-{records[-1].k}")
-        record = found[0]
-    if record.controller is not None:
-        return record, StateSpace.from_lists(record.controller)
-    return record, _designed_again(run_dir, record, procedure_text)
-
-
-def _designed_again(run_dir: str, record, procedure_text: str):
-    """A journal from before compensators were stored: the H2 design of the stored intervals."""
-    if record.safeguard != "new-design":
-        raise _error(str(run_dir), f"iteration {record.k} kept an earlier compensator (safeguard {record.safeguard!r}) and the "
-                     "journal predates stored compensators: export an iteration that kept a new design (--iteration)")
-    from setmem_hil.io.procedure_file import parse_procedure_text
-    from setmem_hil.model.modal_model import IntervalModel
-    from setmem_hil.robust.analysis import analyze_robust_performance
-    from setmem_hil.robust.controller_forms import StateSpace
-    from setmem_hil.campaign.runner import controller_matrices
-
-    weights = parse_procedure_text(procedure_text, f"{run_dir} (stored procedure)").weights
-    analysis = analyze_robust_performance(IntervalModel(record.lower, record.upper), weights)
-    return StateSpace.from_lists(controller_matrices(analysis.controller))
-
-
 def run(args: argparse.Namespace) -> int:
     from setmem_hil.io.atomic_file import write_text_atomic
     from setmem_hil.io.controller_file import c_header, controller_document, format_for, mat_variables, sos_csv
@@ -95,6 +57,8 @@ def run(args: argparse.Namespace) -> int:
         raise _error("setmem-hil controller", f"--format {fmt} needs --fs HZ (the sections are discrete)")
     if args.fs is not None and not args.fs > 0:
         raise _error("setmem-hil controller", f"--fs {args.fs:g}: expected a positive sample rate in Hz")
+    from setmem_hil.campaign.compensator import kept_controller
+
     record, K = kept_controller(args.run_dir, args.iteration)
     extra = {}
     if args.fs is not None:
