@@ -226,3 +226,12 @@ def test_validate_exits_3_naming_the_plant_when_the_claim_is_false(run_dir, tmp_
     assert "claim falsified" in err and ("mode 1: a1" in err or "true structure" in err)
     doc = json.loads((tmp_path / "R.json").read_text())
     assert doc["samples"]["violations"] > 0 or not doc["truth"]["stable"] or doc["truth"]["rp_peak"] >= 1
+
+
+def test_the_report_shows_the_validation(run_dir, tmp_path):
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    assert main(["validate", str(copy), "--samples", "10"]) == 0  # default: RUN_DIR/validate.json and .png
+    assert main(["report", str(copy)]) == 0
+    html = (copy / "report.html").read_text()
+    assert "Validation of the compensator" in html and "validate.png" in html and "plants violating the claim" in html

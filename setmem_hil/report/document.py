@@ -239,6 +239,7 @@ def write_report(run_dir: str | os.PathLike) -> Path:
                                 f"Discrepancy check at iteration {k} ({_after(its, k)})."))
     else:
         parts.append("<p>No discrepancy check was run.</p>")
+    parts.append(_validation_section(out_dir))
     parts.append("<h2 id='events'>Events</h2>")
     shown = [e for e in run.events if e["kind"] != "exact-resolve"]  # data of figure 6-14, not news
     parts.append(_table(["time (UTC)", "kind", "message"], [[e["utc"], e["kind"], e["message"]] for e in shown], "table-events")
@@ -268,6 +269,44 @@ pre {{ background: #f6f6f6; padding: 1em; overflow-x: auto; }}
 """
     path = out_dir / REPORT_FILENAME
     return write_text_atomic(path, doc)
+
+
+VALIDATION_FILENAME = "validate.json"
+
+
+def _validation_section(out_dir: Path) -> str:
+    """What ``setmem-hil validate`` found (when it wrote ``validate.json`` into the run directory)."""
+    import json
+
+    head = "<h2 id='validation'>Validation of the compensator</h2>"
+    path = Path(out_dir) / VALIDATION_FILENAME
+    if not path.is_file():
+        return head + "<p>Not validated yet: <code>setmem-hil validate RUN_DIR</code> checks the kept compensator against the " \
+                      "truth and plants sampled from the interval box.</p>"
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    rows = [["iteration", doc["iteration"]], ["claimed mu-bar", _num(doc["claimed_mu_peak"])]]
+    truth = doc.get("truth")
+    if truth:
+        rows += [["truth: closed loop", "stable" if truth["stable"] else "UNSTABLE"],
+                 ["truth: peak |W2 S| + |W1 K S|", f"{_num(truth['rp_peak'])} at {_num(truth['rp_peak_omega'])} rad/s"]]
+    samples = doc["samples"]
+    rows += [["sampled plants", f"{samples['n']} ({samples['drawn']})"],
+             ["worst sampled peak", f"{_num(samples['worst_rp_peak'])} at {_num(samples['worst_omega'])} rad/s"],
+             ["plants violating the claim", samples["violations"]]]
+    sim = doc.get("closed_loop_sim")
+    if sim and sim.get("stable"):
+        rows += [["closed-loop simulation", f"{_num(sim['measured'])} measured, {_num(sim['predicted'])} predicted at "
+                                            f"{_num(sim['omega_rad_s'])} rad/s, {_num(sim['fs_hz'])} Hz"]]
+    out = head + _table(["item", "value"], rows, "table-validation", "The exact one-plant test of robust performance "
+                        "for the truth and for plants of the interval box (setmem-hil validate).")
+    figure = Path(doc.get("figure") or "")
+    if figure.is_file():
+        try:
+            src = str(figure.resolve().relative_to(Path(out_dir).resolve()))
+        except ValueError:
+            src = str(figure)
+        out += _figure(src, "|W2 S| and |W1 K S| of the truth and of the worst sampled plant against 1.", "fig-validation")
+    return out
 
 
 def _discrepancy_rows(report: dict) -> list[list[str]]:
