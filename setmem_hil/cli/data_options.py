@@ -11,12 +11,13 @@ from setmem_hil.errors import InputFormatError
 from setmem_hil.io.frf_file import QUANTITIES, load_frf
 from setmem_hil.model.frequency_data import FrequencyData
 
-__all__ = ["add_data_options", "load_data", "load_prior", "check_out_path"]
+__all__ = ["add_data_options", "single_data_file", "load_data", "load_prior", "check_out_path"]
 
 
 def add_data_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", required=True, metavar="DATA.csv|DATA.uff",
-                   help="CSV with header omega,re,im,bound (rad/s), or a UFF 58 FRF file")
+    p.add_argument("--data", required=True, action="append", metavar="DATA.csv|DATA.uff",
+                   help="CSV with header omega,re,im,bound (rad/s), or a UFF 58 FRF file (one file: several outputs "
+                        "are not identified jointly yet, and a second --data is refused, never dropped)")
     p.add_argument("--quantity", choices=QUANTITIES, default=None,
                    help="the response quantity of the data (default displacement; a UFF file's own declaration otherwise); "
                         "converted to receptance with its bound")
@@ -25,7 +26,20 @@ def add_data_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--averages", type=int, metavar="N", help="UFF with a coherence record: H1 random-error bound (3 sigma) for N averages")
 
 
+def single_data_file(args: argparse.Namespace) -> str:
+    """The one ``--data`` file; a repeated ``--data`` is refused with a word (it used to keep the
+    last file silently). Also stores it back as ``args.data``."""
+    files = args.data if isinstance(args.data, list) else [args.data]
+    if len(files) > 1:
+        raise InputFormatError(f"setmem-hil {getattr(args, 'command', '')}".strip(), "--data",
+                               f"{len(files)} files given ({', '.join(files)}): identifying several outputs with shared "
+                               "poles is not built yet; give one --data file")
+    args.data = files[0]
+    return args.data
+
+
 def load_data(args: argparse.Namespace) -> FrequencyData:
+    single_data_file(args)
     loaded = load_frf(args.data, quantity=args.quantity, bound_rel=args.bound_rel, bound_abs=args.bound_abs, averages=args.averages)
     for note in loaded.notes:
         print(f"setmem-hil: note: {args.data}: {note}", file=sys.stderr)

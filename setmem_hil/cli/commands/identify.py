@@ -43,6 +43,8 @@ def run(args: argparse.Namespace) -> int:
         doc = identify(data, prior).to_document()
     write_json(doc, args.out)
     unverified = [i + 1 for i, m in enumerate(doc["modes"]) if m.get("verified") is False]
-    print(f"identified {len(doc['modes'])} mode(s) from {len(data.omega_rad_s)} points in {doc['iterations']} iteration(s): "
+    used = len(data.omega_rad_s) - len(doc.get("rejected_points", []))
+    dropped = f" ({len(doc['rejected_points'])} rejected)" if doc.get("rejected_points") else ""
+    print(f"identified {len(doc['modes'])} mode(s) from {used} points{dropped} in {doc['iterations']} iteration(s): "
           f"{args.out}" + (f"; bounds of mode(s) {unverified} NOT verified (see unverified_reason)" if unverified else ""))
     return 0
