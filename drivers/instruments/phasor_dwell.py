@@ -125,9 +125,9 @@ class PhasorDwellExperiment:
                                                     "reconnects": 0})
     model: object = None  # the current IntervalModel (the prior's box at first): ringing modes to wait out
     _frequency_hz: float = field(default=1.0, init=False, repr=False)  # the drive frequency set last
-    _drive_changed_at: float = field(default=0.0, init=False, repr=False)
+    _drive_changed_at: float = field(default=0.0, init=False, repr=False)  # clock time of the last level change
     _dwell_start: float = field(default=0.0, init=False, repr=False)
-    _free: FreeResponseBound | None = field(default=None, init=False, repr=False)  # clock time of the last level change
+    _free: FreeResponseBound | None = field(default=None, init=False, repr=False)  # the drive history (free-response bound)
     last_ringdown: dict = field(default_factory=dict)  # the last dwell's wait and allowance (benchmarks, log)
     output_confirmed_off: bool = True  # the instruments were opened with the output forced off and read back
     last_dwell_s: float = 0.0
@@ -162,7 +162,7 @@ class PhasorDwellExperiment:
             self._wait_locked(frequency_hz)
             self._level_up(target)
             self._check_reference(frequency_hz)
-            modes = self._wait_out_ringing(omega_rad_s, tau)
+            self._wait_out_ringing(omega_rad_s, tau)
             self._auto_range()  # after the wait: a lightly damped response is still growing before it
             all_f, all_r, times = self._settle_and_read(omega_rad_s, target)
             window = slice(-2 * self.settings.readings_per_half, None)
@@ -207,13 +207,13 @@ class PhasorDwellExperiment:
         shorten the wait and the allowance of later dwells."""
         self.model = model
 
-    def _wait_out_ringing(self, omega_rad_s: float, tau: float) -> list:
+    def _wait_out_ringing(self, omega_rad_s: float, tau: float) -> None:
         """Wait ``DECAY_TIMES`` decay times of every mode whose beat passes the output filter
         (counted from the last level change; capped so that the readings still fit in
-        ``max_dwell_s``); returns the modes, for the allowance of what is left."""
+        ``max_dwell_s``), and for filtered leaks (:func:`leak_wait_s`)."""
         if self.model is None:
-            return []
-        order = max(self.force.profile.filter_order, self.response.profile.filter_order)
+            return
+        order = self._filter_order
         modes = ringing_modes(self.model, omega_rad_s, tau, order)
         elapsed = self.clock.now() - self._drive_changed_at
         wanted = ringdown_wait_s(modes)
@@ -228,16 +228,14 @@ class PhasorDwellExperiment:
                               "decay_times_s": [m.decay_time_s for m in modes if m.passes]}
         if wait > 0:
             self._wait(wait)
-        return modes
 
     def _free_response_allowance(self, omega_rad_s: float, tau: float, times: np.ndarray, force_v: np.ndarray) -> float:
         """What the modes' free response may still add to the mean of the readings (receptance
         units; :class:`~setmem_hil.estimation.ringdown.FreeResponseBound`)."""
         allowance = 0.0
         if self._free is not None:
-            order = max(self.force.profile.filter_order, self.response.profile.filter_order)
             force_n = self._force_amplitude(complex(np.mean(force_v)))
-            allowance = self._free.allowance(self.model, times, omega_rad_s, tau, order, force_n)
+            allowance = self._free.allowance(self.model, times, omega_rad_s, tau, self._filter_order, force_n)
         self.last_ringdown["allowance"] = allowance
         return allowance
 
@@ -245,16 +243,24 @@ class PhasorDwellExperiment:
         """A ringing mode the halves test cannot see (its beat inflates the scatter instead of
         shifting the mean): the exponential fit of every reading still shows a transient above
         the fit's residual noise. Reading on lets it decay (up to ``max_dwell_s``)."""
-        ratio = (np.array(responses) / self.response_sensor.volt_per_unit) / (np.array(forces) / self.force_sensor.volt_per_unit)
-        _, ringing_now = exponential_trend(np.array(times), ratio, complex(window.mean()), self.settings.confidence)
+        _, ringing_now = exponential_trend(np.array(times), self._ratios(forces, responses), complex(window.mean()),
+                                           self.settings.confidence)
         return ringing_now > 0
 
     def _trend_gap(self, force_v: np.ndarray, response_v: np.ndarray, times: np.ndarray) -> float:
         """The exponential trend of every reading of the dwell (:func:`exponential_gap`), in the
         ratio's units: what a transient slower than the window may still hide."""
-        ratio = (response_v / self.response_sensor.volt_per_unit) / (force_v / self.force_sensor.volt_per_unit)
+        ratio = self._ratios(force_v, response_v)
         window = ratio[-2 * self.settings.readings_per_half:]
         return exponential_gap(times, ratio, complex(window.mean()), self.settings.confidence)
+
+    def _ratios(self, forces, responses) -> np.ndarray:
+        """Each reading's response per force, in the sensors' units."""
+        return (np.asarray(responses) / self.response_sensor.volt_per_unit) / (np.asarray(forces) / self.force_sensor.volt_per_unit)
+
+    @property
+    def _filter_order(self) -> int:
+        return max(self.force.profile.filter_order, self.response.profile.filter_order)
 
     def confirm_output_off(self) -> None:
         """Output off, read back (a fresh connection if the link failed); raises when it cannot
@@ -306,10 +312,9 @@ class PhasorDwellExperiment:
         an earlier dwell that its beat would leak through (:func:`leak_time_constant`)."""
         wanted = self.settings.time_constant_cycles / omega_rad_s
         if self._free is not None:
-            order = max(self.force.profile.filter_order, self.response.profile.filter_order)
             values = self.response.profile.time_constants_s
             base = next((v for v in values if v >= wanted), values[-1])
-            wanted = leak_time_constant(self._free, self.model, omega_rad_s, order, self.clock.now(), values, base,
+            wanted = leak_time_constant(self._free, self.model, omega_rad_s, self._filter_order, self.clock.now(), values, base,
                                         self._target_force(), self._expected_response(omega_rad_s))
         tau = self.force.set_time_constant(wanted)
         tau_r = self.response.set_time_constant(tau)
@@ -415,7 +420,7 @@ class PhasorDwellExperiment:
                 z = li.read_xy()
             except ReferenceUnlocked:  # a momentary unlock: wait for the lock, then for the filter
                 self.counters["relocks"] += 1
-                self._wait_locked(self.source_frequency_hz, after_unlock=True)
+                self._wait_locked(self._frequency_hz, after_unlock=True)
                 continue
             except LockInOverload as exc:
                 if not li.range_up():
@@ -438,10 +443,6 @@ class PhasorDwellExperiment:
     RELOCK_MIN_S = 1.0
     RELOCK_PERIODS = 50.0
     RELOCK_TAUS = 10.0
-
-    @property
-    def source_frequency_hz(self) -> float:
-        return self._frequency_hz
 
     def relock_timeout_s(self, frequency_hz: float) -> float:
         tau = max(self.force.time_constant_s, self.response.time_constant_s)
@@ -490,8 +491,7 @@ class PhasorDwellExperiment:
             self._check_response(responses[-1], omega_rad_s)
             spacing = self._settle_time() * SPACING_PATTERN[len(forces) % len(SPACING_PATTERN)]
             if len(forces) >= 2 * m:
-                window_f, window_r = np.array(forces[-2 * m:]), np.array(responses[-2 * m:])
-                ratio = (window_r / self.response_sensor.volt_per_unit) / (window_f / self.force_sensor.volt_per_unit)
+                ratio = self._ratios(forces[-2 * m:], responses[-2 * m:])
                 settled = settling_test(ratio, self.settings.confidence) and not self._still_ringing(forces, responses, times, ratio)
                 passes = passes + 1 if settled else 0
                 if passes >= 2:  # two windows in a row: one lucky draw does not end the dwell

@@ -27,7 +27,7 @@ class ScpiInstrument:
         self.name, self.profile, self.link = name, profile, link
         self.model = profile.model
         self.fields = dict(fields or {})
-        self.garbled_replies = 0  # answers that did not parse the first time (counted, journaled)
+        self.garbled_replies = 0  # answers that did not parse the first time (logged as warnings; tests read it)
 
     @property
     def where(self) -> str:

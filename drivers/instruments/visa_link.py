@@ -36,6 +36,7 @@ class VisaLink:
             raise DeviceError(f"{name}: PyVISA is not installed; install it with pip install 'setmem-hil[instruments]'") from None
         self._pyvisa = pyvisa
         self.answered = False  # has this session ever exchanged a message? (a lost link vs. never reached)
+        self._sock: socket.socket | None = None  # pyvisa-py's TCP socket of the open session, if any
         self._open()
 
     def _open(self) -> None:
@@ -45,10 +46,10 @@ class VisaLink:
                                                 timeout=int(self.timeout_s * 1000))
         except Exception as exc:  # noqa: BLE001 - pyvisa raises VisaIOError, ValueError, OSError, LibraryError...
             raise DeviceDisconnectedError(f"{self.name}: cannot open {self.resource!r} ({_reason(exc)})") from None
-        sock = self._socket()
-        if sock is not None:  # short commands go out at once (Nagle would hold a write behind the last one's ACK)
+        self._sock = self._socket()  # the session keeps its socket until closed: looked up once
+        if self._sock is not None:  # short commands go out at once (Nagle would hold a write behind the last one's ACK)
             try:
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             except OSError:
                 pass
 
@@ -71,12 +72,11 @@ class VisaLink:
         self.transcript.append(command)
         self._refuse_if_closed(command)
         try:
-            sock = self._socket()
-            if sock is None or self._pending():
+            if self._sock is None or self._pending():
                 reply = str(self._inst.query(command)).strip()
             else:
                 self._inst.write(command)
-                self._await_reply(sock, command)
+                self._await_reply(self._sock, command)
                 reply = str(self._inst.read()).strip()
         except DeviceError:
             raise
@@ -103,11 +103,10 @@ class VisaLink:
     def peer_closed(self) -> bool:
         """Has the instrument closed the connection? pyvisa-py reads an orderly close as silence
         and reports a timeout after ``timeout_s``; a non-blocking peek tells at once."""
-        sock = self._socket()
-        if sock is None:
+        if self._sock is None:
             return False
         try:
-            return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+            return self._sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
         except (ConnectionResetError, ConnectionAbortedError, BrokenPipeError):
             return True
         except OSError:  # would block (open, nothing to read), not connected yet, refused: not a close
@@ -148,6 +147,7 @@ class VisaLink:
         return DeviceDisconnectedError(f"{self.name} ({self.resource}): {command!r} failed ({_reason(exc)})")
 
     def close(self) -> None:
+        self._sock = None
         for closer in (getattr(self, "_inst", None), getattr(self, "_rm", None)):
             try:
                 if closer is not None:

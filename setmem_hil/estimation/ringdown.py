@@ -58,7 +58,7 @@ LEAK_FRACTION = 0.01  # ...but a mode ringing so hard that even its filtered bea
 
 @dataclass(frozen=True)
 class RingingMode:
-    """One mode's worst case at a drive frequency, per newton of the largest drive."""
+    """One mode at a drive frequency: its slowest possible decay and the filter's gain at its beat."""
 
     mode: int  # 0-based
     sigma_min: float  # decay rate lower bound (1/s); 0: unknown
@@ -81,18 +81,26 @@ def ringing_modes(model: IntervalModel, omega_rad_s: float, tau_s: float, order:
     """Every modelled mode's decay rate bound and filter gain at drive frequency ``omega_rad_s``."""
     out = []
     for i in range(model.n_modes):
-        sigma_min, _, _ = _mode_box(model, i, omega_rad_s)
-        sigma_max = max(model.upper[i, 0], 0.0) / 2.0
+        sigma_min, sigma_max = _sigma_range(model, i)
         beat = _beat(model, i, omega_rad_s)
         gain = _filter_gain(min(sigma_max, 0.99 / tau_s), beat, tau_s, order)  # a larger sigma attenuates less (worst case)
         out.append(RingingMode(i, sigma_min, gain))
     return out
 
 
+def _sigma_range(model: IntervalModel, i: int) -> tuple[float, float]:
+    """Bounds of mode ``i``'s decay rate ``sigma = a1 / 2`` (eq. 2.3) over the box."""
+    return max(model.lower[i, 0], 0.0) / 2.0, max(model.upper[i, 0], 0.0) / 2.0
+
+
+def _damped_frequency_low(model: IntervalModel, i: int) -> float:
+    """The lowest damped natural frequency ``sqrt(a0 - sigma^2)`` the box allows."""
+    return math.sqrt(max(model.lower[i, 1] - _sigma_range(model, i)[1] ** 2, 0.0))
+
+
 def _beat(model: IntervalModel, i: int, omega: float) -> float:
     """The smallest |w_d - omega| the interval box allows."""
-    sigma_max = max(model.upper[i, 0], 0.0) / 2.0
-    wd_lo = math.sqrt(max(model.lower[i, 1] - sigma_max**2, 0.0))
+    wd_lo = _damped_frequency_low(model, i)
     wd_hi = math.sqrt(max(model.upper[i, 1], 0.0))
     return 0.0 if wd_lo <= omega <= wd_hi else min(abs(omega - wd_lo), abs(omega - wd_hi))
 
@@ -103,15 +111,17 @@ def ringdown_wait_s(modes: list[RingingMode]) -> float:
     return DECAY_TIMES * max(times) if times else 0.0
 
 
-def _mode_box(model: IntervalModel, i: int, omega: float) -> tuple[float, float, float]:
-    """(sigma_min, min |j omega - p|, |r|max) of mode ``i`` over the interval box."""
-    a1_lo, a0_lo, b1_lo, b0_lo = model.lower[i]
-    _, a0_hi, b1_hi, b0_hi = model.upper[i]
-    sigma_min, sigma_max = max(a1_lo, 0.0) / 2.0, max(model.upper[i, 0], 0.0) / 2.0
-    wd_lo = math.sqrt(max(a0_lo - sigma_max**2, 0.0))
-    b1, b0 = max(abs(b1_lo), abs(b1_hi)), max(abs(b0_lo), abs(b0_hi))
-    residue = (b1 * math.sqrt(a0_hi) + b0) / (2.0 * wd_lo) if wd_lo > 0 else math.inf
-    return sigma_min, math.hypot(sigma_min, _beat(model, i, omega)), residue
+def _residue_max(model: IntervalModel, i: int) -> float:
+    """``|r| <= (|b1|max sqrt(a0max) + |b0|max) / (2 w_d,min)`` over the box (inf when unbounded)."""
+    b1 = max(abs(model.lower[i, 2]), abs(model.upper[i, 2]))
+    b0 = max(abs(model.lower[i, 3]), abs(model.upper[i, 3]))
+    wd_lo = _damped_frequency_low(model, i)
+    return (b1 * math.sqrt(model.upper[i, 1]) + b0) / (2.0 * wd_lo) if wd_lo > 0 else math.inf
+
+
+def _pole_distance(model: IntervalModel, i: int, omega: float) -> float:
+    """The smallest ``|j omega - p|`` the box allows: ``hypot(sigma_min, beat)``."""
+    return math.hypot(_sigma_range(model, i)[0], _beat(model, i, omega))
 
 
 def _per_distance(force: float, distance: float) -> float:
@@ -142,7 +152,7 @@ class FreeResponseBound:
 
     def bound(self, model: IntervalModel, i: int, t: float) -> float:
         """``|xi - xi_ss|`` bound of mode ``i`` at time ``t`` (inf: not boundable yet)."""
-        sigma = max(model.lower[i, 0], 0.0) / 2.0
+        sigma = _sigma_range(model, i)[0]
         if sigma <= 0:  # no damping lower bound: nothing decays in the worst case; the settling test decides
             return math.inf
         cap = 2.0 * self.force_max / sigma
@@ -151,8 +161,8 @@ class FreeResponseBound:
             if when > t:
                 break
             h *= math.exp(-sigma * (when - last_t))
-            dist_old = _mode_box(model, i, omega)[1]
-            dist_new = _mode_box(model, i, new_omega)[1]
+            dist_old = _pole_distance(model, i, omega)
+            dist_new = _pole_distance(model, i, new_omega)
             if new_omega == omega:
                 jump = _per_distance(abs(new_force - force), dist_new)
             else:
@@ -173,8 +183,8 @@ class FreeResponseBound:
         (:meth:`bound`), or the measured motions if smaller (``measured_cap``)."""
         if not self.motions and not self.events:
             return 0.0
-        sigma = max(model.lower[i, 0], 0.0) / 2.0
-        replay = 2.0 * _mode_box(model, i, 1.0)[2] * self.bound(model, i, t)
+        sigma = _sigma_range(model, i)[0]
+        replay = 2.0 * _residue_max(model, i) * self.bound(model, i, t)
         replay = math.inf if math.isnan(replay) else replay
         if not measured_cap:
             return replay
