@@ -32,6 +32,7 @@ def test_analyze_writes_the_contract(tmp_path):
     assert doc["mu_lower_peak"] <= doc["mu_peak"]
     assert max(doc["mu"]) == pytest.approx(doc["mu_peak"])
     assert doc["controller_order"] == 15
+    assert doc["mu_peak_certified"] is True and doc["mu_certified_intervals"] >= 1 and doc["mu_peak_grid"] <= doc["mu_peak"]
     top3 = sorted(doc["sensitivities"], key=doc["sensitivities"].get, reverse=True)[:3]
     assert top3 == ["b0_1", "b0_2", "b0_3"]
 

@@ -30,12 +30,14 @@ def test_campaign_command_writes_summary_and_journal_and_refuses_to_overwrite(qu
     assert summary["final_mu_peak"] < 50.0 and summary["wall_s"] > 0
     assert summary["iterations"][0]["k"] == 1 and summary["iterations"][0]["n_points"] == 15
     assert summary["iterations"][0]["next_omega"] is None
+    assert summary["iterations"][0]["mu_peak_certified"] is True and summary["iterations"][0]["mu_certified_intervals"] >= 1
     journal = Journal.open(out)
     try:
         assert journal.n_measurements() == 15
         assert journal.run_info()["seed"] == 3 and journal.run_info()["finished"]
         (it,) = journal.iterations()
         assert it.mu_peak == pytest.approx(summary["final_mu_peak"]) and np.all(it.lower <= it.upper)
+        assert it.mu_peak_certified is True and it.mu_certified_intervals == summary["iterations"][0]["mu_certified_intervals"]
     finally:
         journal.close()
     capsys.readouterr()

@@ -168,12 +168,14 @@ def test_version_2_journals_are_upgraded_and_export_designs_again(run_dir, tmp_p
     shutil.copytree(run_dir, old)
     conn = sqlite3.connect(old / "journal.sqlite")
     conn.execute("ALTER TABLE iteration DROP COLUMN controller")  # as written before compensators were stored
+    conn.execute("ALTER TABLE iteration DROP COLUMN mu_peak_certified")
+    conn.execute("ALTER TABLE iteration DROP COLUMN mu_certified_intervals")
     conn.execute("PRAGMA user_version=2")
     conn.commit()
     conn.close()
     with Journal.open(old) as j:  # upgraded on open
         records = j.iterations()
-    assert records and all(r.controller is None for r in records)
+    assert records and all(r.controller is None and r.mu_peak_certified is None for r in records)
     k = next(r.k for r in reversed(records) if r.safeguard == "new-design")
     assert main(["controller", str(old), "--out", str(tmp_path / "K.json"), "--iteration", str(k)]) == 0
     redesigned = StateSpace.from_lists(json.loads((tmp_path / "K.json").read_text())["continuous"])

@@ -191,3 +191,25 @@ def test_iteration_records_round_trip_any_floats(tmp_path_factory, n_modes, data
         np.testing.assert_array_equal(getattr(got, name), getattr(rec, name))  # NaN == NaN here
     assert got.sensitivities == sens and got.next_omega == nxt
     assert (got.mu_peak == rec.mu_peak) or (math.isnan(got.mu_peak) and math.isnan(rec.mu_peak))
+
+
+def test_certificate_round_trips_and_version_3_journals_are_upgraded(tmp_path):
+    import dataclasses
+    import sqlite3
+
+    rng = np.random.default_rng(5)
+    j = _create(tmp_path)
+    j.add_iteration(dataclasses.replace(_record(1, rng), mu_peak_certified=True, mu_certified_intervals=17))
+    j.add_iteration(dataclasses.replace(_record(2, rng), mu_peak_certified=False, mu_certified_intervals=3))
+    got = j.iterations()
+    assert [(g.mu_peak_certified, g.mu_certified_intervals) for g in got] == [(True, 17), (False, 3)]
+    j.close()
+    conn = sqlite3.connect(tmp_path / "run" / "journal.sqlite")  # as written before the certificate existed
+    conn.execute("ALTER TABLE iteration DROP COLUMN mu_peak_certified")
+    conn.execute("ALTER TABLE iteration DROP COLUMN mu_certified_intervals")
+    conn.execute("PRAGMA user_version=3")
+    conn.commit()
+    conn.close()
+    with Journal.open(tmp_path / "run") as old:
+        got = old.iterations()
+    assert [g.k for g in got] == [1, 2] and all(g.mu_peak_certified is None and g.mu_certified_intervals is None for g in got)

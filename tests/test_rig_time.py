@@ -59,7 +59,9 @@ def test_version_1_journals_are_upgraded(tmp_path):
     j.close()
     conn = sqlite3.connect(tmp_path / "journal.sqlite")
     conn.execute("ALTER TABLE measurement DROP COLUMN rig_s")
-    conn.execute("ALTER TABLE iteration DROP COLUMN controller")  # a faithful version 1: neither column
+    conn.execute("ALTER TABLE iteration DROP COLUMN controller")  # a faithful version 1: none of the later columns
+    conn.execute("ALTER TABLE iteration DROP COLUMN mu_peak_certified")
+    conn.execute("ALTER TABLE iteration DROP COLUMN mu_certified_intervals")
     conn.execute("PRAGMA user_version=1")
     conn.commit()
     conn.close()

@@ -73,7 +73,10 @@ def test_given_controller_reproduces_design(table_b1):
 
 def test_document_contract(table_b1):
     doc = table_b1.to_document()
-    assert set(doc) == {"mu_peak", "mu_peak_omega", "mu_lower_peak", "omega", "mu", "sensitivities", "controller_order"}
+    assert set(doc) == {"mu_peak", "mu_peak_omega", "mu_lower_peak", "omega", "mu", "sensitivities", "controller_order",
+                        "mu_peak_certified", "mu_certified_level", "mu_certified_intervals", "mu_peak_grid"}
+    assert doc["mu_peak_certified"] is True and doc["mu_certified_intervals"] >= 1
+    assert doc["mu_peak"] <= doc["mu_certified_level"] <= doc["mu_peak"] * (1 + 1.01e-4)
     json.dumps(doc, allow_nan=False)
     assert doc["controller_order"] == 15
     assert set(doc["sensitivities"]) == set(THESIS_B1_SENSITIVITIES)

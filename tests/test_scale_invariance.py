@@ -58,7 +58,10 @@ def test_analysis_is_time_scale_invariant(reference_analysis, S):
     ref = reference_analysis
     r = analyze_robust_performance(BOX.time_scaled(S), THESIS_WEIGHTS.time_scaled(S))
     assert r.mu_peak == pytest.approx(ref.mu_peak, rel=1e-6)
-    assert r.mu_peak_omega == pytest.approx(ref.mu_peak_omega * S, rel=1e-9)
+    # the band certificate (issue 27) adds points where the Hamiltonian crossings fall, which
+    # move in the 9th digit with the scale; a peak found there is located to that accuracy
+    assert r.mu_peak_omega == pytest.approx(ref.mu_peak_omega * S, rel=1e-7)
+    assert r.mu_peak_certified and ref.mu_peak_certified
     assert set(r.sensitivities) == set(ref.sensitivities)
     for name, value in ref.sensitivities.items():
         assert r.sensitivities[name] == pytest.approx(value, rel=1e-5, abs=1e-8), name
@@ -75,7 +78,7 @@ def test_analysis_is_magnitude_invariant(reference_analysis, m):
     ref = reference_analysis
     r = analyze_robust_performance(BOX.magnitude_scaled(m), THESIS_WEIGHTS.magnitude_scaled(m))
     assert r.mu_peak == pytest.approx(ref.mu_peak, rel=1e-6)
-    assert r.mu_peak_omega == pytest.approx(ref.mu_peak_omega, rel=1e-9)
+    assert r.mu_peak_omega == pytest.approx(ref.mu_peak_omega, rel=1e-7)  # see above
     for name, value in ref.sensitivities.items():
         assert r.sensitivities[name] == pytest.approx(value, rel=1e-5, abs=1e-8), name
 

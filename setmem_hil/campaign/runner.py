@@ -91,11 +91,15 @@ class IterationSummary:
     compute_s: float
     compute_cpu_s: float = 0.0
     rig_s: float = 0.0  # device seconds of the dwells this iteration asked for (measured after it)
+    mu_peak_certified: bool = False  # mu_peak bounds mu-bar on the whole band, not only the grid
+    mu_certified_intervals: int = 0
 
     def to_document(self) -> dict:
         return {
             "k": self.k,
             "mu_peak": self.mu_peak,
+            "mu_peak_certified": bool(self.mu_peak_certified),
+            "mu_certified_intervals": int(self.mu_certified_intervals),
             "next_omega": self.next_omega,
             "n_points": self.n_points,
             "mu_peak_omega": self.mu_peak_omega,
@@ -244,6 +248,12 @@ class _Replay:
             if self.journal is not None:
                 self.journal.add_measurement(m, iteration=iteration, role=role)
         return stored + list(record[len(stored):])
+
+
+def goal_certified(outcome: SafeguardOutcome, goal) -> bool:
+    """The stopping test of chapter 5: mu-bar below the goal *as certified on the whole
+    frequency band* (issue 27), never on the grid's value alone."""
+    return bool(outcome.certified_mu < goal.mu_target)
 
 
 def controller_matrices(K) -> dict | None:
@@ -480,10 +490,11 @@ def run_campaign(
         with blas_one_thread():
             outcome = safeguarded_design(model, previous_outcome, analyze)
         analysis = outcome.analysis
+        certified = goal_certified(outcome, goal)
         emit("iteration", k=k, n_points=len(measured), mu_peak=outcome.mu_peak,
              mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch,
-             rig_s=float(sum(m.rig_s for m in measured)))
-        reached = outcome.mu_peak < goal.mu_target
+             rig_s=float(sum(m.rig_s for m in measured)), mu_peak_certified=outcome.certified)
+        reached = certified
         budget_spent = n_added >= goal.max_experiments
         choice: InputChoice | None = None
         if not (reached or budget_spent):
@@ -518,6 +529,8 @@ def run_campaign(
                     embedding_gamma=np.asarray(result.embedding_gamma, dtype=float),
                     mismatch_ratio=np.asarray(result.mismatch_ratio, dtype=float),
                     controller=controller_matrices(analysis.controller),
+                    mu_peak_certified=bool(outcome.certified),
+                    mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)),
                 ))
                 if choice is not None and np.size(choice.resolved_omega_rad_s):
                     import json
@@ -536,8 +549,10 @@ def run_campaign(
         rows.append(IterationSummary(
             k=k, n_points=len(measured), mu_peak=float(outcome.mu_peak), mu_peak_omega=float(analysis.mu_peak_omega),
             next_omega=next_omega, safeguard=outcome.branch, basis="" if choice is None else choice.basis,
-            compute_s=float(compute_s), compute_cpu_s=float(compute_cpu_s),
+            compute_s=float(compute_s), compute_cpu_s=float(compute_cpu_s), mu_peak_certified=bool(outcome.certified),
+            mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)),
         ))
+        final_reached = reached
         if choice is None:
             break
         batch = [next_omega]
@@ -557,7 +572,7 @@ def run_campaign(
         k += 1
 
     summary = CampaignSummary(
-        reached_goal=bool(rows[-1].mu_peak < goal.mu_target),
+        reached_goal=bool(final_reached),
         final_mu_peak=rows[-1].mu_peak,
         experiments_added=n_added,
         wall_s=time.perf_counter() - t_start,
@@ -566,7 +581,7 @@ def run_campaign(
         seed=seed,
         goal_mu=float(goal.mu_target),
         max_experiments=int(goal.max_experiments),
-        stop_reason="goal" if rows[-1].mu_peak < goal.mu_target else "budget",
+        stop_reason="goal" if final_reached else "budget",
         replayed_measurements=min(replayed_before, source.count),
         rig_s=float(sum(m.rig_s for m in measured)),
     )

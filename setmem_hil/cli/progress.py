@@ -177,6 +177,8 @@ class CampaignProgress:
             self._show_status()
             safeguard = info.get("safeguard")
             extra = f" [{safeguard}]" if safeguard and safeguard != "new-design" else ""
+            if info.get("mu_peak_certified") is False and math.isfinite(self.mu_peak):
+                extra += " (not certified between grid points: the goal cannot be claimed)"
             rig = info.get("rig_s")
             rig_text = f", rig time {format_duration(float(rig))}" if rig else ""
             self._line(

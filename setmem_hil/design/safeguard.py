@@ -25,6 +25,7 @@ The expanded box is used for the control design and analysis only; the identifie
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -55,6 +56,9 @@ class SafeguardOutcome:
         Reported mu-bar (non-increasing over iterations).
     tried : dict
         mu-bar of every branch evaluated, by branch name.
+    certified_mu : float
+        The reported mu-bar as certified on the whole frequency band (``mu_peak (1 + 1e-4)``,
+        issue 27), ``inf`` when it could not be: the campaign stops on this value.
     """
 
     analysis: Any
@@ -62,6 +66,17 @@ class SafeguardOutcome:
     branch: str
     mu_peak: float
     tried: dict
+    certified_mu: float = math.inf
+
+    @property
+    def certified(self) -> bool:
+        """The band-wide certificate holds (:attr:`certified_mu` is finite)."""
+        return math.isfinite(self.certified_mu)
+
+
+def certified_value(analysis: Any) -> float:
+    """``analysis.certified_mu`` (a RobustAnalysis); test doubles with only ``mu_peak`` give that."""
+    return float(getattr(analysis, "certified_mu", analysis.mu_peak))
 
 
 def expanded_model(previous_midpoint: ModalParameters | np.ndarray, new_model: IntervalModel) -> IntervalModel:
@@ -117,15 +132,16 @@ def safeguarded_design(
     first = analyze(new_model, None)
     tried = {"new-design": float(first.mu_peak)}
     if previous is None or first.mu_peak <= previous.mu_peak:
-        return SafeguardOutcome(first, new_model, "new-design", float(first.mu_peak), tried)
+        return SafeguardOutcome(first, new_model, "new-design", float(first.mu_peak), tried, certified_value(first))
     phi = expanded_model(previous.analysis_model.midpoint, new_model)
     second = analyze(phi, None)
     tried["expanded"] = float(second.mu_peak)
     if second.mu_peak <= previous.mu_peak:
-        return SafeguardOutcome(second, phi, "expanded", float(second.mu_peak), tried)
+        return SafeguardOutcome(second, phi, "expanded", float(second.mu_peak), tried, certified_value(second))
     third = analyze(phi, previous.analysis.controller)
     tried["previous-controller"] = float(third.mu_peak)
-    return SafeguardOutcome(third, phi, "previous-controller", float(min(third.mu_peak, previous.mu_peak)), tried)
+    return SafeguardOutcome(third, phi, "previous-controller", float(min(third.mu_peak, previous.mu_peak)), tried,
+                            min(certified_value(third), previous.certified_mu))
 
 
 __all__ = ["BRANCHES", "SafeguardOutcome", "expanded_model", "safeguarded_design"]

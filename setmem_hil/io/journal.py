@@ -62,7 +62,8 @@ __all__ = ["Journal", "IterationRecord", "JournalError", "JournalSnapshot", "rea
 
 JOURNAL_FILENAME = "journal.sqlite"
 APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
-SCHEMA_VERSION = 3  # 2: measurement.rig_s; 3: iteration.controller (older journals are upgraded when opened)
+SCHEMA_VERSION = 4  # 2: measurement.rig_s; 3: iteration.controller; 4: iteration.mu_peak_certified,
+# mu_certified_intervals (older journals are upgraded when opened)
 ROLES = ("initial", "added")
 
 
@@ -99,6 +100,11 @@ class IterationRecord:
     controller : dict or None
         The compensator the safeguard kept, ``{"A", "B", "C", "D"}`` (lists of lists; rad/s time
         base, positive feedback ``u = K y``); None in journals written before it was stored.
+    mu_peak_certified : bool or None
+        Whether ``mu_peak`` was certified on the whole band, not only at grid points (issue 27);
+        None in journals written before it was.
+    mu_certified_intervals : int or None
+        Number of frequency intervals in that certificate.
     """
 
     k: int
@@ -120,6 +126,8 @@ class IterationRecord:
     embedding_gamma: np.ndarray
     mismatch_ratio: np.ndarray
     controller: dict | None = None
+    mu_peak_certified: bool | None = None
+    mu_certified_intervals: int | None = None
 
 
 _ARRAY_FIELDS = ("lower", "upper", "omega", "mu", "candidate_omega", "estimated_improvement", "embedding_gamma", "mismatch_ratio")
@@ -167,7 +175,9 @@ CREATE TABLE iteration (
     embedding_gamma TEXT NOT NULL,
     mismatch_ratio TEXT NOT NULL,
     utc TEXT NOT NULL,
-    controller TEXT
+    controller TEXT,
+    mu_peak_certified INTEGER,
+    mu_certified_intervals INTEGER
 );
 CREATE TABLE discrepancy (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -347,10 +357,13 @@ class Journal:
             conn.close()
             raise InputFormatError(str(p), "", "not a setmem-hil journal (SQLite application_id differs)")
         upgrades = {1: "ALTER TABLE measurement ADD COLUMN rig_s REAL NOT NULL DEFAULT 0",  # rig time: 0 for what it holds
-                    2: "ALTER TABLE iteration ADD COLUMN controller TEXT"}  # compensators: NULL for what it holds
+                    2: "ALTER TABLE iteration ADD COLUMN controller TEXT",  # compensators: NULL for what it holds
+                    3: "ALTER TABLE iteration ADD COLUMN mu_peak_certified INTEGER;"
+                       "ALTER TABLE iteration ADD COLUMN mu_certified_intervals INTEGER"}  # NULL: not known
         while version in upgrades:
             try:
-                conn.execute(upgrades[version])
+                for statement in upgrades[version].split(";"):
+                    conn.execute(statement)
                 conn.execute(f"PRAGMA user_version={version + 1}")
                 conn.commit()
                 version += 1
@@ -497,6 +510,8 @@ class Journal:
                 v = str(v)
             elif name == "controller":
                 v = None if v is None else _to_json({key: np.asarray(v[key], dtype=float).tolist() for key in "ABCD"})
+            elif name in ("mu_peak_certified", "mu_certified_intervals"):
+                v = None if v is None else int(v)
             else:
                 v = _opt_float(v)
             values.append(v)
@@ -522,6 +537,8 @@ class Journal:
                     v = math.nan if v is None else float(v)
                 elif name == "controller":
                     v = None if v is None else json.loads(v)
+                elif name == "mu_peak_certified":
+                    v = None if v is None else bool(v)
                 kw[name] = v
             for name in ("lower", "upper"):
                 kw[name] = kw[name].reshape(-1, 4)

@@ -15,7 +15,11 @@ Public entry point :func:`analyze_robust_performance` (see ARCHITECTURE.md, issu
    frequencies between its neighbours. Every value reported is ``sqrt(lambda_max)`` at explicit
    scalings, hence a true upper bound; pass-1 values are within ~1e-4 of optimal in our tests.
    The lower bound searches real-block vertices only at the 8 highest frequencies (elsewhere
-   the real blocks are left at zero, still a valid lower bound);
+   the real blocks are left at zero, still a valid lower bound). Then the whole band of the
+   grid is **certified** (:mod:`~setmem_hil.robust.mu_certificate`, issue 27): the scalings of
+   the grid points, each tested on whole frequency intervals with a Hamiltonian eigenvalue test,
+   prove ``mu-bar(w) <= mu_peak (1 + 1e-4)`` at every frequency of the band; where they cannot,
+   new points are solved, and a peak the grid missed raises ``mu_peak``;
 4. the mu-sensitivities at the peak (steps 1-5 of 4.2.2), ``s_i = -d mu_peak / d eps`` for
    shrinking uncertainty ``i`` by ``(1 - eps)^2``; across several frequencies attaining the peak
    the smallest decrease is taken (4.2.2).
@@ -35,6 +39,7 @@ from setmem_hil.io.atomic_file import json_safe
 from setmem_hil.robust.augmented_plant import augmented_plant
 from setmem_hil.robust.h2_design import design_h2_controller, h2_controller_for_plant
 from setmem_hil.robust.mixed_mu import MixedMuBound, MuStructure, mixed_mu_upper
+from setmem_hil.robust.mu_certificate import certify_band
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.robust.mu_lower_bound import mixed_mu_lower
 from setmem_hil.robust.mu_sensitivity import beta_derivatives
@@ -73,8 +78,8 @@ class RobustAnalysis:
     Attributes
     ----------
     mu_peak : float
-        Peak of the mixed-mu upper bound over the (refined) grid; ``inf`` if the nominal closed
-        loop is unstable.
+        Peak of the mixed-mu upper bound over every frequency evaluated (grid, refinement and the
+        certificate's points); ``inf`` if the nominal closed loop is unstable.
     mu_peak_omega : float
         Frequency (rad/s) of the peak.
     mu_lower_peak : float
@@ -99,11 +104,25 @@ class RobustAnalysis:
     sensitivities: dict[str, float]
     controller: Any = field(repr=False)
     controller_order: int = 0
+    mu_peak_certified: bool = False
+    mu_certified_level: float = math.inf
+    mu_certified_intervals: int = 0
+    mu_peak_grid: float = math.nan
+
+    @property
+    def certified_mu(self) -> float:
+        """The certified bound over the whole band (``mu_peak (1 + 1e-4)``); ``inf`` when the
+        band could not be certified: the value the campaign's stopping test uses."""
+        return float(self.mu_certified_level) if self.mu_peak_certified else math.inf
 
     def to_document(self) -> dict[str, Any]:
         """The ANALYSIS.json dict; non-finite values (unstable nominal loop) become ``null``."""
 
         return {
+            "mu_peak_certified": bool(self.mu_peak_certified),
+            "mu_certified_level": json_safe(float(self.mu_certified_level)),
+            "mu_certified_intervals": int(self.mu_certified_intervals),
+            "mu_peak_grid": json_safe(float(self.mu_peak_grid)),
             "mu_peak": json_safe(float(self.mu_peak)),
             "mu_peak_omega": float(self.mu_peak_omega),
             "mu_lower_peak": json_safe(float(self.mu_lower_peak)),
@@ -192,6 +211,10 @@ def analyze_robust_performance(
         sensitivities=result.sensitivities,
         controller=_time_scaled_controller(result.controller, T, 1.0 / M),
         controller_order=result.controller_order,
+        mu_peak_certified=result.mu_peak_certified,
+        mu_certified_level=result.mu_certified_level,
+        mu_certified_intervals=result.mu_certified_intervals,
+        mu_peak_grid=result.mu_peak_grid,
     )
 
 
@@ -239,6 +262,7 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
             sensitivities={name: 0.0 for name in plant.names},
             controller=K,
             controller_order=order,
+            mu_peak_grid=math.inf,
         )
     Mw = cl.frequency_response(omega)
     # pass 1: every grid point, a shorter Newton run (valid bounds, ~1e-4 from optimal)
@@ -271,6 +295,12 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
             mu = np.concatenate([mu, be.beta])
             order_idx = np.argsort(w_all)
             w_all, mu = w_all[order_idx], mu[order_idx]
+    peak_grid = float(max(b.beta.max() for b in bounds))
+    certificate = _certify(cl, structure, omegas, bounds)
+    if certificate.omega.size:
+        omegas.extend(np.atleast_1d(b_w) for b_w in _split(certificate.omega, certificate.bounds))
+        mats.extend(certificate.matrices)
+        bounds.extend(certificate.bounds)
     # flatten (frequency, matrix, bound index) for the peak search
     all_w = np.concatenate(omegas)
     all_mu = np.concatenate([b.beta for b in bounds])
@@ -290,7 +320,13 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
     if plant.n_real == 0:
         sens = np.zeros(0)
     order_idx = np.argsort(all_w, kind="stable")
-    k_peak = int(np.argmax(all_mu))
+    # where the peak is: the grid's, unless the certificate found a larger value beyond the
+    # tie tolerance (its points near the grid's peak tie with it to rounding, and must not move
+    # the reported frequency by 1e-9 from one time scale to another)
+    n_grid = sum(b.beta.size for b in bounds) - sum(b.beta.size for b in certificate.bounds)
+    k_peak = int(np.argmax(all_mu[:n_grid]))
+    if all_mu.max() > all_mu[k_peak] * (1.0 + PEAK_TIE_RTOL):
+        k_peak = int(np.argmax(all_mu))
     return RobustAnalysis(
         mu_peak=peak,
         mu_peak_omega=float(all_w[k_peak]),
@@ -301,4 +337,27 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
         sensitivities={name: float(s) for name, s in zip(plant.names, sens)},
         controller=K,
         controller_order=order,
+        mu_peak_certified=bool(certificate.certified),
+        mu_certified_level=float(certificate.level),
+        mu_certified_intervals=int(certificate.n_intervals),
+        mu_peak_grid=peak_grid,
     )
+
+
+def _certify(cl, structure: MuStructure, omegas: list, bounds: list):
+    """:func:`certify_band` over the band of the grid, from every solved point's scalings."""
+    from setmem_hil.robust.mu_certificate import BandCertificate
+
+    w = np.concatenate(omegas)
+    if w.max() <= w.min():  # a one-point "band": its bound is exact there
+        peak = float(max(b.beta.max() for b in bounds))
+        return BandCertificate(certified=True, level=peak, peak=peak, n_intervals=0, n_scalings=0)
+    merged = MixedMuBound(**{name: np.concatenate([getattr(b, name) for b in bounds])
+                             for name in ("beta", "d", "g", "eigenvalues", "eigenvectors")})
+    return certify_band(cl, structure, (float(w.min()), float(w.max())), w, merged)
+
+
+def _split(omega: np.ndarray, bounds: list) -> list[np.ndarray]:
+    """``omega`` cut into the lengths of ``bounds`` (one array per solve)."""
+    sizes = np.cumsum([b.beta.size for b in bounds])[:-1]
+    return np.split(omega, sizes)
