@@ -205,6 +205,9 @@ def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(run
     w = np.geomspace(0.1, 1000, 20000)
     dense = rp_curve(beam_parameters(), control.ss(K.A, K.B, K.C, K.D), load_procedure(REPO / "procedures" / "beam_6_3_2.toml").weights, w)
     assert doc["truth"]["rp_peak"] >= dense.max() - 1e-9 and doc["truth"]["rp_peak"] <= dense.max() * 1.001
+    # and certified between grid points: mu-bar of the one plant (exact: two complex blocks)
+    assert doc["truth"]["rp_certified"] is True and doc["truth"]["rp_certified_intervals"] >= 1
+    assert doc["truth"]["rp_peak_certified"] == pytest.approx(dense.max(), rel=1e-3)
     sim = doc["closed_loop_sim"]
     assert sim["stable"] and sim["settled"] and sim["relative_difference"] < 0.02  # the sampled loop agrees with the analysis
     assert Path(doc["figure"]).is_file()
