@@ -78,8 +78,9 @@ def test_outlier_rejection_drops_the_bad_point(files, capsys):
     assert f"from {len(data.omega_rad_s) - 1} points (1 rejected)" in out  # the summary counts what was used
 
 
-@pytest.mark.parametrize("command", ["identify", "discrepancy", "prior"])
+@pytest.mark.parametrize("command", ["discrepancy", "prior"])
 def test_a_repeated_data_option_is_refused_never_dropped(files, capsys, command):
+    """identify takes several outputs (tests/test_shared_poles.py); these two take one so far."""
     tmp, data, _ = files
     write_data_csv(data, tmp / "a.csv")
     write_data_csv(data, tmp / "b.csv")
@@ -136,3 +137,34 @@ def test_installed_console_script_runs(files):
     proc = subprocess.run([sys.executable, "-m", "setmem_hil.cli.main", "identify", "--data", str(tmp / "data.csv"), "--prior",
                            str(tmp / "prior.toml"), "--out", str(tmp / "r.json")], capture_output=True, text=True, cwd=tmp)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_reject_outliers_with_a_prior_that_does_not_fit_shows_progress_and_stops(files, capsys):
+    """A user's prior proposed from another sensor: --reject-outliers ran for minutes at full CPU
+    with no output. Now every trial is reported and the search is bounded (documented maxima),
+    then exit 3 says the prior does not fit."""
+    tmp, data, _ = files
+    wrong = PRIOR.replace("omega_min = 5.41\nomega_max = 7.34", "omega_min = 7.6\nomega_max = 9.0")  # mode 2 is at 6.27
+    (tmp / "wrong.toml").write_text(wrong)
+    code = main(["identify", "--data", str(tmp / "data.csv"), "--prior", str(tmp / "wrong.toml"), "--out", str(tmp / "r.json"),
+                 "--reject-outliers"])
+    err = capsys.readouterr().err
+    trials = [line for line in err.splitlines() if line.startswith("reject-outliers: trial ")]
+    assert code == 3 and not (tmp / "r.json").exists()
+    assert 1 <= len(trials) <= 40  # the documented budget
+    assert "prior does not fit" in err and "Traceback" not in err
+
+
+def test_exit_3_says_which_mode_band_each_point_lies_in(files, capsys):
+    """A user read "mode 6: ... points at 686 Hz" as mode 6's fault; the points lay next to mode 5.
+    Here a point of mode 3's band, corrupted, makes mode 2's problem fail first: the message
+    must file mode 3's points under mode 3's band."""
+    tmp, data, _ = files
+    g = data.response.copy()
+    g[14] += 100.0 * data.bound[14]  # 18.0 rad/s, in mode 3's band
+    write_data_csv(FrequencyData(data.omega_rad_s, g, data.bound), tmp / "bad.csv")
+    code = main(["identify", "--data", str(tmp / "bad.csv"), "--prior", str(tmp / "prior.toml"), "--out", str(tmp / "r.json")])
+    err = capsys.readouterr().err
+    assert code == 3
+    failing = int(err.split("mode ")[1].split(":")[0])
+    assert failing != 3 and "(mode 3's band)" in err  # the points of another band are named as such

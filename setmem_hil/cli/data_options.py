@@ -11,13 +11,13 @@ from setmem_hil.errors import InputFormatError
 from setmem_hil.io.frf_file import QUANTITIES, load_frf
 from setmem_hil.model.frequency_data import FrequencyData
 
-__all__ = ["add_data_options", "single_data_file", "load_data", "load_prior", "check_out_path"]
+__all__ = ["add_data_options", "single_data_file", "load_data", "load_outputs", "load_prior", "load_output_priors", "check_out_path"]
 
 
 def add_data_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, action="append", metavar="DATA.csv|DATA.uff",
-                   help="CSV with header omega,re,im,bound (rad/s), or a UFF 58 FRF file (one file: several outputs "
-                        "are not identified jointly yet, and a second --data is refused, never dropped)")
+                   help="CSV with header omega,re,im,bound (rad/s), or a UFF 58 FRF file; identify takes it once per "
+                        "output (shared poles); prior and discrepancy take one file (a second is refused, never dropped)")
     p.add_argument("--quantity", choices=QUANTITIES, default=None,
                    help="the response quantity of the data (default displacement; a UFF file's own declaration otherwise); "
                         "converted to receptance with its bound")
@@ -32,18 +32,38 @@ def single_data_file(args: argparse.Namespace) -> str:
     files = args.data if isinstance(args.data, list) else [args.data]
     if len(files) > 1:
         raise InputFormatError(f"setmem-hil {getattr(args, 'command', '')}".strip(), "--data",
-                               f"{len(files)} files given ({', '.join(files)}): identifying several outputs with shared "
-                               "poles is not built yet; give one --data file")
+                               f"{len(files)} files given ({', '.join(files)}): this command takes one output so far "
+                               "(setmem-hil identify takes several); give one --data file")
     args.data = files[0]
     return args.data
 
 
+def _load_one(path: str, args: argparse.Namespace) -> FrequencyData:
+    loaded = load_frf(path, quantity=args.quantity, bound_rel=args.bound_rel, bound_abs=args.bound_abs, averages=args.averages)
+    for note in loaded.notes:
+        print(f"setmem-hil: note: {path}: {note}", file=sys.stderr)
+    return loaded.data
+
+
 def load_data(args: argparse.Namespace) -> FrequencyData:
     single_data_file(args)
-    loaded = load_frf(args.data, quantity=args.quantity, bound_rel=args.bound_rel, bound_abs=args.bound_abs, averages=args.averages)
-    for note in loaded.notes:
-        print(f"setmem-hil: note: {args.data}: {note}", file=sys.stderr)
-    return loaded.data
+    return _load_one(args.data, args)
+
+
+def load_outputs(args: argparse.Namespace) -> list[tuple[str, FrequencyData]]:
+    """Every ``--data`` file in the order given, one output each, named by its stem (issue 25).
+    The same file twice is refused (it would count one sensor's evidence twice)."""
+    files = args.data if isinstance(args.data, list) else [args.data]
+    seen = {}
+    for f in files:
+        key = str(Path(f).resolve())
+        if key in seen:
+            raise InputFormatError(f, "--data", f"given twice (as {seen[key]} and {f}): each output once")
+        seen[key] = f
+    names = [Path(f).stem for f in files]
+    if len(set(names)) != len(names):
+        names = [f"{Path(f).stem} ({i + 1})" for i, f in enumerate(files)]
+    return [(name, _load_one(f, args)) for name, f in zip(names, files)]
 
 
 PROCEDURE_TABLES = ("backend", "initial", "safety", "goal", "input_design", "weights", "discrepancy", "name", "seed")
@@ -60,6 +80,19 @@ def load_prior(path: str):
 
         return load_procedure(path).prior
     return parse_prior_mapping(mapping, str(path))
+
+
+def load_output_priors(path: str, n_outputs: int):
+    """One prior per output (:func:`setmem_hil.model.prior.parse_output_priors`) and the names the
+    prior gives them (or None). A procedure file's prior serves every output alike."""
+    from setmem_hil.model.prior import load_toml, parse_output_priors
+
+    mapping = load_toml(path)
+    if any(key in mapping for key in PROCEDURE_TABLES):
+        from setmem_hil.io.procedure_file import load_procedure
+
+        return [load_procedure(path).prior] * n_outputs, None
+    return parse_output_priors(mapping, str(path), n_outputs)
 
 
 def check_out_path(path: str, option: str = "--out") -> Path:

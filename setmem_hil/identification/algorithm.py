@@ -25,7 +25,7 @@ import numpy as np
 from setmem_hil.identification.embedding import conservatism_ratio, embedding_bound, embedding_residual, redundant_points
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
-from setmem_hil.model.modal_model import A0, A1, IntervalModel
+from setmem_hil.model.modal_model import A0, A1, B0, B1, IntervalModel
 from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 from setmem_hil.identification.one_mode_solver import OneModeProblem
 from setmem_hil.identification.partitioning import PartitionPlan, minimal_partition, partition_boxes
@@ -36,7 +36,9 @@ from setmem_hil.identification.residue_bootstrap import bootstrap_residue_bounds
 __all__ = [
     "IdentifySettings",
     "IdentificationResult",
+    "MultiOutputResult",
     "identify",
+    "identify_outputs",
     "mode_mismatch_bounds",
     "embedding_bound",
     "embedding_residual",
@@ -100,21 +102,40 @@ class _SolveCounter:
         self.n_solves = 0
 
 
+def output_columns(k: int) -> list[int]:
+    """Columns ``(a1, a0, b1_k, b0_k)`` of output ``k`` in a mode's joint parameter vector."""
+    return [A1, A0, 2 + 2 * k, 3 + 2 * k]
+
+
+def _redundant(omega, g, E, lo, hi, output) -> np.ndarray:
+    """:func:`redundant_points` of each output on its own columns."""
+    if output is None:
+        return redundant_points(omega, g, E, lo, hi)
+    out = np.zeros(omega.size, dtype=bool)
+    for k in np.unique(output):
+        sel, cols = output == k, output_columns(int(k))
+        out[sel] = redundant_points(omega[sel], g[sel], E[sel], lo[cols], hi[cols])
+    return out
+
+
 def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                    prior: Prior, allow_partition: bool, settings: IdentifySettings, mode_index: int,
-                   counter: _SolveCounter):
+                   counter: _SolveCounter, output: np.ndarray | None = None, names: tuple[str, ...] = ()):
     """Algorithm 3.2 on one mode: returns (lo, hi, argmin, argmax, gamma, plan).
 
     ``g_mode`` is the data with the other modes' midpoint estimates subtracted (eq. 3.11) and
-    ``E`` the matching error bound; points with an infinite bound carry no information.
+    ``E`` the matching error bound; points with an infinite bound carry no information. With
+    several outputs, ``output`` gives each point's output and ``lo, hi`` are the joint
+    ``(a1, a0, b1_1, b0_1, ...)`` (shared poles, issue 25).
     """
-    usable = np.isfinite(E) & ~redundant_points(omega_all, g_mode, E, lo, hi)
+    n_params = lo.size
+    usable = np.isfinite(E) & ~_redundant(omega_all, g_mode, E, lo, hi, output)
     if not usable.any():
-        return lo, hi, np.full((4, 4), np.nan), np.full((4, 4), np.nan), np.inf, PartitionPlan(1, 1), ()
+        return lo, hi, np.full((n_params, n_params), np.nan), np.full((n_params, n_params), np.nan), np.inf, PartitionPlan(1, 1), ()
     omega, E_used = omega_all[usable], E[usable]
-    problem = OneModeProblem(omega, g_mode[usable], lo, hi)
-    argmin = np.full((4, 4), np.nan)
-    argmax = np.full((4, 4), np.nan)
+    problem = OneModeProblem(omega, g_mode[usable], lo, hi, None if output is None else output[usable])
+    argmin = np.full((n_params, n_params), np.nan)
+    argmax = np.full((n_params, n_params), np.nan)
     gamma, plan = np.inf, PartitionPlan(1, 1)
     for _ in range(settings.max_inner_iterations):
         plan = None
@@ -123,8 +144,8 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
         if plan is None:
             plan = PartitionPlan(1, 1)
         boxes = partition_boxes(plan, lo[A0], hi[A0], lo[A1], hi[A1])
-        new_lo = np.full(4, np.inf)
-        new_hi = np.full(4, -np.inf)
+        new_lo = np.full(n_params, np.inf)
+        new_hi = np.full(n_params, -np.inf)
         gamma = 1.0
         certificates = []
         unverified: list[str] = []
@@ -138,7 +159,7 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
                 continue
             unverified.extend(sol.unverified)
             gamma = max(gamma, conservatism_ratio(omega, a0_lo, a0_hi, a1_lo, a1_hi))
-            for p in range(4):
+            for p in range(n_params):
                 if sol.lower[p] < new_lo[p]:
                     new_lo[p], argmin[p] = sol.lower[p], sol.argmin[p]
                 if sol.upper[p] > new_hi[p]:
@@ -149,10 +170,11 @@ def _one_mode_pass(omega_all: np.ndarray, g_mode: np.ndarray, E: np.ndarray, lo:
             # sit where this mode's constraint is slack (it corrupted another mode's bounds)
             finite = np.isfinite(E)
             w_f, g_f, E_f = omega_all[finite], g_mode[finite], E[finite]
-            full = OneModeProblem(w_f, g_f, lo, hi)
+            out_f = None if output is None else output[finite]
+            full = OneModeProblem(w_f, g_f, lo, hi, out_f)
             sol = full.bound_box(embedding_bound(w_f, E_f, lo[A0], hi[A0], hi[A1]), lo, hi)
             certs = [sol.certificate] if not sol.feasible else certificates
-            _raise_inconsistent(w_f, g_f, E_f, lo, hi, certs, mode_index)
+            _raise_inconsistent(w_f, g_f, E_f, lo, hi, certs, mode_index, out_f, names, prior)
         new_lo, new_hi = np.maximum(lo, new_lo), np.minimum(hi, new_hi)
         new_hi = np.maximum(new_lo, new_hi)
         improved = _improved(lo[[A1, A0]], hi[[A1, A0]], new_lo[[A1, A0]], new_hi[[A1, A0]], settings.tolerance)
@@ -191,8 +213,25 @@ def _improved(lo, hi, new_lo, new_hi, tol) -> bool:
     return bool(np.any((hi - lo) - (new_hi - new_lo) > tol * width))
 
 
-def _raise_inconsistent(omega, g, E, lo, hi, certificates: list, mode_index: int):
-    """Name the points in the infeasibility certificate, and those whose removal alone helps."""
+def _by_band(omega: np.ndarray, prior: Prior | None, mode_index: int) -> str:
+    """``"w1, w2 rad/s"``, with the points in another mode's prior band marked as such: the
+    one-mode problem of mode i subtracts the other modes' models at every point, so a point near
+    mode 5 can make mode 6's problem fail (a user once read such a message as mode 6's fault)."""
+    omega = np.sort(np.asarray(omega, dtype=float))
+    if prior is None:
+        return ", ".join(f"{w:.6g}" for w in omega) + " rad/s"
+    owner = _assign_points_to_modes(prior, omega)
+    parts = []
+    for m in dict.fromkeys(owner.tolist()):
+        pts = ", ".join(f"{w:.6g}" for w in omega[owner == m])
+        parts.append(pts + (f" (mode {m + 1}'s band)" if m != mode_index else ""))
+    return "; ".join(parts) + " rad/s"
+
+
+def _raise_inconsistent(omega, g, E, lo, hi, certificates: list, mode_index: int, output=None, names: tuple[str, ...] = (),
+                        prior: Prior | None = None):
+    """Name the points in the infeasibility certificate, and those whose removal alone helps
+    (with several outputs: which output each point belongs to)."""
     weight = np.zeros(omega.size)
     for cert in certificates:
         if cert is not None and cert.size == omega.size and np.max(cert) > 0:
@@ -202,14 +241,23 @@ def _raise_inconsistent(omega, g, E, lo, hi, certificates: list, mode_index: int
     C = embedding_bound(omega, E, lo[A0], hi[A0], hi[A1])
     for j in involved:  # leave-one-out over the certificate's points (a handful of solves)
         keep = np.arange(omega.size) != j
-        if keep.any() and OneModeProblem(omega[keep], g[keep], lo, hi).is_feasible(C[keep], lo, hi):
+        if keep.any() and OneModeProblem(omega[keep], g[keep], lo, hi, None if output is None else output[keep]).is_feasible(C[keep], lo, hi):
             suspects.append(omega[j])
-    freqs = ", ".join(f"{w:.6g}" for w in np.sort(omega[involved]))
+    if output is None:
+        where = f"the data points at omega = {_by_band(omega[involved], prior, mode_index)}"
+    else:
+        groups = []
+        for k in np.unique(output[involved]):
+            pts = np.sort(omega[involved][output[involved] == k])
+            groups.append(f"output {names[k] if k < len(names) else k + 1} at omega = {_by_band(pts, prior, mode_index)}")
+        where = "the data points of " + "; ".join(groups) + " (the outputs cannot share this mode's poles)"
     hint = ""
     if suspects:
-        hint = "; removing the point at " + " or ".join(f"{w:.6g}" for w in suspects) + " rad/s alone restores consistency"
+        hint = ("; removing the point at " + _by_band(suspects, prior, mode_index).replace(", ", " or ")
+                + f" alone restores consistency of mode {mode_index + 1} (other modes may still fail: "
+                "--reject-outliers finds every such point in one run)")
     raise InconsistentDataError(
-        f"mode {mode_index + 1}: no parameters within the prior fit the data points at omega = {freqs} rad/s "
+        f"mode {mode_index + 1}: no parameters within the prior fit {where} "
         f"within their error bounds{hint} (check those measurements and bounds, or widen the prior)",
         omegas_rad_s=np.sort(omega[involved]),
         mode_index=mode_index,
@@ -272,38 +320,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
     plans = [PartitionPlan(1, 1)] * n
     last_unverified: list[tuple[str, ...]] = [()] * n
     R = data.bound
-
-    iterations = 0
-    allow_partition = False
-    for _ in range(settings.max_outer_iterations):
-        iterations += 1
-        any_improved = False
-        for i in range(n):
-            current = IntervalModel(lo, hi)
-            E = _effective_bound(R, mode_mismatch_bounds(current, data.omega_rad_s), i) + residual_mismatch(res, data.omega_rad_s)
-            estimates = current.midpoint.mode_responses(data.omega_rad_s)
-            g_mode = data.response - (estimates.sum(axis=0) - estimates[i]) - residual_midpoint_response(res, data.omega_rad_s)  # eq. (3.11)
-            new_lo, new_hi, amin, amax, gamma, plan, unverified = _one_mode_pass(
-                data.omega_rad_s, g_mode, E, lo[i], hi[i], prior, allow_partition and settings.partition,
-                settings, i, counter,
-            )
-            any_improved |= _improved(lo[i], hi[i], new_lo, new_hi, settings.tolerance)
-            lo[i], hi[i] = new_lo, new_hi
-            optimizers[i, :, 0, :], optimizers[i, :, 1, :] = amin, amax
-            gammas[i], plans[i] = gamma, plan
-            last_unverified[i] = unverified
-        for name in res:  # the residual terms: extra linear blocks (residual_terms)
-            current = IntervalModel(lo, hi)
-            E_r = R + mode_mismatch_bounds(current, data.omega_rad_s).sum(axis=0) + residual_mismatch(res, data.omega_rad_s, exclude=name)
-            g_r = (data.response - current.midpoint.mode_responses(data.omega_rad_s).sum(axis=0)
-                   - residual_midpoint_response(res, data.omega_rad_s, exclude=name))
-            r_lo, r_hi = bound_residual(name, data.omega_rad_s, g_r, E_r, *res[name])
-            any_improved |= _improved(np.array([res[name][0]]), np.array([res[name][1]]), np.array([r_lo]), np.array([r_hi]), settings.tolerance)
-            res[name] = (r_lo, r_hi)
-        if not any_improved:
-            if allow_partition or not settings.partition:
-                break
-            allow_partition = True  # converged without partitioning: now partition where affordable
+    iterations = _outer_loop([data], lo, hi, res, prior, settings, counter, optimizers, gammas, plans, last_unverified, ())
 
     model = IntervalModel(lo, hi)
     mismatch = mode_mismatch_bounds(model, data.omega_rad_s)
@@ -333,4 +350,222 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         unverified_reason=tuple("; ".join(u) for u in last_unverified),
         notes=tuple(note for note in notes if note),
         residuals={name: (float(a), float(b)) for name, (a, b) in res.items()},
+    )
+
+
+def _outer_loop(datas: list[FrequencyData], lo: np.ndarray, hi: np.ndarray, res: dict, prior: Prior,
+                settings: IdentifySettings, counter: _SolveCounter, optimizers: np.ndarray, gammas: np.ndarray,
+                plans: list, last_unverified: list, names: tuple[str, ...]) -> int:
+    """Algorithm 3.1's passes, updating ``lo, hi`` (shape ``(n_modes, 2 + 2K)``) in place.
+
+    One output is the thesis's algorithm. Several (issue 25): for mode ``i`` each output ``k``
+    gives its own points, the data minus the other modes' midpoints *of that output* (eq. 3.11)
+    and its own cross-mode mismatch, and all of them enter one conic program with the shared
+    poles and each output's residues. Returns the number of passes.
+    """
+    n, several = lo.shape[0], len(datas) > 1
+    iterations = 0
+    allow_partition = False
+    for _ in range(settings.max_outer_iterations):
+        iterations += 1
+        any_improved = False
+        for i in range(n):
+            parts = []
+            for k, data in enumerate(datas):
+                cols = output_columns(k)
+                current = IntervalModel(lo[:, cols], hi[:, cols])
+                E = _effective_bound(data.bound, mode_mismatch_bounds(current, data.omega_rad_s), i) + residual_mismatch(res, data.omega_rad_s)
+                estimates = current.midpoint.mode_responses(data.omega_rad_s)
+                g_mode = data.response - (estimates.sum(axis=0) - estimates[i]) - residual_midpoint_response(res, data.omega_rad_s)  # eq. (3.11)
+                parts.append((data.omega_rad_s, g_mode, E))
+            if several:
+                omega = np.concatenate([w for w, _, _ in parts])
+                g_mode = np.concatenate([g for _, g, _ in parts])
+                E = np.concatenate([e for _, _, e in parts])
+                output = np.concatenate([np.full(w.size, k) for k, (w, _, _) in enumerate(parts)])
+            else:
+                (omega, g_mode, E), output = parts[0], None
+            new_lo, new_hi, amin, amax, gamma, plan, unverified = _one_mode_pass(
+                omega, g_mode, E, lo[i], hi[i], prior, allow_partition and settings.partition,
+                settings, i, counter, output, names,
+            )
+            any_improved |= _improved(lo[i], hi[i], new_lo, new_hi, settings.tolerance)
+            lo[i], hi[i] = new_lo, new_hi
+            optimizers[i, :, 0, :], optimizers[i, :, 1, :] = amin, amax
+            gammas[i], plans[i] = gamma, plan
+            last_unverified[i] = unverified
+        for name in res:  # the residual terms (one output only): extra linear blocks (residual_terms)
+            data = datas[0]
+            current = IntervalModel(lo, hi)
+            E_r = data.bound + mode_mismatch_bounds(current, data.omega_rad_s).sum(axis=0) + residual_mismatch(res, data.omega_rad_s, exclude=name)
+            g_r = (data.response - current.midpoint.mode_responses(data.omega_rad_s).sum(axis=0)
+                   - residual_midpoint_response(res, data.omega_rad_s, exclude=name))
+            r_lo, r_hi = bound_residual(name, data.omega_rad_s, g_r, E_r, *res[name])
+            any_improved |= _improved(np.array([res[name][0]]), np.array([res[name][1]]), np.array([r_lo]), np.array([r_hi]), settings.tolerance)
+            res[name] = (r_lo, r_hi)
+        if not any_improved:
+            if allow_partition or not settings.partition:
+                break
+            allow_partition = True  # converged without partitioning: now partition where affordable
+    return iterations
+
+
+@dataclass(frozen=True)
+class MultiOutputResult:
+    """Intervals of a modal model seen by several outputs with shared poles (issue 25).
+
+    Attributes
+    ----------
+    models : tuple of IntervalModel
+        One per output, in the order given: the same ``a1, a0`` intervals (shared poles) and
+        that output's ``b1, b0``.
+    names : tuple of str
+        The outputs' names.
+    embedding_gamma, mismatch_ratio, verified, unverified_reason, notes, iterations, n_solves, partitions
+        As in :class:`IdentificationResult`, per mode over all outputs (``mismatch_ratio`` the
+        largest over the outputs; ``verified`` covers every bound of the mode).
+    """
+
+    models: tuple[IntervalModel, ...]
+    names: tuple[str, ...]
+    embedding_gamma: np.ndarray
+    mismatch_ratio: np.ndarray
+    iterations: int
+    n_solves: int
+    partitions: tuple[tuple[int, int], ...]
+    verified: np.ndarray
+    unverified_reason: tuple[str, ...]
+    notes: tuple[str, ...] = ()
+
+    @property
+    def model(self) -> IntervalModel:
+        """The first output's model (readers of one-output results keep working)."""
+        return self.models[0]
+
+    def to_document(self) -> dict:
+        """RESULT.json: ``modes`` as for one output (the first output's residues) plus, per mode,
+        ``"outputs": [{"name", "b1": [lo, hi], "b0": [lo, hi]}, ...]`` and top-level ``"outputs"``."""
+        from setmem_hil.io.result_file import result_document
+
+        doc = result_document(
+            self.models[0], self.embedding_gamma, self.mismatch_ratio, self.iterations,
+            n_solves=int(self.n_solves), partitions=[list(p) for p in self.partitions],
+            verified=[bool(v) for v in self.verified], unverified_reason=list(self.unverified_reason),
+            conservatism_notes=list(self.notes),
+        )
+        for i, mode in enumerate(doc["modes"]):
+            mode["outputs"] = [{"name": name, "b1": [float(m.lower[i, B1]), float(m.upper[i, B1])],
+                                "b0": [float(m.lower[i, B0]), float(m.upper[i, B0])]} for name, m in zip(self.names, self.models)]
+        doc["outputs"] = list(self.names)
+        return doc
+
+
+def _check_poles_intersect(models: list[IntervalModel], datas: list[FrequencyData], prior: Prior, names: tuple[str, ...]) -> None:
+    """Outputs identified alone whose pole intervals do not even intersect cannot share poles:
+    exit 3 naming the mode, the two outputs, their intervals and the points in that mode's band."""
+    for i in range(prior.n_modes):
+        for col, what in ((A1, "a1 (damping)"), (A0, "a0 (natural frequency squared)")):
+            lo = np.array([m.lower[i, col] for m in models])
+            hi = np.array([m.upper[i, col] for m in models])
+            k_lo, k_hi = int(np.argmax(lo)), int(np.argmin(hi))
+            if lo[k_lo] <= hi[k_hi]:
+                continue
+            parts = []
+            for k in (k_hi, k_lo):
+                owner = _assign_points_to_modes(prior, datas[k].omega_rad_s)
+                pts = datas[k].omega_rad_s[owner == i]
+                parts.append(f"output {names[k]} ({what} in [{lo[k]:.6g}, {hi[k]:.6g}] from its points at omega = "
+                             f"{', '.join(f'{w:.6g}' for w in pts)} rad/s)")
+            raise InconsistentDataError(
+                f"mode {i + 1}: the outputs cannot share poles: " + " and ".join(parts) + " do not intersect "
+                "(check those sensors' bounds and calibration, or identify them apart)",
+                omegas_rad_s=np.concatenate([datas[k].omega_rad_s for k in (k_hi, k_lo)]), mode_index=i,
+            )
+
+
+def identify_outputs(datas: list[FrequencyData], priors: list[Prior], names: list[str] | None = None,
+                     previous: list[IntervalModel] | None = None,
+                     settings: IdentifySettings = IdentifySettings()) -> MultiOutputResult:
+    """Guaranteed intervals of a modal model from several outputs with shared poles (issue 25).
+
+    Every mode's one-mode problem holds the shared ``(a1, a0)`` and one ``(b1, b0)`` pair per
+    output; each output's points are cones of eq. (3.26) on its own residues, with that output's
+    cross-mode mismatch (eq. 3.11). Partitioning (3.2.3), the certified bounds and the
+    normalisation are those of one output; with one output this is :func:`identify`, bit for bit.
+
+    Parameters
+    ----------
+    datas : list of FrequencyData
+        One per output (frequencies may differ between outputs).
+    priors : list of Prior
+        One per output: the same modes (frequency and damping bands), each with that output's
+        residue bounds.
+    names : list of str, optional
+        The outputs' names (default ``output 1``, ``output 2``...).
+    previous : list of IntervalModel, optional
+        Bounds from a previous iteration, one per output; the result lies inside them.
+
+    Raises
+    ------
+    InconsistentDataError
+        When the outputs cannot share poles within their bounds: names the mode, the outputs and
+        the frequencies.
+    InputFormatError
+        Priors that disagree on the modes, or ``[residuals]`` terms with several outputs.
+    """
+    K = len(datas)
+    names = tuple(names) if names else tuple(f"output {k + 1}" for k in range(K))
+    if K == 0 or len(priors) != K or len(names) != K:
+        raise InputFormatError("identify", "outputs", f"{K} data sets, {len(priors)} priors and {len(names)} names: expected one of each per output")
+    if K == 1:
+        single = identify(datas[0], priors[0], None if previous is None else previous[0], settings)
+        return MultiOutputResult((single.model,), names, single.embedding_gamma, single.mismatch_ratio, single.iterations,
+                                 single.n_solves, single.partitions, single.verified, single.unverified_reason, single.notes)
+    prior = priors[0]
+    for k, other in enumerate(priors[1:], start=2):
+        if [(m.omega_min, m.omega_max, m.zeta_max) for m in other.modes] != [(m.omega_min, m.omega_max, m.zeta_max) for m in prior.modes]:
+            raise InputFormatError("prior", f"output {k}", "the modes' frequency and damping bands must be the same for every output (shared poles)")
+    if prior.residuals.enabled:
+        raise InputFormatError("prior", "[residuals]", "residual terms with several outputs are not supported yet; identify the outputs one at a time")
+    # start from each output identified alone: the joint set lies inside every one of them, so
+    # the shared pole intervals can never end wider than the narrowest single-output interval
+    # (the joint passes alone follow another path to their fixed point and may stop 1e-3 short)
+    boxes = []
+    for k, (data, p) in enumerate(zip(datas, priors)):
+        alone = identify(data, p, None if previous is None else previous[k], settings)
+        counter_alone = alone.n_solves
+        boxes.append((alone.model, counter_alone))
+    counter = _SolveCounter()
+    counter.n_solves = sum(c for _, c in boxes)
+    boxes = [b for b, _ in boxes]
+    _check_poles_intersect(boxes, datas, prior, names)
+    n = prior.n_modes
+    lo = np.empty((n, 2 + 2 * K))
+    hi = np.empty((n, 2 + 2 * K))
+    lo[:, :2] = np.max([b.lower[:, :2] for b in boxes], axis=0)  # the poles: what every output allows
+    hi[:, :2] = np.min([b.upper[:, :2] for b in boxes], axis=0)
+    for k, b in enumerate(boxes):
+        lo[:, 2 + 2 * k: 4 + 2 * k], hi[:, 2 + 2 * k: 4 + 2 * k] = b.lower[:, 2:], b.upper[:, 2:]
+    P = 2 + 2 * K
+    optimizers = np.full((n, P, 2, P), np.nan)
+    gammas = np.full(n, np.inf)
+    plans = [PartitionPlan(1, 1)] * n
+    last_unverified: list[tuple[str, ...]] = [()] * n
+    iterations = _outer_loop(list(datas), lo, hi, {}, prior, settings, counter, optimizers, gammas, plans, last_unverified, names)
+    models = tuple(IntervalModel(lo[:, output_columns(k)], hi[:, output_columns(k)]) for k in range(K))
+    owner_ratios = np.ones(n)
+    for data, model in zip(datas, models):
+        mismatch = mode_mismatch_bounds(model, data.omega_rad_s)
+        owner = _assign_points_to_modes(prior, data.omega_rad_s)
+        for i in range(n):
+            pts = (owner == i) & (data.bound > 0)
+            if pts.any():
+                E_i = _effective_bound(data.bound, mismatch, i)
+                owner_ratios[i] = max(owner_ratios[i], float(np.max(E_i[pts] / data.bound[pts])))
+    notes = tuple(_gamma_note(i, gammas[i], plans[i], lo[i, output_columns(0)], hi[i, output_columns(0)], prior, settings) for i in range(n))
+    return MultiOutputResult(
+        models=models, names=names, embedding_gamma=gammas, mismatch_ratio=owner_ratios, iterations=iterations,
+        n_solves=counter.n_solves, partitions=tuple((p.n0, p.n1) for p in plans),
+        verified=np.array([not u for u in last_unverified], dtype=bool),
+        unverified_reason=tuple("; ".join(u) for u in last_unverified), notes=tuple(note for note in notes if note),
     )

@@ -95,23 +95,41 @@ def _tight_settings(base=None):
     return s
 
 
+def parameter_count(n_outputs: int) -> int:
+    """Length of one mode's parameter vector ``(a1, a0, b1_1, b0_1, ..., b1_K, b0_K)``."""
+    return 2 + 2 * int(n_outputs)
+
+
 class OneModeProblem:
     """The normalised SOC program of one mode for fixed data, reusable across boxes and objectives.
+
+    Several outputs (issue 25): the poles ``(a1, a0)`` are shared and each output ``k`` has its
+    own residues ``(b1_k, b0_k)``; a point of output ``k`` is the cone of eq. (3.26) on
+    ``(a1, a0, b1_k, b0_k)``. One output is exactly the problem of the thesis, parameter order
+    ``(a1, a0, b1, b0)``.
 
     Parameters
     ----------
     omega_rad_s, g : arrays
         Data points used (points with infinite error bound must be removed beforehand).
-    box_lo, box_hi : arrays of shape (4,)
-        The pass's outer box of ``(a1, a0, b1, b0)``; parameters with ``lo == hi`` are fixed.
-        Every box later given to :meth:`bound_box` must lie inside it.
+    box_lo, box_hi : arrays of shape (2 + 2K,)
+        The pass's outer box of ``(a1, a0, b1_1, b0_1, ...)``; parameters with ``lo == hi`` are
+        fixed. Every box later given to :meth:`bound_box` must lie inside it.
+    output : array of int, optional
+        The output (0-based) of each point; default all 0 (one output).
     """
 
-    def __init__(self, omega_rad_s, g, box_lo, box_hi):
+    def __init__(self, omega_rad_s, g, box_lo, box_hi, output=None):
         w = np.asarray(omega_rad_s, dtype=float)
         g = np.asarray(g, dtype=complex)
         box_lo = np.asarray(box_lo, dtype=float)
         box_hi = np.asarray(box_hi, dtype=float)
+        n_params = box_lo.size
+        if n_params < 4 or n_params % 2 or box_hi.size != n_params:
+            raise ValueError(f"box_lo, box_hi: expected equal lengths 2 + 2K, found {box_lo.size} and {box_hi.size}")
+        out = np.zeros(w.size, dtype=int) if output is None else np.asarray(output, dtype=int)
+        b1_col, b0_col = 2 + 2 * out, 3 + 2 * out  # each point's residue columns
+        self.n_params = n_params
         self.omega = w
         self.free = box_lo != box_hi
         self.fixed_values = box_lo.copy()
@@ -121,8 +139,12 @@ class OneModeProblem:
         c = self.centre
         jw = 1j * w
         # residual at the centre, written to limit cancellation near resonance: g (a0 - w^2) + ...
-        r_c = g * ((c[1] - w * w) + jw * c[0]) - (jw * c[2] + c[3])
-        J = np.stack([jw * g, g, -jw, -np.ones_like(jw)], axis=-1) * self.half[None, :]
+        r_c = g * ((c[1] - w * w) + jw * c[0]) - (jw * c[b1_col] + c[b0_col])
+        rows = np.arange(w.size)
+        J = np.zeros((w.size, n_params), dtype=complex)
+        J[:, 0], J[:, 1] = jw * g, g
+        J[rows, b1_col], J[rows, b0_col] = -jw, -1.0
+        J *= self.half[None, :]
         Jf = J[:, self.free]
         n, p = w.size, int(self.free.sum())
         self.n_points, self.n_free = n, p
@@ -140,7 +162,7 @@ class OneModeProblem:
         # absolute rounding error of the formed data: r_c carries the cancellation of
         # (a0 - w^2) near resonance, bounded by a few ulps of its largest term
         ag = np.abs(g)
-        err_rc = 8 * _EPS * (ag * (np.abs(c[1]) + w * w + w * np.abs(c[0])) + w * np.abs(c[2]) + np.abs(c[3])) / self.sigma
+        err_rc = 8 * _EPS * (ag * (np.abs(c[1]) + w * w + w * np.abs(c[0])) + w * np.abs(c[b1_col]) + np.abs(c[b0_col])) / self.sigma
         self._err_b = np.zeros(3 * n)
         self._err_b[1::3] = err_rc
         self._err_b[2::3] = err_rc
@@ -262,8 +284,8 @@ class OneModeProblem:
         b = self._b(C, ylo, yhi)
         lower = np.where(self.free, box_lo, self.fixed_values)
         upper = np.where(self.free, box_hi, self.fixed_values)
-        argmin = np.full((4, 4), np.nan)
-        argmax = np.full((4, 4), np.nan)
+        argmin = np.full((self.n_params, self.n_params), np.nan)
+        argmax = np.full((self.n_params, self.n_params), np.nan)
         unverified: list[str] = []
         solves_before = self.n_solves
         self.last_certificates = {}

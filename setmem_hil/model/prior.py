@@ -36,7 +36,8 @@ except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib  # type: ignore[no-redef]
 
 MODE_KEYS = ("omega_min", "omega_max", "zeta_max", "b1", "b1_min", "b1_max", "b0_min", "b0_max")
-PRIOR_TOP_KEYS = ("mode", "gamma", "max_partitions", "residuals")
+PRIOR_TOP_KEYS = ("mode", "gamma", "max_partitions", "residuals", "outputs")
+PER_OUTPUT_KEYS = ("b1", "b1_min", "b1_max", "b0_min", "b0_max")  # a number, or one entry per output
 RESIDUAL_KEYS = ("lower", "upper", "lower_min", "lower_max", "upper_min", "upper_max")
 
 
@@ -228,3 +229,45 @@ def parse_toml_text(text: str, source: str) -> dict[str, Any]:
 
 def read_prior(path: str | os.PathLike) -> Prior:
     return parse_prior_mapping(load_toml(path), str(path))
+
+
+def parse_output_priors(doc: Mapping[str, Any], source: str, n_outputs: int) -> tuple[list[Prior], tuple[str, ...] | None]:
+    """One prior per output from a PRIOR.toml mapping (issue 25).
+
+    In a ``[[mode]]`` table each residue key (``b1``, ``b1_min``, ``b1_max``, ``b0_min``,
+    ``b0_max``) is a number (the same for every output) or an array with one entry per output.
+    The optional top-level ``outputs = ["name", ...]`` names the outputs. Returns the priors and
+    the names (None when not given). With one output and only numbers this is
+    :func:`parse_prior_mapping` exactly.
+    """
+    names = doc.get("outputs")
+    if names is not None:
+        if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+            raise InputFormatError(source, "key 'outputs'", f"expected a list of names, found {names!r}")
+        if len(names) != n_outputs:
+            raise InputFormatError(source, "key 'outputs'", f"{len(names)} names for {n_outputs} data file(s)")
+        if len(set(names)) != len(names):
+            raise InputFormatError(source, "key 'outputs'", f"names must differ, found {names!r}")
+    tables = doc.get("mode")
+    priors = []
+    for k in range(n_outputs):
+        one = {key: value for key, value in doc.items() if key != "outputs"}
+        if isinstance(tables, list):
+            one["mode"] = [_output_entry(t, source, i + 1, k, n_outputs) for i, t in enumerate(tables)]
+        priors.append(parse_prior_mapping(one, source))
+    return priors, None if names is None else tuple(names)
+
+
+def _output_entry(table: Any, source: str, index: int, k: int, n_outputs: int) -> Any:
+    """Mode table ``index`` with every per-output array replaced by its entry ``k``."""
+    if not isinstance(table, Mapping):
+        return table
+    out = dict(table)
+    for key in PER_OUTPUT_KEYS:
+        value = table.get(key)
+        if isinstance(value, list):
+            if len(value) != n_outputs:
+                raise InputFormatError(source, f"[[mode]] {index}", f"{key}: {len(value)} entries for {n_outputs} output(s) "
+                                       "(give a number, or one entry per --data file)")
+            out[key] = value[k]
+    return out

@@ -1,8 +1,12 @@
-"""``setmem-hil identify --data DATA.csv --prior PRIOR.toml --out RESULT.json`` (public contract).
+"""``setmem-hil identify --data DATA.csv [--data ...] --prior PRIOR.toml --out RESULT.json`` (public contract).
 
 Exit 0 on success; 2 on malformed input (the message names file, line or key); 3 when the data
-are inconsistent with the prior (the message names the frequencies). With ``--reject-outliers``
-(thesis section 7.2) the fewest points needed to regain consistency are dropped and reported.
+are inconsistent with the prior (the message names the frequencies; with several outputs also
+the output and the mode). With ``--reject-outliers`` (thesis section 7.2) the fewest points
+needed to regain consistency are dropped and reported (one output so far).
+
+Several ``--data`` (issue 25): one output per file, in the order given; the modes' poles are
+shared and each output has its own residues (:func:`~setmem_hil.identification.algorithm.identify_outputs`).
 """
 
 from __future__ import annotations
@@ -10,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data, load_prior
+from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data, load_output_priors, load_outputs, load_prior
 from setmem_hil.identification.algorithm import identify
 from setmem_hil.io.result_file import write_json
 
@@ -23,18 +27,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--prior", required=True, metavar="PRIOR.toml", help="one [[mode]] table per mode")
     p.add_argument("--out", required=True, metavar="RESULT.json", help="where to write the intervals")
     p.add_argument("--reject-outliers", action="store_true",
-                   help="drop the fewest points needed to regain consistency (thesis 7.2) and report them")
+                   help="drop the fewest points needed to regain consistency (thesis 7.2) and report them; at most 5 points "
+                        "and 40 trial identifications (progress on stderr), else exit 3: the prior does not fit the data")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     check_out_path(args.out)
+    if isinstance(args.data, list) and len(args.data) > 1:
+        return _run_outputs(args)
     data = load_data(args)
     prior = load_prior(args.prior)
     if args.reject_outliers:
         from setmem_hil.identification.outlier_rejection import identify_rejecting_outliers
 
-        result, rejected = identify_rejecting_outliers(data, prior)
+        result, rejected = identify_rejecting_outliers(data, prior, progress=lambda text: print(text, file=sys.stderr, flush=True))
         doc = result.to_document()
         doc["rejected_points"] = [{"omega": float(w)} for w in rejected]
         if rejected:
@@ -47,4 +54,25 @@ def run(args: argparse.Namespace) -> int:
     dropped = f" ({len(doc['rejected_points'])} rejected)" if doc.get("rejected_points") else ""
     print(f"identified {len(doc['modes'])} mode(s) from {used} points{dropped} in {doc['iterations']} iteration(s): "
           f"{args.out}" + (f"; bounds of mode(s) {unverified} NOT verified (see unverified_reason)" if unverified else ""))
+    return 0
+
+
+def _run_outputs(args: argparse.Namespace) -> int:
+    """Several outputs with shared poles (issue 25)."""
+    from setmem_hil.errors import InputFormatError
+    from setmem_hil.identification.algorithm import identify_outputs
+
+    if args.reject_outliers:
+        raise InputFormatError("setmem-hil identify", "--reject-outliers", "with several --data files is not supported yet; "
+                               "run it on each file alone to find the outliers, then identify the outputs together")
+    outputs = load_outputs(args)
+    priors, names = load_output_priors(args.prior, len(outputs))
+    names = names or tuple(name for name, _ in outputs)
+    result = identify_outputs([d for _, d in outputs], priors, list(names))
+    doc = result.to_document()
+    write_json(doc, args.out)
+    unverified = [i + 1 for i, m in enumerate(doc["modes"]) if m.get("verified") is False]
+    points = ", ".join(f"{name} {len(d.omega_rad_s)}" for name, (_, d) in zip(names, outputs))
+    print(f"identified {len(doc['modes'])} mode(s) with shared poles from {len(outputs)} outputs ({points} points) in "
+          f"{doc['iterations']} iteration(s): {args.out}" + (f"; bounds of mode(s) {unverified} NOT verified (see unverified_reason)" if unverified else ""))
     return 0

@@ -1,0 +1,133 @@
+"""Several response sensors, one set of poles (issue 25, items 1, 2 and 5).
+
+Independent truth: synthetic FRFs of known modal parameters (the thesis beam's poles, a residue
+pattern per sensor) with noise strictly inside the stated bounds, and each output identified
+alone by the one-output algorithm of the thesis.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from setmem_hil.cli.main import main
+from setmem_hil.errors import InconsistentDataError
+from setmem_hil.identification.algorithm import identify, identify_outputs
+from setmem_hil.io.data_file import write_data_csv
+from setmem_hil.io.procedure import thesis_6_3_2_initial_omegas, thesis_beam_prior
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.model.modal_model import ModalParameters
+from setmem_hil.sim_backends.beam import beam_parameters
+
+# residue of mode i at sensor k, relative to the thesis's (a node of mode 3 near sensor 2...)
+RESIDUE_FACTORS = np.array([[1.0, 1.0, 1.0], [0.6, -0.8, 0.3], [1.3, 0.25, -1.1]])
+
+
+def sensors(seed: int, rel: float = 0.05, damping_scale=None):
+    """Truths and data of three sensors; each sensor has its own frequencies."""
+    rng = np.random.default_rng(seed)
+    base = beam_parameters().truncated(3).values
+    truths, datas = [], []
+    for k, factors in enumerate(RESIDUE_FACTORS):
+        values = base.copy()
+        values[:, 3] *= factors
+        if damping_scale is not None:
+            values[:, 0] *= damping_scale[k]
+        truth = ModalParameters(values)
+        w = np.sort(np.concatenate([np.array(thesis_6_3_2_initial_omegas()) * rng.uniform(0.98, 1.02, 15),
+                                    np.geomspace(0.7, 25, 12) * rng.uniform(0.97, 1.03, 12)]))
+        g = truth.frequency_response(w)
+        bound = rel * np.abs(g) + 1e-3
+        noise = bound * rng.uniform(0, 0.9, w.size) * np.exp(2j * np.pi * rng.uniform(size=w.size))
+        truths.append(truth)
+        datas.append(FrequencyData(w, g + noise, bound))
+    return truths, datas
+
+
+def test_one_output_is_the_thesis_algorithm_bit_for_bit():
+    _, datas = sensors(7)
+    alone = identify(datas[1], thesis_beam_prior())
+    joint = identify_outputs([datas[1]], [thesis_beam_prior()])
+    np.testing.assert_array_equal(joint.models[0].lower, alone.model.lower)
+    np.testing.assert_array_equal(joint.models[0].upper, alone.model.upper)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3, 4])
+def test_shared_poles_contain_the_truth_and_are_never_wider_than_one_output_alone(seed):
+    truths, datas = sensors(seed)
+    prior = thesis_beam_prior()
+    singles = [identify(d, prior).model for d in datas]
+    joint = identify_outputs(datas, [prior] * 3, ["root", "middle", "tip"])
+    for model, truth in zip(joint.models, truths):
+        assert model.contains(truth).all()
+        np.testing.assert_array_equal(model.lower[:, :2], joint.models[0].lower[:, :2])  # the poles are shared
+    ratios = []
+    for col in (0, 1):  # a1, a0
+        shared = joint.models[0].upper[:, col] - joint.models[0].lower[:, col]
+        narrowest = np.min([s.upper[:, col] - s.lower[:, col] for s in singles], axis=0)
+        assert np.all(shared <= narrowest * (1 + 1e-9)), (col, shared / narrowest)
+        ratios.extend(shared / narrowest)
+    print(f"\nseed {seed}: shared/narrowest single width (a1, a0 per mode) {np.round(ratios, 3)}")
+    assert np.mean(ratios) < 1.0  # the other sensors' evidence narrows the poles
+
+
+def test_sensors_that_cannot_share_poles_exit_3_naming_the_output_mode_and_frequencies():
+    # sensor 3 sees mode 2 with three times the damping: no common poles fit both within the bounds
+    truths, datas = sensors(5, rel=0.01, damping_scale=[np.ones(3), np.ones(3), np.array([1.0, 3.0, 1.0])])
+    with pytest.raises(InconsistentDataError) as info:
+        identify_outputs(datas, [thesis_beam_prior()] * 3, ["root", "middle", "tip"])
+    text = str(info.value)
+    assert "mode 2" in text and "output" in text and "rad/s" in text
+    assert "tip" in text or "root" in text or "middle" in text
+
+
+def test_identify_cli_several_data_files_writes_the_outputs(tmp_path, capsys):
+    truths, datas = sensors(3)
+    files = []
+    for name, data in zip(("root", "middle", "tip"), datas):
+        write_data_csv(data, tmp_path / f"{name}.csv")
+        files += ["--data", str(tmp_path / f"{name}.csv")]
+    prior = tmp_path / "prior.toml"
+    bands = ((0.884, 1.125), (5.41, 7.34), (16.35, 19.81))
+    prior.write_text("".join(f"[[mode]]\nomega_min = {lo}\nomega_max = {hi}\nzeta_max = 0.5\nb1 = 0.0\n"
+                             f"b0_min = [0.0, {-10 if i == 1 else 0.0}, {-10 if i == 2 else 0.0}]\nb0_max = 10.0\n\n"
+                             for i, (lo, hi) in enumerate(bands)))
+    out = tmp_path / "RESULT.json"
+    assert main(["identify", *files, "--prior", str(prior), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["outputs"] == ["root", "middle", "tip"]
+    for i, mode in enumerate(doc["modes"]):
+        assert [o["name"] for o in mode["outputs"]] == ["root", "middle", "tip"]
+        assert mode["b0"] == mode["outputs"][0]["b0"]  # readers of one-output files see the first output
+        for o, truth in zip(mode["outputs"], truths):
+            assert o["b0"][0] <= truth.values[i, 3] <= o["b0"][1]
+        assert mode["a0"][0] <= truths[0].values[i, 1] <= mode["a0"][1]
+        assert isinstance(mode["verified"], bool)
+    assert "3 outputs" in capsys.readouterr().out
+
+
+def test_per_output_prior_arrays_must_match_the_data_files(tmp_path, capsys):
+    _, datas = sensors(3)
+    write_data_csv(datas[0], tmp_path / "a.csv")
+    write_data_csv(datas[1], tmp_path / "b.csv")
+    prior = tmp_path / "prior.toml"
+    prior.write_text("[[mode]]\nomega_min = 0.884\nomega_max = 1.125\nzeta_max = 0.5\nb1 = 0.0\nb0_min = [0.0, -1.0, 2.0]\nb0_max = 10.0\n")
+    code = main(["identify", "--data", str(tmp_path / "a.csv"), "--data", str(tmp_path / "b.csv"), "--prior", str(prior),
+                 "--out", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "b0_min" in err and "3 entries for 2 output" in err
+
+
+def test_disagreeing_sensors_exit_3_on_the_command_line(tmp_path, capsys):
+    _, datas = sensors(5, rel=0.01, damping_scale=[np.ones(3), np.ones(3), np.array([1.0, 3.0, 1.0])])
+    files = []
+    for name, data in zip(("root", "middle", "tip"), datas):
+        write_data_csv(data, tmp_path / f"{name}.csv")
+        files += ["--data", str(tmp_path / f"{name}.csv")]
+    prior = tmp_path / "prior.toml"
+    prior.write_text("".join(f"[[mode]]\nomega_min = {lo}\nomega_max = {hi}\nzeta_max = 0.5\nb1 = 0.0\n\n"
+                             for lo, hi in ((0.884, 1.125), (5.41, 7.34), (16.35, 19.81))))
+    code = main(["identify", *files, "--prior", str(prior), "--out", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err
+    assert code == 3 and "mode 2" in err and "tip" in err and "rad/s" in err
+    assert "Traceback" not in err and not (tmp_path / "r.json").exists()
