@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 
 __all__ = ["format_prior_proposal", "WIDTH"]
 
@@ -46,6 +48,40 @@ def _bands(estimate) -> list[tuple[float, float]]:
     return out
 
 
+SUSPICIOUS_ZETA = 0.1
+"""A proposed damping above this, or above ``SUSPICIOUS_ZETA_RATIO`` times the median of the
+other modes, is flagged (issue 25: a spurious mode at 946 Hz with zeta 0.18 was written silently).
+Our judgement for lightly damped structures, where real modes sit at 1e-4 to 1e-2."""
+SUSPICIOUS_ZETA_RATIO = 10.0
+
+
+def suspicious_modes(estimate) -> list[tuple[int, str]]:
+    """``(index, reason)`` of proposed modes whose damping is implausible for this structure:
+    likely a computational mode of the fit, not a feature of the data (the low pseudo-mode,
+    which stands for everything below the band, is never flagged)."""
+    real = [(i, m) for i, m in enumerate(estimate.modes) if not m.low_pseudo_mode]
+    flagged = []
+    for i, m in real:
+        others = [o.zeta for j, o in real if j != i]
+        typical = float(np.median(others)) if others else math.nan
+        if m.zeta > SUSPICIOUS_ZETA:
+            flagged.append((i, f"damping {m.zeta:.3g} > {SUSPICIOUS_ZETA:g}"))
+        elif others and m.zeta > SUSPICIOUS_ZETA_RATIO * typical:
+            flagged.append((i, f"damping {m.zeta:.3g} is {m.zeta / typical:.0f} x the other modes' median {typical:.2g}"))
+    return flagged
+
+
+def misfit_advice(estimate) -> str | None:
+    """What to say when the proposal's own least-squares estimate misses some point by more than
+    its bound (worst normalised residual > 1): identify will then most likely find no parameters."""
+    worst = estimate.max_normalized_residual
+    if not worst > 1.0:
+        return None
+    return (f"the proposal's own estimate misses the data by up to {worst:.3g} x the bound, so `setmem-hil identify` "
+            "with this prior will most likely exit 3: try another --modes (a missing or spurious mode), --band around "
+            "the modes of interest, --residuals both, or check the bounds (--bound-rel/--bound-abs)")
+
+
 def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()) -> str:
     """The PRIOR.toml text for ``estimate`` (a :class:`setmem_hil.estimation.modal_estimate.ModalEstimate`)."""
     lo_hz, hi_hz = (w / (2 * math.pi) for w in estimate.band_rad_s)
@@ -57,8 +93,14 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
         f"# gives intervals of the prior's world. Worst normalised residual of the estimate: {estimate.max_normalized_residual:.3g}.",
         "",
     ]
-    for m, (lo, hi) in zip(estimate.modes, _bands(estimate)):
+    advice = misfit_advice(estimate)
+    if advice:
+        lines[-1:-1] = [f"# WARNING: {advice}."]
+    flags = dict(suspicious_modes(estimate))
+    for i, (m, (lo, hi)) in enumerate(zip(estimate.modes, _bands(estimate))):
         lines.append("[[mode]]")
+        if i in flags:
+            lines.append(f"# CHECK THIS MODE: {flags[i]}; likely a computational mode of the fit, not the structure's")
         if m.low_pseudo_mode:
             lines.append("# low pseudo-mode: stands for what lies below the band (rigid-body mass line, lower modes);")
             lines.append("# ASSUMED: omega_n in [0.01, 0.8] x the band's lowest frequency, zeta_max 0.1, b0 in [0.1, 10] x estimate")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data
@@ -29,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from setmem_hil.estimation.modal_estimate import estimate_modes
     from setmem_hil.io.atomic_file import write_text_atomic
-    from setmem_hil.io.prior_proposal import format_prior_proposal
+    from setmem_hil.io.prior_proposal import format_prior_proposal, misfit_advice, suspicious_modes
     from setmem_hil.report.stability_diagram import plot_stability_diagram
 
     out = check_out_path(args.out)
@@ -49,9 +50,18 @@ def run(args: argparse.Namespace) -> int:
         raise InputFormatError(str(args.data), "--modes/--band", str(exc)) from None
     write_text_atomic(out, format_prior_proposal(estimate, Path(args.data).name, residuals))
     figure = plot_stability_diagram(estimate, data, out.with_name(out.stem + "-stability.png"))
-    for m in estimate.modes:
+    flags = dict(suspicious_modes(estimate))
+    for i, m in enumerate(estimate.modes):
         kind = "low pseudo-mode" if m.low_pseudo_mode else f"{m.omega_n_rad_s / (2 * math.pi):.6g} Hz, zeta {m.zeta:.3g}"
-        print(f"  mode: {kind}, b0 {m.b0:.4g}")
+        print(f"  mode: {kind}, b0 {m.b0:.4g}" + (f"  <- CHECK: {flags[i]}" if i in flags else ""))
     print(f"prior: {out} ({len(estimate.modes)} modes; worst normalised residual of the estimate "
           f"{estimate.max_normalized_residual:.3g}); stability diagram: {figure}")
+    for i, reason in flags.items():
+        m = estimate.modes[i]
+        print(f"setmem-hil: warning: proposed mode {i + 1} at {m.omega_n_rad_s / (2 * math.pi):.6g} Hz: {reason}; likely a "
+              "computational mode of the fit: look at the stability diagram, and try one mode fewer or a --band without it",
+              file=sys.stderr)
+    advice = misfit_advice(estimate)
+    if advice:
+        print(f"setmem-hil: warning: {advice}", file=sys.stderr)
     return 0
