@@ -78,9 +78,9 @@ def test_outlier_rejection_drops_the_bad_point(files, capsys):
     assert f"from {len(data.omega_rad_s) - 1} points (1 rejected)" in out  # the summary counts what was used
 
 
-@pytest.mark.parametrize("command", ["discrepancy", "prior"])
+@pytest.mark.parametrize("command", ["discrepancy"])
 def test_a_repeated_data_option_is_refused_never_dropped(files, capsys, command):
-    """identify takes several outputs (tests/test_shared_poles.py); these two take one so far."""
+    """identify and prior take several outputs (tests/test_shared_poles.py); discrepancy one so far."""
     tmp, data, _ = files
     write_data_csv(data, tmp / "a.csv")
     write_data_csv(data, tmp / "b.csv")

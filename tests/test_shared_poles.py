@@ -131,3 +131,31 @@ def test_disagreeing_sensors_exit_3_on_the_command_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 3 and "mode 2" in err and "tip" in err and "rad/s" in err
     assert "Traceback" not in err and not (tmp_path / "r.json").exists()
+
+
+def test_prior_with_several_outputs_proposes_common_poles_and_per_output_residues(tmp_path, capsys):
+    """Three sensors on one frequency axis: `prior` then `identify` contain the truth of every output."""
+    rng = np.random.default_rng(11)
+    base = beam_parameters().truncated(3).values
+    w = np.geomspace(0.6, 25.0, 300)
+    files, truths = [], []
+    for name, factors in zip(("root", "middle", "tip"), RESIDUE_FACTORS):
+        values = base.copy()
+        values[:, 3] *= factors
+        truth = ModalParameters(values)
+        g = truth.frequency_response(w)
+        bound = 0.03 * np.abs(g) + 1e-3
+        noisy = g + bound * rng.uniform(0, 0.9, w.size) * np.exp(2j * np.pi * rng.uniform(size=w.size))
+        write_data_csv(FrequencyData(w, noisy, bound), tmp_path / f"{name}.csv")
+        files += ["--data", str(tmp_path / f"{name}.csv")]
+        truths.append(truth)
+    prior = tmp_path / "prior.toml"
+    assert main(["prior", *files, "--modes", "3", "--out", str(prior)]) == 0
+    text = prior.read_text()
+    assert 'outputs = ["root", "middle", "tip"]' in text and text.count("b0_min = [") == 3
+    assert main(["identify", *files, "--prior", str(prior), "--out", str(tmp_path / "r.json")]) == 0
+    doc = json.loads((tmp_path / "r.json").read_text())
+    for i, mode in enumerate(doc["modes"]):
+        assert mode["a0"][0] <= truths[0].values[i, 1] <= mode["a0"][1]
+        for o, truth in zip(mode["outputs"], truths):
+            assert o["b0"][0] <= truth.values[i, 3] <= o["b0"][1], (i, o["name"])

@@ -61,6 +61,8 @@ def load_outputs(args: argparse.Namespace) -> list[tuple[str, FrequencyData]]:
             raise InputFormatError(f, "--data", f"given twice (as {seen[key]} and {f}): each output once")
         seen[key] = f
     names = [Path(f).stem for f in files]
+    if len(set(names)) != len(names):  # e.g. point1/frf.csv and point2/frf.csv: the folder tells them apart
+        names = [f"{Path(f).parent.name}/{Path(f).stem}" for f in files]
     if len(set(names)) != len(names):
         names = [f"{Path(f).stem} ({i + 1})" for i, f in enumerate(files)]
     return [(name, _load_one(f, args)) for name, f in zip(names, files)]

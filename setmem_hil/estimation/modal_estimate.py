@@ -31,7 +31,7 @@ from scipy.signal import find_peaks
 
 from setmem_hil.model.frequency_data import FrequencyData
 
-__all__ = ["ModeEstimate", "ModalEstimate", "estimate_modes"]
+__all__ = ["ModeEstimate", "ModalEstimate", "estimate_modes", "estimate_common_modes"]
 
 LOW_MODE_FRACTION = 0.1
 """The low pseudo-mode's natural frequency as a fraction of the band's lowest frequency."""
@@ -59,13 +59,17 @@ class ModalEstimate:
     residuals: dict = None  # fitted residual terms: {"lower": r (of r/s^2), "upper": r (constant)}
 
 
-def _lscf_poles(data: FrequencyData, max_order: int):
+def _lscf_poles(data: FrequencyData | list[FrequencyData], max_order: int):
+    """sdypy-EMA's LSCF over one output, or over several on one frequency axis (its ``frf`` with
+    one row per location: common poles, as in a roving-sensor modal test)."""
     from sdypy import EMA
 
-    f_hz = data.omega_rad_s / (2 * np.pi)
+    datas = data if isinstance(data, list) else [data]
+    f_hz = datas[0].omega_rad_s / (2 * np.pi)
+    frf = np.vstack([d.response for d in datas])
     with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         warnings.simplefilter("ignore")
-        model = EMA.Model(frf=data.response[None, :], freq=f_hz, lower=float(f_hz[0]), upper=float(f_hz[-1]),
+        model = EMA.Model(frf=frf, freq=f_hz, lower=float(f_hz[0]), upper=float(f_hz[-1]),
                           pol_order_high=max_order, frf_form="receptance")
         model.get_poles(method="lscf", show_progress=False)
     return model
@@ -139,21 +143,40 @@ def estimate_modes(data: FrequencyData, n_modes: int, band_rad_s: tuple[float, f
     ValueError
         Fewer than 8 lines in the band, or no resonance found.
     """
+    return estimate_common_modes([data], n_modes, band_rad_s, max_order, residuals=residuals)[0]
+
+
+def estimate_common_modes(datas: list[FrequencyData], n_modes: int, band_rad_s: tuple[float, float] | None = None,
+                          max_order: int | None = None, residuals: tuple[str, ...] = ()) -> list[ModalEstimate]:
+    """Common poles of several outputs on one frequency axis (LSCF over all of them, issue 25),
+    and each output's residues at those poles; one :class:`ModalEstimate` per output, the same
+    poles in each. With one output this is :func:`estimate_modes`.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 8 lines in the band, no resonance found, or outputs on different axes.
+    """
     if n_modes < 1:
         raise ValueError(f"n_modes: expected at least 1, found {n_modes}")
-    w = data.omega_rad_s
+    w = datas[0].omega_rad_s
+    for k, d in enumerate(datas[1:], start=2):
+        if d.omega_rad_s.shape != w.shape or not np.allclose(d.omega_rad_s, w, rtol=1e-9, atol=0.0):
+            raise ValueError(f"output {k} is on another frequency axis than output 1: common poles need the same lines "
+                             "(propose a prior from one output, or resample the files onto one axis)")
     lo, hi = band_rad_s if band_rad_s is not None else (float(w.min()), float(w.max()))
     inside = (w >= lo) & (w <= hi)
     if inside.sum() < 8:
         raise ValueError(f"band [{lo:g}, {hi:g}] rad/s holds {int(inside.sum())} lines; need at least 8")
-    band = data.subset(np.flatnonzero(inside)) if hasattr(data, "subset") else FrequencyData(w[inside], data.response[inside], data.bound[inside])
+    bands = [d.subset(np.flatnonzero(inside)) for d in datas]
     order = max_order or int(min(80, max(20, 4 * n_modes + 10)))
-    model = _lscf_poles(band, order)
+    model = _lscf_poles(bands if len(bands) > 1 else bands[0], order)
+    peak_data = bands[0] if len(bands) == 1 else _combined_magnitude(bands)
     candidates = []
     for n_in_band in (n_modes, n_modes - 1):  # all in band, or one low pseudo-mode below the band
         if n_in_band < 0:
             continue
-        peaks = _peaks(band, n_in_band)
+        peaks = _peaks(peak_data, n_in_band)
         if peaks.size < n_in_band:
             continue
         wn, zeta = [], []
@@ -166,22 +189,41 @@ def estimate_modes(data: FrequencyData, n_modes: int, band_rad_s: tuple[float, f
             for i, peak in enumerate(peaks):
                 if abs(wn[i] - peak) > 0.02 * peak:  # LSCF settled on another pole: start at the peak
                     wn[i], zeta[i] = float(peak), 1e-3
-                wn[i], zeta[i] = _refine_pole(band, wn[i], zeta[i])
+                wn[i], zeta[i] = _refine_pole(_strongest_at(bands, peak), wn[i], zeta[i])
         low = n_in_band < n_modes
         if low:
             wn, zeta = [LOW_MODE_FRACTION * lo] + wn, [0.1] + zeta
-        coef, typical, worst = _fit_residues(band, np.asarray(wn), np.asarray(zeta), residuals)
-        b0, fitted = coef[: len(wn)], dict(zip(residuals, (float(c) for c in coef[len(wn):])))
-        modes = tuple(ModeEstimate(float(a), float(z), float(b), low and i == 0) for i, (a, z, b) in enumerate(zip(wn, zeta, b0)))
-        candidates.append((typical, worst, modes, fitted))
+        fits = [_fit_residues(band, np.asarray(wn), np.asarray(zeta), residuals) for band in bands]
+        typical = float(np.mean([f[1] for f in fits]))
+        per_output = []
+        for coef, _, worst in fits:
+            b0, fitted = coef[: len(wn)], dict(zip(residuals, (float(c) for c in coef[len(wn):])))
+            modes = tuple(ModeEstimate(float(a), float(z), float(b), low and i == 0) for i, (a, z, b) in enumerate(zip(wn, zeta, b0)))
+            per_output.append((worst, modes, fitted))
+        candidates.append((typical, per_output))
     if not candidates:
         raise ValueError(f"no {n_modes} resonances found in [{lo:g}, {hi:g}] rad/s")
-    _, residual, modes, fitted = min(candidates, key=lambda c: c[0])
-    modes = tuple(sorted(modes, key=lambda m: m.omega_n_rad_s))
+    _, per_output = min(candidates, key=lambda c: c[0])
     orders = tuple(np.full(len(p), k + 1) for k, p in enumerate(model.pole_freq))
-    return ModalEstimate(
-        modes=modes, max_normalized_residual=residual, band_rad_s=(float(lo), float(hi)), orders=orders,
-        pole_omegas=tuple(2 * np.pi * np.asarray(p, dtype=float) for p in model.pole_freq),
-        pole_zetas=tuple(np.asarray(z, dtype=float) for z in model.pole_xi),
-        residuals=fitted,
-    )
+    return [ModalEstimate(
+        modes=tuple(sorted(modes, key=lambda m: m.omega_n_rad_s)), max_normalized_residual=residual, band_rad_s=(float(lo), float(hi)),
+        orders=orders, pole_omegas=tuple(2 * np.pi * np.asarray(p, dtype=float) for p in model.pole_freq),
+        pole_zetas=tuple(np.asarray(z, dtype=float) for z in model.pole_xi), residuals=fitted,
+    ) for residual, modes, fitted in per_output]
+
+
+def _combined_magnitude(bands: list[FrequencyData]) -> FrequencyData:
+    """Sum of the outputs' magnitudes, each scaled to its maximum: a resonance any sensor sees
+    is a peak (a mode near one sensor's node is still found through the others)."""
+    mag = sum(np.abs(b.response) / max(float(np.max(np.abs(b.response))), 1e-300) for b in bands)
+    return FrequencyData(bands[0].omega_rad_s, mag.astype(complex), np.ones_like(mag))
+
+
+def _strongest_at(bands: list[FrequencyData], omega: float) -> FrequencyData:
+    """The output that sees the resonance at ``omega`` best (largest magnitude there relative to
+    its own median): its lines place the pole most sharply."""
+    if len(bands) == 1:
+        return bands[0]
+    k = [int(np.argmin(np.abs(b.omega_rad_s - omega))) for b in bands]
+    score = [abs(b.response[i]) / max(float(np.median(np.abs(b.response))), 1e-300) for b, i in zip(bands, k)]
+    return bands[int(np.argmax(score))]

@@ -253,9 +253,10 @@ def _raise_inconsistent(omega, g, E, lo, hi, certificates: list, mode_index: int
         where = "the data points of " + "; ".join(groups) + " (the outputs cannot share this mode's poles)"
     hint = ""
     if suspects:
+        after = ("(other modes may still fail: --reject-outliers finds every such point in one run)" if output is None
+                 else "(the sensors disagree there: check their bounds and calibration)")
         hint = ("; removing the point at " + _by_band(suspects, prior, mode_index).replace(", ", " or ")
-                + f" alone restores consistency of mode {mode_index + 1} (other modes may still fail: "
-                "--reject-outliers finds every such point in one run)")
+                + f" alone restores consistency of mode {mode_index + 1} {after}")
     raise InconsistentDataError(
         f"mode {mode_index + 1}: no parameters within the prior fit {where} "
         f"within their error bounds{hint} (check those measurements and bounds, or widen the prior)",
@@ -532,7 +533,11 @@ def identify_outputs(datas: list[FrequencyData], priors: list[Prior], names: lis
     # (the joint passes alone follow another path to their fixed point and may stop 1e-3 short)
     boxes = []
     for k, (data, p) in enumerate(zip(datas, priors)):
-        alone = identify(data, p, None if previous is None else previous[k], settings)
+        try:
+            alone = identify(data, p, None if previous is None else previous[k], settings)
+        except InconsistentDataError as exc:  # one sensor alone already contradicts the prior: say which
+            raise InconsistentDataError(f"output {names[k]}: {exc}", omegas_rad_s=exc.omegas_rad_s, mode_index=exc.mode_index,
+                                        suspects_rad_s=exc.suspects_rad_s) from None
         counter_alone = alone.n_solves
         boxes.append((alone.model, counter_alone))
     counter = _SolveCounter()

@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 
-__all__ = ["format_prior_proposal", "WIDTH"]
+__all__ = ["format_prior_proposal", "WIDTH", "suspicious_modes", "misfit_advice"]
 
 WIDTH = 0.05
 
@@ -82,8 +82,23 @@ def misfit_advice(estimate) -> str | None:
             "the modes of interest, --residuals both, or check the bounds (--bound-rel/--bound-abs)")
 
 
-def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()) -> str:
-    """The PRIOR.toml text for ``estimate`` (a :class:`setmem_hil.estimation.modal_estimate.ModalEstimate`)."""
+def _residue_brackets(m) -> tuple[float, float]:
+    """``b0`` bracket of one estimated mode (module doc)."""
+    if m.low_pseudo_mode:
+        return tuple(sorted((0.1 * m.b0, 10.0 * m.b0)))
+    return tuple(sorted((m.b0 - abs(m.b0), m.b0 + abs(m.b0))))
+
+
+def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = (), outputs=None) -> str:
+    """The PRIOR.toml text for ``estimate`` (a :class:`setmem_hil.estimation.modal_estimate.ModalEstimate`).
+
+    ``outputs`` (issue 25): ``[(name, estimate), ...]`` of several outputs with common poles (the
+    same ``estimate.modes`` frequencies and damping in each); the file then has
+    ``outputs = [...]`` and ``b0_min``/``b0_max`` arrays, one entry per output.
+    """
+    if outputs:
+        worst = max(e.max_normalized_residual for _, e in outputs)
+        estimate = outputs[int(np.argmax([e.max_normalized_residual for _, e in outputs]))][1] if worst > 1 else outputs[0][1]
     lo_hz, hi_hz = (w / (2 * math.pi) for w in estimate.band_rad_s)
     lines = [
         f"# Prior proposed by `setmem-hil prior` from {source}, band {lo_hz:.6g}-{hi_hz:.6g} Hz.",
@@ -96,22 +111,31 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
     advice = misfit_advice(estimate)
     if advice:
         lines[-1:-1] = [f"# WARNING: {advice}."]
+    if outputs:
+        lines[-1:-1] = ["# Several outputs: common poles (LSCF over all of them), residue brackets per output in this order:",
+                        "outputs = [" + ", ".join(f'"{name}"' for name, _ in outputs) + "]"]
     flags = dict(suspicious_modes(estimate))
     for i, (m, (lo, hi)) in enumerate(zip(estimate.modes, _bands(estimate))):
         lines.append("[[mode]]")
         if i in flags:
             lines.append(f"# CHECK THIS MODE: {flags[i]}; likely a computational mode of the fit, not the structure's")
+        b0_text = f"{m.b0:.4g}" if not outputs else "[" + ", ".join(f"{e.modes[i].b0:.4g}" for _, e in outputs) + "]"
         if m.low_pseudo_mode:
             lines.append("# low pseudo-mode: stands for what lies below the band (rigid-body mass line, lower modes);")
             lines.append("# ASSUMED: omega_n in [0.01, 0.8] x the band's lowest frequency, zeta_max 0.1, b0 in [0.1, 10] x estimate")
-            b_lo, b_hi = sorted((0.1 * m.b0, 10.0 * m.b0))
             zeta_max = 0.1
         else:
-            lines.append(f"# estimate: {m.omega_n_rad_s / (2 * math.pi):.6g} Hz = {m.omega_n_rad_s:.6g} rad/s, zeta {m.zeta:.3g}, b0 {m.b0:.4g}")
-            b_lo, b_hi = sorted((m.b0 - abs(m.b0), m.b0 + abs(m.b0)))
+            lines.append(f"# estimate: {m.omega_n_rad_s / (2 * math.pi):.6g} Hz = {m.omega_n_rad_s:.6g} rad/s, zeta {m.zeta:.3g}, b0 {b0_text}")
             zeta_max = min(0.5, max(0.01, 10.0 * m.zeta))
+        if outputs:
+            brackets = [_residue_brackets(e.modes[i]) for _, e in outputs]
+            b_min = "[" + ", ".join(_num(b[0]) for b in brackets) + "]"
+            b_max = "[" + ", ".join(_num(b[1]) for b in brackets) + "]"
+        else:
+            b_lo, b_hi = _residue_brackets(m)
+            b_min, b_max = _num(b_lo), _num(b_hi)
         lines += [f"omega_min = {_num(lo)}", f"omega_max = {_num(hi)}", f"zeta_max = {_num(zeta_max)}", "b1 = 0.0",
-                  f"b0_min = {_num(b_lo)}", f"b0_max = {_num(b_hi)}", ""]
+                  f"b0_min = {b_min}", f"b0_max = {b_max}", ""]
     if residuals:
         lines += ["[residuals]", "# residual terms for modes outside the band (lower: mass line r/s^2, upper: flexibility r)",
                   "# ASSUMED: each within +-100 % of its least-squares estimate (+- the same for a zero estimate)",

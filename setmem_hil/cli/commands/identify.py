@@ -62,17 +62,41 @@ def _run_outputs(args: argparse.Namespace) -> int:
     from setmem_hil.errors import InputFormatError
     from setmem_hil.identification.algorithm import identify_outputs
 
-    if args.reject_outliers:
-        raise InputFormatError("setmem-hil identify", "--reject-outliers", "with several --data files is not supported yet; "
-                               "run it on each file alone to find the outliers, then identify the outputs together")
     outputs = load_outputs(args)
     priors, names = load_output_priors(args.prior, len(outputs))
     names = names or tuple(name for name, _ in outputs)
-    result = identify_outputs([d for _, d in outputs], priors, list(names))
+    datas, rejected = [d for _, d in outputs], []
+    if args.reject_outliers:  # each output's outliers alone (thesis 7.2), then the outputs together
+        datas, rejected = _without_outliers(datas, priors, names)
+    result = identify_outputs(datas, priors, list(names))
     doc = result.to_document()
+    if args.reject_outliers:
+        doc["rejected_points"] = rejected
     write_json(doc, args.out)
     unverified = [i + 1 for i, m in enumerate(doc["modes"]) if m.get("verified") is False]
-    points = ", ".join(f"{name} {len(d.omega_rad_s)}" for name, (_, d) in zip(names, outputs))
+    points = ", ".join(f"{name} {len(d.omega_rad_s)}" for name, d in zip(names, datas))
     print(f"identified {len(doc['modes'])} mode(s) with shared poles from {len(outputs)} outputs ({points} points) in "
           f"{doc['iterations']} iteration(s): {args.out}" + (f"; bounds of mode(s) {unverified} NOT verified (see unverified_reason)" if unverified else ""))
     return 0
+
+
+def _without_outliers(datas, priors, names):
+    """Every output's data without the points ``--reject-outliers`` sets aside for it alone, and
+    the list of those points (``{"omega", "output"}``)."""
+    import numpy as np
+
+    from setmem_hil.errors import InconsistentDataError
+    from setmem_hil.identification.outlier_rejection import identify_rejecting_outliers
+
+    kept, rejected = [], []
+    for data, prior, name in zip(datas, priors, names):
+        try:
+            _, dropped = identify_rejecting_outliers(data, prior, progress=lambda text, name=name: print(f"{name}: {text}", file=sys.stderr, flush=True))
+        except InconsistentDataError as exc:
+            raise InconsistentDataError(f"output {name}: {exc}", omegas_rad_s=exc.omegas_rad_s, mode_index=exc.mode_index) from None
+        keep = np.flatnonzero(~np.isin(data.omega_rad_s, dropped))
+        kept.append(data.subset(keep))
+        rejected += [{"omega": float(w), "output": name} for w in dropped]
+        if dropped:
+            print(f"{name}: rejected {len(dropped)} point(s) at omega = {', '.join(f'{w:.6g}' for w in dropped)} rad/s", file=sys.stderr)
+    return kept, rejected

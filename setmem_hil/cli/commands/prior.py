@@ -7,7 +7,7 @@ import math
 import sys
 from pathlib import Path
 
-from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data
+from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data, load_outputs
 from setmem_hil.errors import InputFormatError
 
 __all__ = ["register", "run"]
@@ -36,7 +36,12 @@ def run(args: argparse.Namespace) -> int:
     out = check_out_path(args.out)
     if args.modes < 1:
         raise InputFormatError("setmem-hil prior", "--modes", f"expected at least 1, found {args.modes}")
-    data = load_data(args)
+    several = isinstance(args.data, list) and len(args.data) > 1
+    if several:
+        outputs = load_outputs(args)
+        data = outputs[0][1]
+    else:
+        data = load_data(args)
     band = None
     if args.band:
         lo, hi = args.band
@@ -44,6 +49,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputFormatError("setmem-hil prior", "--band", f"expected 0 < LO_HZ < HI_HZ, found {lo:g} {hi:g}")
         band = (2 * math.pi * lo, 2 * math.pi * hi)
     residuals = {"none": (), "lower": ("lower",), "upper": ("upper",), "both": ("lower", "upper")}[args.residuals]
+    if several:
+        return _run_outputs(args, out, outputs, band, residuals)
     try:
         estimate = estimate_modes(data, args.modes, band, residuals=residuals)
     except ValueError as exc:
@@ -64,4 +71,39 @@ def run(args: argparse.Namespace) -> int:
     advice = misfit_advice(estimate)
     if advice:
         print(f"setmem-hil: warning: {advice}", file=sys.stderr)
+    return 0
+
+
+def _run_outputs(args: argparse.Namespace, out: Path, outputs, band, residuals) -> int:
+    """Several ``--data`` files (issue 25): common poles by LSCF over every output, residue
+    brackets per output, one PRIOR.toml with ``outputs = [...]`` and residue arrays."""
+    from setmem_hil.estimation.modal_estimate import estimate_common_modes
+    from setmem_hil.io.atomic_file import write_text_atomic
+    from setmem_hil.io.prior_proposal import format_prior_proposal, misfit_advice, suspicious_modes
+    from setmem_hil.report.stability_diagram import plot_stability_diagram
+
+    if residuals:
+        raise InputFormatError("setmem-hil prior", "--residuals", "residual terms with several --data files are not supported "
+                               "yet (identify takes them with one output only)")
+    try:
+        estimates = estimate_common_modes([d for _, d in outputs], args.modes, band)
+    except ValueError as exc:
+        raise InputFormatError(", ".join(args.data), "--data/--modes/--band", str(exc)) from None
+    named = [(name, est) for (name, _), est in zip(outputs, estimates)]
+    source = " and ".join(Path(f).name for f in args.data)
+    write_text_atomic(out, format_prior_proposal(estimates[0], source, outputs=named))
+    figure = plot_stability_diagram(estimates[0], outputs[0][1], out.with_name(out.stem + "-stability.png"))
+    flags = dict(suspicious_modes(estimates[0]))
+    for i, m in enumerate(estimates[0].modes):
+        kind = "low pseudo-mode" if m.low_pseudo_mode else f"{m.omega_n_rad_s / (2 * math.pi):.6g} Hz, zeta {m.zeta:.3g}"
+        residues = ", ".join(f"{name} {est.modes[i].b0:.4g}" for name, est in named)
+        print(f"  mode: {kind}, b0 {residues}" + (f"  <- CHECK: {flags[i]}" if i in flags else ""))
+    worst = max(named, key=lambda t: t[1].max_normalized_residual)
+    print(f"prior: {out} ({len(estimates[0].modes)} common modes, {len(named)} outputs; worst normalised residual of the "
+          f"estimate {worst[1].max_normalized_residual:.3g} ({worst[0]})); stability diagram: {figure}")
+    for i, reason in flags.items():
+        print(f"setmem-hil: warning: proposed mode {i + 1}: {reason}; likely a computational mode of the fit", file=sys.stderr)
+    advice = misfit_advice(worst[1])
+    if advice:
+        print(f"setmem-hil: warning: output {worst[0]}: {advice}", file=sys.stderr)
     return 0

@@ -1,0 +1,97 @@
+"""Benchmark: identification with shared poles (issue 25).
+
+Prints, in one run:
+
+* three simulated sensors (the thesis beam's poles; residues x [1, 1, 1], [0.6, -0.8, 0.3],
+  [1.3, 0.25, -1.1]; 27 points each at their own frequencies; noise up to 0.9 of a 5 % + 1e-3
+  bound), seeds 1-10: truth inside every interval, and per mode the width of the shared a1, a0
+  intervals over the narrowest single-sensor interval of the same data;
+* speed: 2 outputs x 384 points x 6 modes (the thesis beam's first six modes);
+* the real free-free beam (`../shared/realdata/`, points 1 and 2, relaxed bound), when present:
+  the common prior, and the joint identification with `--reject-outliers`.
+
+Run: ``.venv/bin/python benchmarks/shared_poles.py``.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from setmem_hil.identification.algorithm import identify, identify_outputs  # noqa: E402
+from setmem_hil.io.procedure import thesis_beam_prior  # noqa: E402
+from setmem_hil.model.frequency_data import FrequencyData  # noqa: E402
+from setmem_hil.model.modal_model import ModalParameters  # noqa: E402
+from setmem_hil.model.prior import ModePrior, Prior  # noqa: E402
+from setmem_hil.sim_backends.beam import beam_parameters  # noqa: E402
+from test_shared_poles import sensors  # noqa: E402
+
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+
+
+def simulated() -> None:
+    prior = thesis_beam_prior()
+    ratios = {("a1", m): [] for m in range(3)} | {("a0", m): [] for m in range(3)}
+    inside = 0
+    for seed in range(1, 11):
+        truths, datas = sensors(seed)
+        singles = [identify(d, prior).model for d in datas]
+        joint = identify_outputs(datas, [prior] * 3)
+        inside += all(m.contains(t).all() for m, t in zip(joint.models, truths))
+        for col, name in ((0, "a1"), (1, "a0")):
+            shared = joint.models[0].upper[:, col] - joint.models[0].lower[:, col]
+            narrowest = np.min([s.upper[:, col] - s.lower[:, col] for s in singles], axis=0)
+            for m in range(3):
+                ratios[(name, m)].append(shared[m] / narrowest[m])
+    print(f"3 simulated sensors, seeds 1-10: truth inside every interval in {inside}/10")
+    for (name, m), r in ratios.items():
+        print(f"  {name} mode {m + 1}: shared / narrowest single width  min {min(r):.3f}  mean {np.mean(r):.3f}  max {max(r):.4f}")
+
+
+def speed() -> None:
+    base = beam_parameters().truncated(6)
+    rng = np.random.default_rng(0)
+    datas = []
+    for factors in (np.ones(6), rng.uniform(0.3, 1.3, 6) * rng.choice([-1, 1], 6)):
+        values = base.values.copy()
+        values[:, 3] *= factors
+        truth = ModalParameters(values)
+        w = np.geomspace(0.5, base.natural_frequencies[-1] * 1.3, 384)
+        g = truth.frequency_response(w)
+        bound = 0.03 * np.abs(g) + 1e-4
+        datas.append(FrequencyData(w, g + bound * 0.8 * np.exp(2j * np.pi * rng.uniform(size=w.size)), bound))
+    prior = Prior(tuple(ModePrior(0.95 * x, 1.05 * x, 0.1, b1_min=0.0, b1_max=0.0, b0_min=-10, b0_max=10) for x in base.natural_frequencies))
+    t = time.perf_counter()
+    identify_outputs(datas, [prior, prior])
+    print(f"speed: 2 outputs x 384 points x 6 modes jointly (both outputs alone first, included): {time.perf_counter() - t:.2f} s (goal < 3 s)")
+
+
+def real() -> None:
+    p1 = REALDATA / "ladisk-pyuff-beam" / "frf_displacement_relaxed.csv"
+    p2 = REALDATA / "ladisk-pyuff-beam-point2" / "frf_displacement_relaxed.csv"
+    if not p1.is_file():
+        print(f"real beam: skipped ({REALDATA} absent)")
+        return
+    exe = [sys.executable, "-m", "setmem_hil.cli.main"]
+    out = Path("/tmp/setmem-shared-poles-bench")
+    out.mkdir(exist_ok=True)
+    subprocess.run(exe + ["prior", "--data", str(p1), "--data", str(p2), "--modes", "6", "--out", str(out / "prior.toml")],
+                   capture_output=True, text=True)
+    run = subprocess.run(exe + ["identify", "--data", str(p1), "--data", str(p2), "--prior", str(out / "prior.toml"),
+                                "--out", str(out / "r.json"), "--reject-outliers"], capture_output=True, text=True)
+    lines = [line for line in (run.stdout + run.stderr).splitlines() if "trial" not in line]
+    print(f"real beam, points 1 + 2 (relaxed bound, 6 common modes, --reject-outliers): exit {run.returncode}")
+    for line in lines:
+        print("  " + line)
+
+
+if __name__ == "__main__":
+    simulated()
+    speed()
+    real()
