@@ -46,21 +46,23 @@ def test_a_proposal_that_misses_its_data_says_what_to_do():
     assert "# WARNING" in format_prior_proposal(estimate([1e-3] * 5, worst=1.8), "x.csv")
 
 
+def propose(tmp_path, capsys, folder: str, modes: int):
+    """``setmem-hil prior`` on a real relaxed FRF: (data file, prior file, stderr)."""
+    data = REALDATA / folder / "frf_displacement_relaxed.csv"
+    prior = tmp_path / "prior.toml"
+    assert main(["prior", "--data", str(data), "--modes", str(modes), "--out", str(prior)]) == 0
+    return data, prior, capsys.readouterr().err
+
+
 @needs_realdata
 def test_real_beam_point_2_proposal_warns_and_identify_then_fails(tmp_path, capsys):
-    data = REALDATA / "ladisk-pyuff-beam-point2" / "frf_displacement_relaxed.csv"
-    prior = tmp_path / "prior.toml"
-    assert main(["prior", "--data", str(data), "--modes", "6", "--out", str(prior)]) == 0
-    err = capsys.readouterr().err
+    data, prior, err = propose(tmp_path, capsys, "ladisk-pyuff-beam-point2", 6)
     assert "warning" in err and "exit 3" in err  # the user saw exit 0 and no word
     assert main(["identify", "--data", str(data), "--prior", str(prior), "--out", str(tmp_path / "r.json")]) == 3  # as predicted
 
 
 @needs_realdata
 def test_real_beam_seven_modes_flags_the_spurious_one(tmp_path, capsys):
-    data = REALDATA / "ladisk-pyuff-beam" / "frf_displacement_relaxed.csv"
-    prior = tmp_path / "prior.toml"
-    assert main(["prior", "--data", str(data), "--modes", "7", "--out", str(prior)]) == 0
-    err = capsys.readouterr().err
+    _, prior, err = propose(tmp_path, capsys, "ladisk-pyuff-beam", 7)
     assert "computational mode" in err
     assert prior.read_text().count("# CHECK THIS MODE") == 1
