@@ -70,3 +70,39 @@ def test_malformed_data_exits_2(tmp_path, capsys):
                "--out", str(tmp_path / "r.json")])
     assert rc == 2
     assert "line 2" in capsys.readouterr().err
+
+
+def test_several_outputs_say_which_output_holds_the_effect(tmp_path, capsys):
+    """Issue 25 item 5: the workflow per output; the lag is in the second sensor's data only."""
+    clean, lagged = draw_hidden_effect_case("none", 32), draw_hidden_effect_case("first_order_lag", 31)
+    write_data_csv(clean.data, tmp_path / "clean.csv")
+    write_data_csv(lagged.data, tmp_path / "lagged.csv")
+    (tmp_path / "p.toml").write_text(PRIOR_TOML)
+    rc = main(["discrepancy", "--data", str(tmp_path / "clean.csv"), "--data", str(tmp_path / "lagged.csv"),
+               "--prior", str(tmp_path / "p.toml"), "--out", str(tmp_path / "r.json"), "--plot", str(tmp_path / "f.png")])
+    assert rc == 0
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert CONTRACT_KEYS <= set(doc)
+    assert [(e["name"], e["output"]) for e in doc["effects"]] == [("first_order_lag", "lagged")]
+    assert [o["name"] for o in doc["outputs"]] == ["clean", "lagged"] and doc["outputs"][0]["effects"] == []
+    assert doc["before"]["feasible"] is False and doc["after"]["feasible"] is True
+    assert all(band[2] == "lagged" for band in doc["disagreement_bands"]) and doc["disagreement_bands"]
+    assert (tmp_path / "f.png").is_file() and (tmp_path / "f-lagged.png").is_file()
+    assert "output lagged: first_order_lag" in capsys.readouterr().err
+
+
+def test_several_outputs_with_a_model_file_take_each_outputs_residues(tmp_path):
+    clean, other = draw_hidden_effect_case("none", 32), draw_hidden_effect_case("none", 33)
+    write_data_csv(clean.data, tmp_path / "a.csv")
+    write_data_csv(other.data, tmp_path / "b.csv")
+    modes = IntervalModel.point(clean.truth).named_intervals()
+    for i, mode in enumerate(modes):
+        mode["outputs"] = [{"name": n, "b1": mode["b1"], "b0": mode["b0"]} for n in ("a", "b")]
+    write_json({"modes": modes, "outputs": ["a", "b"]}, tmp_path / "m.json")
+    rc = main(["discrepancy", "--data", str(tmp_path / "a.csv"), "--data", str(tmp_path / "b.csv"), "--model", str(tmp_path / "m.json"),
+               "--out", str(tmp_path / "r.json")])
+    assert rc == 0
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert doc["effects"] == [] and [o["name"] for o in doc["outputs"]] == ["a", "b"]
+    assert main(["discrepancy", "--data", str(tmp_path / "a.csv"), "--data", str(tmp_path / "b.csv"), "--data", str(tmp_path / "a.csv"),
+                 "--model", str(tmp_path / "m.json"), "--out", str(tmp_path / "r2.json")]) == 2  # a file twice

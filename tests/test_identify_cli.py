@@ -78,20 +78,6 @@ def test_outlier_rejection_drops_the_bad_point(files, capsys):
     assert f"from {len(data.omega_rad_s) - 1} points (1 rejected)" in out  # the summary counts what was used
 
 
-@pytest.mark.parametrize("command", ["discrepancy"])
-def test_a_repeated_data_option_is_refused_never_dropped(files, capsys, command):
-    """identify and prior take several outputs (tests/test_shared_poles.py); discrepancy one so far."""
-    tmp, data, _ = files
-    write_data_csv(data, tmp / "a.csv")
-    write_data_csv(data, tmp / "b.csv")
-    extra = {"identify": ["--prior", str(tmp / "prior.toml")], "discrepancy": ["--prior", str(tmp / "prior.toml")],
-             "prior": ["--modes", "3"]}[command]
-    code = main([command, "--data", str(tmp / "a.csv"), "--data", str(tmp / "b.csv"), *extra, "--out", str(tmp / "out.x")])
-    err = capsys.readouterr().err
-    assert code == 2 and "--data" in err and "a.csv" in err and "b.csv" in err
-    assert not (tmp / "out.x").exists()
-
-
 @pytest.mark.parametrize(
     "csv_text, fragment",
     [

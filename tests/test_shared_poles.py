@@ -183,3 +183,32 @@ def test_real_beam_points_1_and_2_prior_then_identify(tmp_path, capsys):
     assert code == 3 and len(message) == 1 and not (tmp_path / "r.json").exists()
     assert "ladisk-pyuff-beam/" in message[0] and "ladisk-pyuff-beam-point2/" in message[0] and "rad/s" in message[0]
     assert "cannot share" in message[0]
+
+
+def test_a_uff_file_with_several_frf_records_of_one_reference_is_several_outputs(tmp_path):
+    """pyuff writes the file (an independent implementation of UFF 58): three response nodes,
+    one shaker; `identify --data FILE.uff` identifies them jointly, in file order."""
+    import pyuff
+
+    truths, datas = sensors(4)
+    f_hz = np.linspace(0.7, 25, 400) / (2 * np.pi)  # UFF 58 with even spacing stores the first line and the step
+    w = 2 * np.pi * f_hz
+    sets = []
+    for node, truth in zip((11, 12, 13), truths):
+        g = truth.frequency_response(w)
+        sets.append(pyuff.prepare_58(func_type=4, rsp_node=node, rsp_dir=3, ref_node=1, ref_dir=3, data=g, x=f_hz,
+                                     id1="synthetic FRF", rsp_ent_name="beam", ref_ent_name="beam", abscissa_spacing=1,
+                                     abscissa_spec_data_type=18, ordinate_spec_data_type=8, orddenom_spec_data_type=13))
+    uff = pyuff.UFF(str(tmp_path / "roving.uff"))
+    uff.write_sets(sets, mode="overwrite")
+    prior = tmp_path / "prior.toml"
+    prior.write_text("".join(f"[[mode]]\nomega_min = {lo}\nomega_max = {hi}\nzeta_max = 0.5\nb1 = 0.0\nb0_min = -10.0\nb0_max = 10.0\n\n"
+                             for lo, hi in ((0.884, 1.125), (5.41, 7.34), (16.35, 19.81))))
+    out = tmp_path / "r.json"
+    assert main(["identify", "--data", str(tmp_path / "roving.uff"), "--bound-rel", "0.02", "--bound-abs", "1e-3",
+                 "--prior", str(prior), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["outputs"] == [f"roving node {n} dir 3" for n in (11, 12, 13)]
+    for i, mode in enumerate(doc["modes"]):
+        for o, truth in zip(mode["outputs"], truths):
+            assert o["b0"][0] <= truth.values[i, 3] <= o["b0"][1]

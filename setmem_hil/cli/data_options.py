@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from setmem_hil.errors import InputFormatError
-from setmem_hil.io.frf_file import QUANTITIES, load_frf
+from setmem_hil.io.frf_file import QUANTITIES, load_frf, load_frf_outputs
 from setmem_hil.model.frequency_data import FrequencyData
 
 __all__ = ["add_data_options", "single_data_file", "load_data", "load_outputs", "load_prior", "load_output_priors", "check_out_path"]
@@ -60,12 +60,19 @@ def load_outputs(args: argparse.Namespace) -> list[tuple[str, FrequencyData]]:
         if key in seen:
             raise InputFormatError(f, "--data", f"given twice (as {seen[key]} and {f}): each output once")
         seen[key] = f
-    names = [Path(f).stem for f in files]
+    loaded = []  # (file, name, data): a UFF file with several FRF records of one reference is several outputs
+    for f in files:
+        for name, frf in load_frf_outputs(f, quantity=args.quantity, bound_rel=args.bound_rel, bound_abs=args.bound_abs,
+                                          averages=args.averages):
+            for note in frf.notes:
+                print(f"setmem-hil: note: {f}: {note}", file=sys.stderr)
+            loaded.append((f, name, frf.data))
+    names = [name for _, name, _ in loaded]
     if len(set(names)) != len(names):  # e.g. point1/frf.csv and point2/frf.csv: the folder tells them apart
-        names = [f"{Path(f).parent.name}/{Path(f).stem}" for f in files]
+        names = [f"{Path(f).parent.name}/{name}" for f, name, _ in loaded]
     if len(set(names)) != len(names):
-        names = [f"{Path(f).stem} ({i + 1})" for i, f in enumerate(files)]
-    return [(name, _load_one(f, args)) for name, f in zip(names, files)]
+        names = [f"{name} ({i + 1})" for i, name in enumerate(names)]
+    return [(name, data) for name, (_, _, data) in zip(names, loaded)]
 
 
 PROCEDURE_TABLES = ("backend", "initial", "safety", "goal", "input_design", "weights", "discrepancy", "name", "seed")

@@ -95,7 +95,33 @@ def _load(p: Path, quantity, bound_rel, bound_abs, averages) -> FrfLoad:
     return FrfLoad(FrequencyData(data.omega_rad_s[keep], g, r), q, notes)
 
 
-def _load_uff(p: Path, quantity, bound_rel, bound_abs, averages) -> FrfLoad:
+def load_frf_outputs(path: str | os.PathLike, *, quantity: str | None = None, bound_rel: float | None = None,
+                     bound_abs: float | None = None, averages: int | None = None) -> list[tuple[str, FrfLoad]]:
+    """Every output a file holds, in file order (issue 25): a CSV is one; a UFF file holding
+    several FRF records with one reference (one shaker, several response points) is one output
+    per record, named ``<stem> node <n> dir <d>``. Several references are refused."""
+    p = Path(path)
+    if p.suffix.lower() not in (".uff", ".unv"):
+        return [(p.stem, load_frf(p, quantity=quantity, bound_rel=bound_rel, bound_abs=bound_abs, averages=averages))]
+    records, frfs = _uff_frf_records(p)
+    references = {(r.get("ref_node"), r.get("ref_dir")) for r in frfs}
+    if len(references) > 1:
+        raise InputFormatError(str(p), "", f"FRF records of {len(references)} references {sorted(references, key=str)}: "
+                                           "several outputs must share one input (split the file by reference)")
+    out = []
+    for frf in frfs:
+        name = p.stem if len(frfs) == 1 else f"{p.stem} node {frf.get('rsp_node')} dir {frf.get('rsp_dir')}"
+        try:
+            out.append((name, _uff_frf(p, frf, records, quantity, bound_rel, bound_abs, averages)))
+        except ValueError as exc:
+            if isinstance(exc, InputFormatError):
+                raise
+            raise InputFormatError(str(p), name, str(exc)) from None
+    return out
+
+
+def _uff_frf_records(p: Path) -> tuple[list, list]:
+    """All data sets of a UFF file and its FRF records (UFF 58, function type 4)."""
     try:
         import pyuff
     except ImportError:  # pragma: no cover - pyuff is a core dependency
@@ -109,9 +135,19 @@ def _load_uff(p: Path, quantity, bound_rel, bound_abs, averages) -> FrfLoad:
     if not frfs:
         kinds = sorted({(r.get("type"), r.get("func_type")) for r in records}, key=str)
         raise InputFormatError(str(p), "", f"no FRF record (UFF 58 with function type 4) among the data sets {kinds}")
+    return records, frfs
+
+
+def _load_uff(p: Path, quantity, bound_rel, bound_abs, averages) -> FrfLoad:
+    records, frfs = _uff_frf_records(p)
     if len(frfs) > 1:
-        raise InputFormatError(str(p), "", f"{len(frfs)} FRF records; this tool identifies one FRF at a time (split the file)")
-    frf = frfs[0]
+        raise InputFormatError(str(p), "", f"{len(frfs)} FRF records: identify, prior and discrepancy take them as one "
+                                           "output each; elsewhere give one FRF per file (split the file)")
+    return _uff_frf(p, frfs[0], records, quantity, bound_rel, bound_abs, averages)
+
+
+def _uff_frf(p: Path, frf: dict, records: list, quantity, bound_rel, bound_abs, averages) -> FrfLoad:
+    """One FRF record as receptance with its bound (module doc)."""
     f_hz = np.asarray(frf["x"], dtype=float)
     h = np.asarray(frf["data"], dtype=complex)
     declared = UFF_QUANTITY.get(int(frf.get("ordinate_spec_data_type", 0) or 0))

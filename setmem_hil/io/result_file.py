@@ -54,6 +54,33 @@ def parse_result_mapping(doc: Any, source: str) -> IntervalModel:
     return IntervalModel(lo, hi)
 
 
+def read_result_outputs(path: str | os.PathLike, n_outputs: int) -> list[IntervalModel]:
+    """One model per output from a RESULT.json written with several outputs (issue 25): the
+    shared ``a1, a0`` with each output's ``b1, b0`` from ``modes[i]["outputs"]``. A one-output
+    file serves every output alike only when ``n_outputs`` is 1."""
+    path = Path(path)
+    base = read_result(path)
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    modes = doc["modes"]
+    lists = [m.get("outputs") for m in modes]
+    if n_outputs == 1 and all(entry is None for entry in lists):
+        return [base]
+    if any(not isinstance(entry, list) or len(entry) != n_outputs for entry in lists):
+        found = "none" if all(entry is None for entry in lists) else "another number"
+        raise InputFormatError(str(path), "modes[].outputs", f"expected residues of {n_outputs} outputs (one per --data), found {found}")
+    models = []
+    for k in range(n_outputs):
+        lo, hi = base.lower.copy(), base.upper.copy()
+        for i, entry in enumerate(lists):
+            for j, name in ((2, "b1"), (3, "b0")):
+                pair = entry[k].get(name) if isinstance(entry[k], Mapping) else None
+                if not isinstance(pair, list) or len(pair) != 2 or pair[0] > pair[1]:
+                    raise InputFormatError(str(path), f"modes[{i}].outputs[{k}].{name}", f"expected [lo, hi], found {pair!r}")
+                lo[i, j], hi[i, j] = float(pair[0]), float(pair[1])
+        models.append(IntervalModel(lo, hi))
+    return models
+
+
 def read_result(path: str | os.PathLike) -> IntervalModel:
     path = Path(path)
     try:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data, load_output_priors, load_outputs, load_prior
+from setmem_hil.cli.data_options import add_data_options, check_out_path, load_output_priors, load_outputs, load_prior
 from setmem_hil.identification.algorithm import identify
 from setmem_hil.io.result_file import write_json
 
@@ -34,9 +34,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     check_out_path(args.out)
-    if isinstance(args.data, list) and len(args.data) > 1:
-        return _run_outputs(args)
-    data = load_data(args)
+    outputs = load_outputs(args)
+    if len(outputs) > 1:
+        return _run_outputs(args, outputs)
+    data = outputs[0][1]
     prior = load_prior(args.prior)
     if args.reject_outliers:
         from setmem_hil.identification.outlier_rejection import identify_rejecting_outliers
@@ -57,12 +58,11 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_outputs(args: argparse.Namespace) -> int:
+def _run_outputs(args: argparse.Namespace, outputs) -> int:
     """Several outputs with shared poles (issue 25)."""
     from setmem_hil.errors import InputFormatError
     from setmem_hil.identification.algorithm import identify_outputs
 
-    outputs = load_outputs(args)
     priors, names = load_output_priors(args.prior, len(outputs))
     names = names or tuple(name for name, _ in outputs)
     datas, rejected = [d for _, d in outputs], []

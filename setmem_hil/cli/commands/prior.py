@@ -7,7 +7,7 @@ import math
 import sys
 from pathlib import Path
 
-from setmem_hil.cli.data_options import add_data_options, check_out_path, load_data, load_outputs
+from setmem_hil.cli.data_options import add_data_options, check_out_path, load_outputs
 from setmem_hil.errors import InputFormatError
 
 __all__ = ["register", "run"]
@@ -36,12 +36,11 @@ def run(args: argparse.Namespace) -> int:
     out = check_out_path(args.out)
     if args.modes < 1:
         raise InputFormatError("setmem-hil prior", "--modes", f"expected at least 1, found {args.modes}")
-    several = isinstance(args.data, list) and len(args.data) > 1
-    if several:
-        outputs = load_outputs(args)
-        data = outputs[0][1]
-    else:
-        data = load_data(args)
+    outputs = load_outputs(args)
+    several = len(outputs) > 1
+    data = outputs[0][1]
+    if isinstance(args.data, list) and len(args.data) == 1:
+        args.data = args.data[0]  # the file named in messages and in the proposal
     band = None
     if args.band:
         lo, hi = args.band
@@ -85,12 +84,13 @@ def _run_outputs(args: argparse.Namespace, out: Path, outputs, band, residuals) 
     if residuals:
         raise InputFormatError("setmem-hil prior", "--residuals", "residual terms with several --data files are not supported "
                                "yet (identify takes them with one output only)")
+    files = args.data if isinstance(args.data, list) else [args.data]
     try:
         estimates = estimate_common_modes([d for _, d in outputs], args.modes, band)
     except ValueError as exc:
-        raise InputFormatError(", ".join(args.data), "--data/--modes/--band", str(exc)) from None
+        raise InputFormatError(", ".join(files), "--data/--modes/--band", str(exc)) from None
     named = [(name, est) for (name, _), est in zip(outputs, estimates)]
-    source = " and ".join(Path(f).name for f in args.data)
+    source = " and ".join(Path(f).name for f in files)
     write_text_atomic(out, format_prior_proposal(estimates[0], source, outputs=named))
     figure = plot_stability_diagram(estimates[0], outputs[0][1], out.with_name(out.stem + "-stability.png"))
     flags = dict(suspicious_modes(estimates[0]))
