@@ -2,9 +2,9 @@
 
 Prints, in one run:
 
-* three simulated sensors (the thesis beam's poles; residues x [1, 1, 1], [0.6, -0.8, 0.3],
-  [1.3, 0.25, -1.1]; 27 points each at their own frequencies; noise up to 0.9 of a 5 % + 1e-3
-  bound), seeds 1-10: truth inside every interval, and per mode the width of the shared a1, a0
+* three simulated displacement sensors at 0.4, 0.7 and 1.0 of the cantilever (thesis 6.1; residues
+  phi_i(tip) phi_i(x_k); 27 points each at their own frequencies; noise up to 0.9 of the thesis's
+  fully damped bound), seeds 1-10: truth inside every interval, and per mode the width of the shared a1, a0
   intervals over the narrowest single-sensor interval of the same data;
 * speed: 2 outputs x 384 points x 6 modes (the thesis beam's first six modes);
 * the real free-free beam (`../shared/realdata/`, points 1 and 2, relaxed bound), when present:

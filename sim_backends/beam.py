@@ -49,6 +49,36 @@ def beam_parameters(n_modes: int = BEAM_N_MODES) -> ModalParameters:
     return ModalParameters.from_modal(beam_natural_frequencies(n_modes), BEAM_DAMPING_RATIO, BEAM_RESIDUE, 0.0)
 
 
+def cantilever_mode_shape(x_k: float, position) -> np.ndarray:
+    """Mass-normalised mode shape of a uniform cantilever (unit length and mass) at ``position``
+    (fraction of the length from the clamp): ``cosh - cos - sigma (sinh - sin)`` of ``x_k xi``,
+    ``sigma = (cosh x_k + cos x_k) / (sinh x_k + sin x_k)``; its tip value is +-2.
+
+    Written with ``exp(-x xi)`` so it stays accurate for high modes, where ``cosh`` and
+    ``sigma sinh`` cancel to many digits."""
+    xi = np.asarray(position, dtype=float)
+    z = x_k * xi
+    denominator = np.sinh(x_k) + np.sin(x_k)
+    sigma = (np.cosh(x_k) + np.cos(x_k)) / denominator
+    # cosh z - sigma sinh z = ((1 - sigma) e^z + (1 + sigma) e^-z) / 2, with 1 - sigma (about
+    # 2 e^-2x_k) formed without the cancellation: (sin x - cos x - e^-x) / (sinh x + sin x)
+    one_minus_sigma = (np.sin(x_k) - np.cos(x_k) - np.exp(-x_k)) / denominator
+    return 0.5 * (one_minus_sigma * np.exp(z) + (1.0 + sigma) * np.exp(-z)) - np.cos(z) + sigma * np.sin(z)
+
+
+def beam_parameters_at(sensor: float, actuator: float = 1.0, n_modes: int = BEAM_N_MODES) -> ModalParameters:
+    """The simulated beam seen from a force at ``actuator`` and a displacement sensor at
+    ``sensor`` (fractions of the length from the clamp; issue 25). Same poles as
+    :func:`beam_parameters`; residues ``b0_i = phi_i(actuator) phi_i(sensor)`` (unit modal
+    mass), which is the thesis's ``b0 = 4`` at the tip for both."""
+    for name, value in (("sensor", sensor), ("actuator", actuator)):
+        if not 0.0 < float(value) <= 1.0:
+            raise ValueError(f"{name}: expected a position in (0, 1] (fraction of the length from the clamp), found {value!r}")
+    x = cantilever_eigenvalues(n_modes)
+    b0 = np.array([cantilever_mode_shape(xk, actuator) * cantilever_mode_shape(xk, sensor) for xk in x])
+    return ModalParameters.from_modal(beam_natural_frequencies(n_modes), BEAM_DAMPING_RATIO, b0, 0.0)
+
+
 def polynomial_magnitude(num, den, omega_rad_s) -> np.ndarray:
     """``|num(j omega) / den(j omega)|`` for coefficient lists (highest power first)."""
     s = 1j * np.asarray(omega_rad_s, dtype=float)

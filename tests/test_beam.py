@@ -71,3 +71,27 @@ def test_bounded_noise_respects_bound_and_is_seeded():
     assert np.array_equal(n1, n2)
     phases = np.angle(n1[bound > 0])
     assert phases.min() < -2.5 and phases.max() > 2.5
+
+
+def test_mode_shapes_at_sensor_positions_against_beam_theory():
+    """Issue 25: residues phi_i(actuator) phi_i(sensor) of the cantilever. Independent truths:
+    the thesis's b0 = 4 at the tip, orthonormality of the mass-normalised shapes, and the static
+    deflection of a cantilever under a tip load, x^2 (3 - x) / (6 EI), with EI = 1 / x_1^4 (the
+    first mode normalised to 1 rad/s, unit length and mass)."""
+    import numpy as np
+
+    from setmem_hil.sim_backends.beam import beam_parameters, beam_parameters_at, cantilever_eigenvalues, cantilever_mode_shape
+
+    np.testing.assert_allclose(beam_parameters_at(1.0).values, beam_parameters().values, rtol=1e-12, atol=1e-12)
+    x = cantilever_eigenvalues(8)
+    xi = np.linspace(0.0, 1.0, 40001)
+    shapes = np.array([cantilever_mode_shape(k, xi) for k in x])
+    gram = np.trapezoid(shapes[:, None, :] * shapes[None, :, :], xi, axis=-1)
+    np.testing.assert_allclose(gram, np.eye(8), atol=1e-6)
+    EI = 1.0 / x[0] ** 4
+    for position in (0.25, 0.5, 0.8, 1.0):
+        many = beam_parameters_at(position, n_modes=60)
+        static = float(np.sum(many.values[:, 3] / many.values[:, 1]))  # G(0) = sum b0 / a0
+        assert static == pytest.approx(position**2 * (3 - position) / (6 * EI), rel=1e-4)
+    with pytest.raises(ValueError, match="sensor"):
+        beam_parameters_at(0.0)

@@ -1,7 +1,7 @@
 """Several response sensors, one set of poles (issue 25, items 1, 2 and 5).
 
-Independent truth: synthetic FRFs of known modal parameters (the thesis beam's poles, a residue
-pattern per sensor) with noise strictly inside the stated bounds, and each output identified
+Independent truth: synthetic FRFs of known modal parameters (the thesis beam's poles, residues from
+the cantilever's mode shapes at each sensor) with noise strictly inside the stated bounds, and each output identified
 alone by the one-output algorithm of the thesis.
 """
 
@@ -18,27 +18,28 @@ from setmem_hil.io.data_file import write_data_csv
 from setmem_hil.io.procedure import thesis_6_3_2_initial_omegas, thesis_beam_prior
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import ModalParameters
-from setmem_hil.sim_backends.beam import beam_parameters
+from setmem_hil.sim_backends.beam import beam_parameters, beam_parameters_at, fully_damped_magnitude
 
-# residue of mode i at sensor k, relative to the thesis's (a node of mode 3 near sensor 2...)
-RESIDUE_FACTORS = np.array([[1.0, 1.0, 1.0], [0.6, -0.8, 0.3], [1.3, 0.25, -1.1]])
+SENSOR_POSITIONS = (0.4, 0.7, 1.0)  # fractions of the cantilever's length; the force at the tip (thesis 6.1)
+# residue factors over the tip's, for the CSV and UFF tests that write their own truths
+RESIDUE_FACTORS = np.array([beam_parameters_at(x, n_modes=3).values[:, 3] / 4.0 for x in SENSOR_POSITIONS])
 
 
-def sensors(seed: int, rel: float = 0.05, damping_scale=None):
-    """Truths and data of three sensors; each sensor has its own frequencies."""
+def sensors(seed: int, rel: float | None = None, damping_scale=None):
+    """Truths and data of three displacement sensors along the thesis's cantilever (residues
+    ``phi_i(tip) phi_i(x_k)``, first three modes), each at its own frequencies, with the thesis's
+    noise shape (|G| with every pole and zero at damping 1, section 6.2) or ``rel |G| + 1e-3``."""
     rng = np.random.default_rng(seed)
-    base = beam_parameters().truncated(3).values
     truths, datas = [], []
-    for k, factors in enumerate(RESIDUE_FACTORS):
-        values = base.copy()
-        values[:, 3] *= factors
+    for k, x in enumerate(SENSOR_POSITIONS):
+        values = beam_parameters_at(x, n_modes=3).values.copy()
         if damping_scale is not None:
             values[:, 0] *= damping_scale[k]
         truth = ModalParameters(values)
         w = np.sort(np.concatenate([np.array(thesis_6_3_2_initial_omegas()) * rng.uniform(0.98, 1.02, 15),
                                     np.geomspace(0.7, 25, 12) * rng.uniform(0.97, 1.03, 12)]))
         g = truth.frequency_response(w)
-        bound = rel * np.abs(g) + 1e-3
+        bound = fully_damped_magnitude(truth, w) if rel is None else rel * np.abs(g) + 1e-3
         noise = bound * rng.uniform(0, 0.9, w.size) * np.exp(2j * np.pi * rng.uniform(size=w.size))
         truths.append(truth)
         datas.append(FrequencyData(w, g + noise, bound))
@@ -90,9 +91,11 @@ def test_identify_cli_several_data_files_writes_the_outputs(tmp_path, capsys):
         files += ["--data", str(tmp_path / f"{name}.csv")]
     prior = tmp_path / "prior.toml"
     bands = ((0.884, 1.125), (5.41, 7.34), (16.35, 19.81))
+    # a sign per output and mode (what a lab knows from the mode shapes), magnitude up to 10
+    b0_min = [[-10.0 if t.values[i, 3] < 0 else 0.0 for t in truths] for i in range(3)]
+    b0_max = [[0.0 if t.values[i, 3] < 0 else 10.0 for t in truths] for i in range(3)]
     prior.write_text("".join(f"[[mode]]\nomega_min = {lo}\nomega_max = {hi}\nzeta_max = 0.5\nb1 = 0.0\n"
-                             f"b0_min = [0.0, {-10 if i == 1 else 0.0}, {-10 if i == 2 else 0.0}]\nb0_max = 10.0\n\n"
-                             for i, (lo, hi) in enumerate(bands)))
+                             f"b0_min = {b0_min[i]}\nb0_max = {b0_max[i]}\n\n" for i, (lo, hi) in enumerate(bands)))
     out = tmp_path / "RESULT.json"
     assert main(["identify", *files, "--prior", str(prior), "--out", str(out)]) == 0
     doc = json.loads(out.read_text())
