@@ -118,15 +118,19 @@ def _phi_top(M: np.ndarray, d_l: np.ndarray, g_l: np.ndarray, beta: float) -> tu
     return np.linalg.eigvalsh(Phi)[..., -1], rounding_margin(Phi)
 
 
-def crossing_frequencies(system: StateSpaceMatrices, d_l: np.ndarray, g_l: np.ndarray, beta: float) -> np.ndarray:
-    """Frequencies ``w > 0`` where ``Phi(j w)`` may be singular (sorted; generous, see module doc)."""
+def crossing_frequencies(system: StateSpaceMatrices, d_l: np.ndarray, g_l: np.ndarray, beta: float) -> np.ndarray | None:
+    """Frequencies ``w > 0`` where ``Phi(j w)`` may be singular (sorted; generous, see module doc);
+    None when ``Phi(inf)`` is singular (no Hamiltonian)."""
     A, B, C, Dm = system.A, system.B, system.C, system.D
     DL, GL = np.diag(d_l), np.diag(g_l)
     Q = C.T @ DL @ C
     S = C.T @ DL @ Dm - 1j * C.T @ GL
     R = Dm.T @ DL @ Dm - 1j * Dm.T @ GL + 1j * GL @ Dm - beta**2 * DL
-    RiSh = np.linalg.solve(R, np.conj(S.T))
-    RiBt = np.linalg.solve(R, B.T)
+    try:
+        RiSh = np.linalg.solve(R, np.conj(S.T))
+        RiBt = np.linalg.solve(R, B.T)
+    except np.linalg.LinAlgError:
+        return None  # Phi(inf) singular at this level: these scalings give no interval test
     H = np.block([[A - B @ RiSh, -B @ RiBt], [-Q + S @ RiSh, -A.T + S @ RiBt]])
     lam = np.linalg.eigvals(H)
     near = np.abs(lam.real) <= CROSSING_RTOL * np.abs(lam)
@@ -149,6 +153,8 @@ def certified_pieces(system: StateSpaceMatrices, d: np.ndarray, g: np.ndarray, b
         return []
     d_l, g_l = _lmi_scalings(d, g)
     cuts = crossing_frequencies(system, d_l, g_l, beta)
+    if cuts is None:
+        return []
     segments = []  # (lo, hi, lo is a crossing, hi is a crossing)
     for lo, hi in intervals:
         inner = cuts[(cuts > lo) & (cuts < hi)]
