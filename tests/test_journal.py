@@ -60,7 +60,7 @@ def test_measurements_round_trip_in_order(tmp_path):
     assert [r["seq"] for r in rows] == list(range(1, 21))
     assert [r["role"] for r in rows] == ["initial"] * 15 + ["added"] * 5
     assert rows[16]["iteration"] == 2
-    assert set(rows[0]) == {"seq", "iteration", "role", "omega_rad_s", "re", "im", "bound", "utc", "rig_s"}
+    assert set(rows[0]) == {"seq", "iteration", "role", "omega_rad_s", "re", "im", "bound", "utc", "rig_s", "others"}
     assert j.integrity_problems() == []
     j.close()
 
@@ -207,9 +207,28 @@ def test_certificate_round_trips_and_version_3_journals_are_upgraded(tmp_path):
     conn = sqlite3.connect(tmp_path / "run" / "journal.sqlite")  # as written before the certificate existed
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_peak_certified")
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_certified_intervals")
+    conn.execute("ALTER TABLE iteration DROP COLUMN outputs")
+    conn.execute("ALTER TABLE measurement DROP COLUMN others")
     conn.execute("PRAGMA user_version=3")
     conn.commit()
     conn.close()
     with Journal.open(tmp_path / "run") as old:
         got = old.iterations()
     assert [g.k for g in got] == [1, 2] and all(g.mu_peak_certified is None and g.mu_certified_intervals is None for g in got)
+
+
+def test_other_sensors_round_trip(tmp_path):
+    """Issue 25: a dwell's other sensors and an iteration's per-output bounds are stored."""
+    import dataclasses
+
+    j = _create(tmp_path)
+    m = Measurement(1.5, 0.2 - 0.1j, 0.01, 3.0, ((0.05 + 0.3j, 0.002), (-1.0 + 0j, 0.02)))
+    j.add_measurement(m, iteration=0, role="initial")
+    j.add_measurement(Measurement(2.0, 1j, 0.1), iteration=0, role="initial")
+    outputs = {"names": ["tip", "middle"], "lower": [[[0.0, 1.0, 0.0, 3.0]], [[0.0, 1.0, 0.0, -2.0]]],
+               "upper": [[[0.1, 1.1, 0.0, 5.0]], [[0.1, 1.1, 0.0, -1.0]]]}
+    j.add_iteration(dataclasses.replace(_record(1, np.random.default_rng(1)), outputs=outputs))
+    got = j.measurements()
+    assert got[0] == m and got[0].others == m.others and got[1].others == ()
+    assert j.iterations()[0].outputs == outputs
+    j.close()

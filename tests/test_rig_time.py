@@ -62,6 +62,8 @@ def test_version_1_journals_are_upgraded(tmp_path):
     conn.execute("ALTER TABLE iteration DROP COLUMN controller")  # a faithful version 1: none of the later columns
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_peak_certified")
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_certified_intervals")
+    conn.execute("ALTER TABLE iteration DROP COLUMN outputs")
+    conn.execute("ALTER TABLE measurement DROP COLUMN others")
     conn.execute("PRAGMA user_version=1")
     conn.commit()
     conn.close()

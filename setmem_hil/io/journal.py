@@ -62,8 +62,8 @@ __all__ = ["Journal", "IterationRecord", "JournalError", "JournalSnapshot", "rea
 
 JOURNAL_FILENAME = "journal.sqlite"
 APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
-SCHEMA_VERSION = 4  # 2: measurement.rig_s; 3: iteration.controller; 4: iteration.mu_peak_certified,
-# mu_certified_intervals (older journals are upgraded when opened)
+SCHEMA_VERSION = 5  # 2: measurement.rig_s; 3: iteration.controller; 4: iteration.mu_peak_certified,
+# mu_certified_intervals; 5: measurement.others, iteration.outputs (older journals are upgraded when opened)
 ROLES = ("initial", "added")
 
 
@@ -105,6 +105,10 @@ class IterationRecord:
         None in journals written before it was.
     mu_certified_intervals : int or None
         Number of frequency intervals in that certificate.
+    outputs : dict or None
+        With several sensors (issue 25): ``{"names": [...], "lower": [...], "upper": [...]}``,
+        every output's ``(n_modes, 4)`` bounds (shared ``a1, a0``, own ``b1, b0``; the first is
+        the control output, whose bounds are also ``lower``/``upper``); None with one sensor.
     """
 
     k: int
@@ -128,6 +132,7 @@ class IterationRecord:
     controller: dict | None = None
     mu_peak_certified: bool | None = None
     mu_certified_intervals: int | None = None
+    outputs: dict | None = None
 
 
 _ARRAY_FIELDS = ("lower", "upper", "omega", "mu", "candidate_omega", "estimated_improvement", "embedding_gamma", "mismatch_ratio")
@@ -153,7 +158,8 @@ CREATE TABLE measurement (
     im REAL NOT NULL,
     bound REAL NOT NULL,
     utc TEXT NOT NULL,
-    rig_s REAL NOT NULL DEFAULT 0
+    rig_s REAL NOT NULL DEFAULT 0,
+    others TEXT
 );
 CREATE TABLE iteration (
     k INTEGER PRIMARY KEY CHECK (k >= 1),
@@ -177,7 +183,8 @@ CREATE TABLE iteration (
     utc TEXT NOT NULL,
     controller TEXT,
     mu_peak_certified INTEGER,
-    mu_certified_intervals INTEGER
+    mu_certified_intervals INTEGER,
+    outputs TEXT
 );
 CREATE TABLE discrepancy (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -359,7 +366,9 @@ class Journal:
         upgrades = {1: "ALTER TABLE measurement ADD COLUMN rig_s REAL NOT NULL DEFAULT 0",  # rig time: 0 for what it holds
                     2: "ALTER TABLE iteration ADD COLUMN controller TEXT",  # compensators: NULL for what it holds
                     3: "ALTER TABLE iteration ADD COLUMN mu_peak_certified INTEGER;"
-                       "ALTER TABLE iteration ADD COLUMN mu_certified_intervals INTEGER"}  # NULL: not known
+                       "ALTER TABLE iteration ADD COLUMN mu_certified_intervals INTEGER",  # NULL: not known
+                    4: "ALTER TABLE measurement ADD COLUMN others TEXT;"
+                       "ALTER TABLE iteration ADD COLUMN outputs TEXT"}  # NULL: one sensor
         while version in upgrades:
             try:
                 for statement in upgrades[version].split(";"):
@@ -465,7 +474,9 @@ class Journal:
         if role not in ROLES:
             raise JournalError(f"{self.path}: measurement role {role!r}; expected one of {', '.join(ROLES)}")
         omega, g, bound, rig_s = float(m.omega_rad_s), complex(m.response), float(m.bound), float(m.rig_s)
-        if not (math.isfinite(omega) and math.isfinite(g.real) and math.isfinite(g.imag) and math.isfinite(bound) and math.isfinite(rig_s)):
+        others = [[complex(r).real, complex(r).imag, float(b)] for r, b in m.others]
+        if not (math.isfinite(omega) and math.isfinite(g.real) and math.isfinite(g.imag) and math.isfinite(bound) and math.isfinite(rig_s)
+                and all(math.isfinite(v) for row in others for v in row)):
             raise JournalError(f"{self.path}: refusing a non-finite measurement at omega {omega:g} rad/s")
         with self._lock:
             db = self._db()
@@ -473,8 +484,8 @@ class Journal:
             try:
                 seq = db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM measurement").fetchone()[0]
                 db.execute(
-                    "INSERT INTO measurement (seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    (seq, int(iteration), role, omega, g.real, g.imag, bound, _utc_now(), rig_s),
+                    "INSERT INTO measurement (seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s, others) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (seq, int(iteration), role, omega, g.real, g.imag, bound, _utc_now(), rig_s, _to_json(others) if others else None),
                 )
             except BaseException:
                 db.execute("ROLLBACK")
@@ -484,12 +495,14 @@ class Journal:
         return int(seq)
 
     def measurement_rows(self) -> list[dict]:
-        """Rows ``seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s`` in sequence order."""
-        return self._query("SELECT seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s FROM measurement ORDER BY seq")
+        """Rows ``seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s, others`` in sequence
+        order (``others``: JSON ``[[re, im, bound], ...]`` of the other sensors, or None)."""
+        return self._query("SELECT seq, iteration, role, omega_rad_s, re, im, bound, utc, rig_s, others FROM measurement ORDER BY seq")
 
     def measurements(self) -> list[Measurement]:
         """All stored measurements in sequence order."""
-        return [Measurement(r["omega_rad_s"], complex(r["re"], r["im"]), r["bound"], r["rig_s"]) for r in self.measurement_rows()]
+        return [Measurement(r["omega_rad_s"], complex(r["re"], r["im"]), r["bound"], r["rig_s"], _others(r["others"]))
+                for r in self.measurement_rows()]
 
     def n_measurements(self) -> int:
         return int(self._query("SELECT COUNT(*) AS n FROM measurement")[0]["n"])
@@ -512,6 +525,8 @@ class Journal:
                 v = None if v is None else _to_json({key: np.asarray(v[key], dtype=float).tolist() for key in "ABCD"})
             elif name in ("mu_peak_certified", "mu_certified_intervals"):
                 v = None if v is None else int(v)
+            elif name == "outputs":
+                v = None if v is None else _to_json(v)
             else:
                 v = _opt_float(v)
             values.append(v)
@@ -539,6 +554,8 @@ class Journal:
                     v = None if v is None else json.loads(v)
                 elif name == "mu_peak_certified":
                     v = None if v is None else bool(v)
+                elif name == "outputs":
+                    v = None if v is None else json.loads(v)
                 kw[name] = v
             for name in ("lower", "upper"):
                 kw[name] = kw[name].reshape(-1, 4)
@@ -593,3 +610,10 @@ def read_snapshot(run_dir: str | os.PathLike) -> JournalSnapshot:
         return JournalSnapshot(j.run_info(), j.measurements(), j.measurement_rows(), j.iterations(), j.discrepancies(), j.events())
     finally:
         j.close()
+
+
+def _others(text: str | None) -> tuple[tuple[complex, float], ...]:
+    """The ``others`` column back as ``((response, bound), ...)``."""
+    if not text:
+        return ()
+    return tuple((complex(re, im), float(b)) for re, im, b in json.loads(text))

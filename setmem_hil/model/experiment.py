@@ -33,6 +33,9 @@ class Measurement:
     response: complex
     bound: float
     rig_s: float = field(default=0.0, compare=False)
+    others: tuple[tuple[complex, float], ...] = ()
+    """The other sensors of the same dwell (issue 25), ``(response, bound)`` each, in the
+    procedure's sensor order without the control output, which is ``response``/``bound``."""
 
 
 @runtime_checkable
