@@ -186,6 +186,9 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
             w1_num=tuple(procedure.weights.w1_num),
             w1_den=tuple(procedure.weights.w1_den),
             first_mode_rad_s=sim.first_mode_rad_s,
+            sensors=tuple(sim.sensors),
+            actuator=sim.actuator,
+            control_output=sim.control_output - 1,
             dwell_model=procedure.prior.initial_bounds(),
         )
     if kind == "instruments":

@@ -14,7 +14,7 @@ import numpy as np
 
 from setmem_hil.model.experiment import Measurement
 from setmem_hil.model.modal_model import ModalParameters
-from setmem_hil.sim_backends.beam import W1_DEN, W1_NUM, beam_parameters, polynomial_magnitude
+from setmem_hil.sim_backends.beam import W1_DEN, W1_NUM, beam_parameters, beam_parameters_at, polynomial_magnitude
 from setmem_hil.sim_backends.noise import bounded_complex_noise, noise_bound_function
 
 
@@ -50,21 +50,36 @@ class SimulatedBeamExperiment:
     w1_num: tuple = W1_NUM
     w1_den: tuple = W1_DEN
     first_mode_rad_s: float = 1.0
+    sensors: tuple = (1.0,)
+    actuator: float = 1.0
+    control_output: int = 0  # index into sensors (0-based) of the sensor returned as ``response``
     truth: ModalParameters = field(init=False)
     n_measured: int = 0  # measurements taken so far; set it when resuming from a journal
 
     def __post_init__(self):
         if not (np.isfinite(self.first_mode_rad_s) and self.first_mode_rad_s > 0):
             raise ValueError(f"first_mode_rad_s: expected a positive frequency, found {self.first_mode_rad_s!r}")
-        full = beam_parameters()
+        if not 0 <= int(self.control_output) < len(self.sensors):
+            raise ValueError(f"control_output: expected an index into {len(self.sensors)} sensor(s), found {self.control_output!r}")
         S = float(self.first_mode_rad_s)
-        normalised_bound = noise_bound_function(self.noise_profile, full, self.noise_scale)
-        if S != 1.0:
-            full = ModalParameters(full.values * np.array([S, S * S, S, S * S]))
-            self._noise_bound = lambda w: normalised_bound(np.asarray(w, dtype=float) / S)
-        else:
-            self._noise_bound = normalised_bound
-        self.truth = full if self.unmodelled_dynamics else full.truncated(self.n_modelled)
+        self._truths, self._noise_bounds = [], []
+        for x in self.sensors:
+            # the thesis's beam exactly for the tip sensor and tip force; mode shapes elsewhere (issue 25)
+            full = beam_parameters() if (x, self.actuator) == (1.0, 1.0) else beam_parameters_at(x, self.actuator)
+            normalised_bound = noise_bound_function(self.noise_profile, full, self.noise_scale)
+            if S != 1.0:
+                full = ModalParameters(full.values * np.array([S, S * S, S, S * S]))
+                self._noise_bounds.append(lambda w, f=normalised_bound: f(np.asarray(w, dtype=float) / S))
+            else:
+                self._noise_bounds.append(normalised_bound)
+            self._truths.append(full if self.unmodelled_dynamics else full.truncated(self.n_modelled))
+        self._noise_bound = self._noise_bounds[self.control_output]
+        self.truth = self._truths[self.control_output]
+
+    @property
+    def truths(self) -> tuple[ModalParameters, ...]:
+        """Every sensor's true structure (same poles, own residues), in the order of ``sensors``."""
+        return tuple(self._truths)
 
     @property
     def modelled_truth(self) -> ModalParameters:
@@ -101,8 +116,21 @@ class SimulatedBeamExperiment:
         noise = np.array([bounded_complex_noise(bound[i : i + 1], self.noise_generator(self.n_measured + i))[0] for i in range(w.size)])
         g = self.truth.frequency_response(w) + noise
         bounds = self.total_bound(w, gain)
+        others = [self._other_sensor(k, w, gain) for k in range(len(self.sensors)) if k != self.control_output]
         self.n_measured += w.size
-        return [Measurement(float(wi), complex(gi), float(bi)) for wi, gi, bi in zip(w, g, bounds)]
+        return [Measurement(float(wi), complex(gi), float(bi), others=tuple((complex(o[0][i]), float(o[1][i])) for o in others))
+                for i, (wi, gi, bi) in enumerate(zip(w, g, bounds))]
+
+    def _other_sensor(self, k: int, w: np.ndarray, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Response and bound of sensor ``k`` (not the control one) at ``w``: its own noise
+        stream ``(seed, index, k + 1)``, so the control sensor's data are those of a one-sensor
+        run with the same seed. ``|W1|`` bounds the unmodelled modes at every position: a
+        cantilever's mass-normalised shapes are largest at the tip, so ``|phi_i(a) phi_i(x)| <= 4``."""
+        bound = self._noise_bounds[k](w) * gain
+        noise = np.array([bounded_complex_noise(bound[i : i + 1], np.random.default_rng((self.seed, self.n_measured + i, k + 1)))[0]
+                          for i in range(w.size)])
+        total = bound + (polynomial_magnitude(self.w1_num, self.w1_den, w) if self.unmodelled_dynamics else 0.0)
+        return self._truths[k].frequency_response(w) + noise, total
 
     def measure(self, omega_rad_s: float) -> Measurement:
         return self.measure_many([omega_rad_s])[0]

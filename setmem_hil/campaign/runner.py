@@ -250,6 +250,37 @@ class _Replay:
         return stored + list(record[len(stored):])
 
 
+def sensor_order(procedure: Procedure) -> tuple[str, ...]:
+    """The outputs as a Measurement carries them: the control sensor, then the others in order."""
+    sim = procedure.backend.simulation
+    names = sim.sensor_names()
+    c = sim.control_output - 1
+    return (names[c],) + tuple(n for i, n in enumerate(names) if i != c)
+
+
+def identify_sensors(measured: list[Measurement], procedure: Procedure, previous):
+    """Several sensors (issue 25): every output's data in one identification with shared poles
+    (:func:`~setmem_hil.identification.algorithm.identify_outputs`). Returns the control output
+    as a one-output result (the analysis, the H2 design and the input design use it; the other
+    outputs have tightened its poles) and every output's model, for the next iteration."""
+    from setmem_hil.identification.algorithm import identify_outputs
+
+    n_others = len(measured[0].others)
+    datas = [FrequencyData.from_measurements(measured)]
+    for k in range(n_others):
+        datas.append(FrequencyData(np.array([m.omega_rad_s for m in measured]), np.array([m.others[k][0] for m in measured]),
+                                   np.array([m.others[k][1] for m in measured])))
+    multi = identify_outputs(datas, [procedure.prior] * len(datas), list(sensor_order(procedure)), previous=previous,
+                             settings=_identify_settings())
+    models = list(multi.models) if previous is None else [m.intersect(p) for m, p in zip(multi.models, previous)]
+    return multi.for_output(0), models
+
+
+def sensors_document(procedure: Procedure, models) -> dict:
+    """The journal's ``iteration.outputs``: every output's bounds, control output first."""
+    return {"names": list(sensor_order(procedure)), "lower": [m.lower.tolist() for m in models], "upper": [m.upper.tolist() for m in models]}
+
+
 def goal_certified(outcome: SafeguardOutcome, goal) -> bool:
     """The stopping test of chapter 5: mu-bar below the goal *as certified on the whole
     frequency band* (issue 27), never on the grid's value alone."""
@@ -472,6 +503,8 @@ def run_campaign(
     else:
         measured = measure_batch(source, procedure, procedure.initial_omegas_rad_s, iteration=0, role="initial")
     previous_model = None
+    previous_sensor_models = None
+    sensor_models = None
     previous_outcome: SafeguardOutcome | None = None
     rows: list[IterationSummary] = []
     while True:
@@ -479,7 +512,10 @@ def run_campaign(
         data = FrequencyData.from_measurements(measured)
         try:
             with blas_one_thread():
-                result = identify(data, procedure.prior, previous=previous_model, settings=_identify_settings())
+                if measured[0].others:  # several sensors: shared poles, the control output's model drives the rest
+                    result, sensor_models = identify_sensors(measured, procedure, previous_sensor_models)
+                else:
+                    result = identify(data, procedure.prior, previous=previous_model, settings=_identify_settings())
         except InconsistentDataError as exc:
             if journal is not None and k not in stored_iterations:
                 journal.add_event("inconsistent-data", f"iteration {k}: {exc}")
@@ -531,6 +567,7 @@ def run_campaign(
                     controller=controller_matrices(analysis.controller),
                     mu_peak_certified=bool(outcome.certified),
                     mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)),
+                    outputs=None if sensor_models is None else sensors_document(procedure, sensor_models),
                 ))
                 if choice is not None and np.size(choice.resolved_omega_rad_s):
                     import json
@@ -569,6 +606,7 @@ def run_campaign(
         n_added += len(added)
         rows[-1] = replace(rows[-1], rig_s=float(sum(m.rig_s for m in added)))
         previous_model, previous_outcome = model, outcome
+        previous_sensor_models = sensor_models
         k += 1
 
     summary = CampaignSummary(

@@ -437,6 +437,20 @@ class MultiOutputResult:
     verified: np.ndarray
     unverified_reason: tuple[str, ...]
     notes: tuple[str, ...] = ()
+    optimizers: np.ndarray | None = None  # (n_modes, 2 + 2K, 2, 2 + 2K): the joint argmin/argmax
+
+    def for_output(self, k: int) -> IdentificationResult:
+        """Output ``k`` seen as a one-output result (its model, and the joint optimisers restricted
+        to its parameters ``a1, a0, b1_k, b0_k``): what the input design of chapter 4 reads."""
+        cols = output_columns(k)
+        n = self.models[k].n_modes
+        opt = np.full((n, 4, 2, 4), np.nan) if self.optimizers is None else self.optimizers[:, cols][:, :, :, cols]
+        return IdentificationResult(
+            model=self.models[k], embedding_gamma=self.embedding_gamma, mismatch_ratio=self.mismatch_ratio,
+            iterations=self.iterations, n_solves=self.n_solves, partitions=self.partitions,
+            effective_bound=np.zeros((n, 0)), embedding_bound=np.zeros((n, 0)), optimizers=opt,
+            verified=self.verified, unverified_reason=self.unverified_reason, notes=self.notes,
+        )
 
     @property
     def model(self) -> IntervalModel:
@@ -573,4 +587,5 @@ def identify_outputs(datas: list[FrequencyData], priors: list[Prior], names: lis
         n_solves=counter.n_solves, partitions=tuple((p.n0, p.n1) for p in plans),
         verified=np.array([not u for u in last_unverified], dtype=bool),
         unverified_reason=tuple("; ".join(u) for u in last_unverified), notes=tuple(note for note in notes if note),
+        optimizers=optimizers,
     )

@@ -49,6 +49,13 @@ class SimulationSettings:
     noise_scale: float = 1.0
     unmodelled_dynamics: bool = True
     first_mode_rad_s: float = 1.0  # the beam's first natural frequency; modes and residues scale with it
+    sensors: tuple[float, ...] = (1.0,)  # displacement sensors along the cantilever (fraction of its length; issue 25)
+    actuator: float = 1.0  # where the force acts (the thesis: the tip)
+    control_output: int = 1  # which sensor (from 1) the robust analysis and the H2 design use
+
+    def sensor_names(self) -> tuple[str, ...]:
+        """``x=0.4`` etc., in the order of ``sensors``."""
+        return tuple(f"x={x:g}" for x in self.sensors)
 
 
 @dataclass(frozen=True)

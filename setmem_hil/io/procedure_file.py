@@ -130,6 +130,9 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("backend.simulation", "noise_scale", "number", "", _SIM.noise_scale, "Multiplies the noise bound.", ge=0.0),
     KeySpec("backend.simulation", "first_mode_rad_s", "number", "rad/s", _SIM.first_mode_rad_s, "First natural frequency of the simulated beam; all its modes scale with it, its residues with its square, and the simulated noise bounds follow the response (time-scale [weights] with it).", gt=0.0, le=1e9),
     KeySpec("backend.simulation", "unmodelled_dynamics", "bool", "", _SIM.unmodelled_dynamics, "Keep modes 4-8 in the simulated truth and add |W1| to each point's bound."),
+    KeySpec("backend.simulation", "sensors", "numbers", "", list(_SIM.sensors), "Displacement sensors along the cantilever, as fractions of its length from the clamp; every dwell reads all of them (shared poles, issue 25). kind = \"sim\" only so far.", gt=0.0, le=1.0),
+    KeySpec("backend.simulation", "actuator", "number", "", _SIM.actuator, "Where the force acts, as a fraction of the length from the clamp (the thesis: the tip).", gt=0.0, le=1.0),
+    KeySpec("backend.simulation", "control_output", "output", "", _SIM.control_output, "The sensor whose model the robust analysis, the H2 design and the input design use (the collocated one): its index from 1 in the order of sensors, or its name \"x=<position>\"; the others tighten the shared poles.", ge=1),
     # [backend.transport]: one schema per backend kind, the same limits for every transport
     *(spec for kind in LOOPBACK_BACKENDS for spec in (
         KeySpec(f"transport:{kind}", "reply_timeout_s", "number", "s", "per transport", "Wait for one device reply before retrying (serial 0.2, CAN/Modbus 0.1).", ge=1e-3, le=60.0),
@@ -278,6 +281,12 @@ class _Table:
             if not isinstance(v, list) or not v:
                 raise self.error(f"{key}: expected a non-empty array of numbers, found {_type_name(v)} {_fmt(v)}")
             return tuple(self._bounded(spec, self._number(f"{key}[{i}]", x), f"{key}[{i}]") for i, x in enumerate(v))
+        if kind == "output":  # an output by index from 1 or by name
+            if isinstance(v, str) and v:
+                return v
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise self.error(f"{key}: expected an index from 1 or a name, found {_type_name(v)} {_fmt(v)}")
+            return int(self._bounded(spec, v))
         if kind == "strings":
             if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
                 raise self.error(f"{key}: expected an array of strings, found {_type_name(v)} {_fmt(v)}")
@@ -312,7 +321,22 @@ def _backend(top: _Table) -> BackendSettings:
         noise_scale=s.get("noise_scale", _SIM.noise_scale),
         unmodelled_dynamics=s.get("unmodelled_dynamics", _SIM.unmodelled_dynamics),
         first_mode_rad_s=s.get("first_mode_rad_s", _SIM.first_mode_rad_s),
+        sensors=tuple(float(x) for x in s.get("sensors", list(_SIM.sensors))),
+        actuator=s.get("actuator", _SIM.actuator),
+        control_output=s.get("control_output", _SIM.control_output),
     )
+    if isinstance(sim.control_output, str):
+        names = sim.sensor_names()
+        if sim.control_output not in names:
+            raise s.error(f"control_output {sim.control_output!r} is not one of the sensors {list(names)}")
+        sim = replace(sim, control_output=names.index(sim.control_output) + 1)
+    if sim.control_output > len(sim.sensors):
+        raise s.error(f"control_output: {sim.control_output} but only {len(sim.sensors)} sensor(s)")
+    if len(set(sim.sensors)) != len(sim.sensors):
+        raise s.error(f"sensors: each position once, found {list(sim.sensors)}")
+    if kind != "sim" and (sim.sensors != _SIM.sensors or sim.actuator != _SIM.actuator):
+        raise ProcedureError(top.source, "[backend.simulation] key 'sensors'",
+                             f"several sensors and another actuator are simulated by kind = \"sim\" only so far; kind is {kind!r}")
     transport = _transport_options(top, t, kind)
     faults: dict[str, Any] = {}
     if t.has("faults"):

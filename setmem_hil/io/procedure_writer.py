@@ -63,7 +63,9 @@ def format_procedure(procedure: Procedure) -> str:
     out += ["[backend]", f"kind = {_toml_value(b.kind)}", *roles, "", "[backend.simulation]",
             f"noise_profile = {_toml_value(s.noise_profile)}", f"noise_scale = {_toml_value(float(s.noise_scale))}",
             f"unmodelled_dynamics = {_toml_value(bool(s.unmodelled_dynamics))}",
-            *([f"first_mode_rad_s = {_toml_value(float(s.first_mode_rad_s))}"] if s.first_mode_rad_s != 1.0 else []), ""]
+            *([f"first_mode_rad_s = {_toml_value(float(s.first_mode_rad_s))}"] if s.first_mode_rad_s != 1.0 else []),
+            *([f"sensors = {_toml_value([float(x) for x in s.sensors])}", f"actuator = {_toml_value(float(s.actuator))}",
+               f"control_output = {int(s.control_output)}"] if (s.sensors, s.actuator) != ((1.0,), 1.0) else []), ""]
     if b.transport:
         out += ["[backend.transport]"] + [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in b.transport.items()] + [""]
     if b.faults:
