@@ -219,7 +219,13 @@ def true_structure(procedure: Procedure):
         damping = backend.emulation.damping if backend.emulation.damping is not None else BEAM_DAMPING_RATIO
         return ModalParameters.from_modal(beam_natural_frequencies(), damping, BEAM_RESIDUE, 0.0)
     sim = backend.simulation
-    full = beam_parameters()
+    control = sim.sensors[sim.control_output - 1]
+    if (control, sim.actuator) == (1.0, 1.0):
+        full = beam_parameters()
+    else:  # several sensors (issue 25): the control sensor's view of the beam
+        from setmem_hil.sim_backends.beam import beam_parameters_at
+
+        full = beam_parameters_at(control, sim.actuator)
     if backend.kind == "sim" and sim.first_mode_rad_s != 1.0:
         S = float(sim.first_mode_rad_s)
         full = ModalParameters(full.values * np.array([S, S * S, S, S * S]))

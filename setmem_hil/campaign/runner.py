@@ -250,14 +250,6 @@ class _Replay:
         return stored + list(record[len(stored):])
 
 
-def sensor_order(procedure: Procedure) -> tuple[str, ...]:
-    """The outputs as a Measurement carries them: the control sensor, then the others in order."""
-    sim = procedure.backend.simulation
-    names = sim.sensor_names()
-    c = sim.control_output - 1
-    return (names[c],) + tuple(n for i, n in enumerate(names) if i != c)
-
-
 def identify_sensors(measured: list[Measurement], procedure: Procedure, previous):
     """Several sensors (issue 25): every output's data in one identification with shared poles
     (:func:`~setmem_hil.identification.algorithm.identify_outputs`). Returns the control output
@@ -270,7 +262,7 @@ def identify_sensors(measured: list[Measurement], procedure: Procedure, previous
     for k in range(n_others):
         datas.append(FrequencyData(np.array([m.omega_rad_s for m in measured]), np.array([m.others[k][0] for m in measured]),
                                    np.array([m.others[k][1] for m in measured])))
-    multi = identify_outputs(datas, [procedure.prior] * len(datas), list(sensor_order(procedure)), previous=previous,
+    multi = identify_outputs(datas, [procedure.prior] * len(datas), list(procedure.backend.simulation.output_order()), previous=previous,
                              settings=_identify_settings())
     models = list(multi.models) if previous is None else [m.intersect(p) for m, p in zip(multi.models, previous)]
     return multi.for_output(0), models
@@ -278,7 +270,7 @@ def identify_sensors(measured: list[Measurement], procedure: Procedure, previous
 
 def sensors_document(procedure: Procedure, models) -> dict:
     """The journal's ``iteration.outputs``: every output's bounds, control output first."""
-    return {"names": list(sensor_order(procedure)), "lower": [m.lower.tolist() for m in models], "upper": [m.upper.tolist() for m in models]}
+    return {"names": list(procedure.backend.simulation.output_order()), "lower": [m.lower.tolist() for m in models], "upper": [m.upper.tolist() for m in models]}
 
 
 def goal_certified(outcome: SafeguardOutcome, goal) -> bool:

@@ -25,6 +25,11 @@ empty cell for "none", ``inf``/``nan`` spelled so):
     ``k, omega_rad_s, estimated_improvement``: the input-design scores (figure 6-14).
 ``events.csv``
     ``id, utc, kind, message``: faults, retries, interruptions, resumes, safeguard actions.
+
+Several sensors (issue 25): ``measurements.csv`` gains an ``output`` column, one row per
+sensor per dwell (the same ``seq``), the control output first; ``bounds.csv`` gains ``output``
+with every output's intervals; ``data.csv`` holds the control output and ``data_<k>.csv`` the
+k-th output (k from 2), each ready for ``setmem-hil identify --data data.csv --data data_2.csv ...``.
 """
 
 from __future__ import annotations
@@ -97,20 +102,40 @@ def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[P
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
     cols = ("seq", "iteration", "role", "omega_rad_s", "re", "im", "bound", "utc", "rig_s")
-    files["measurements.csv"] = _csv_text(cols, ([r[c] for c in cols] for r in rows))
+    names = _output_names(snap)
+    if names:
+        files["measurements.csv"] = _csv_text(cols + ("output",), _rows_per_output(rows, cols, names))
+        from setmem_hil.io.data_file import format_data_csv
+
+        for k in range(1, len(names)):
+            files[f"data_{k + 1}.csv"] = format_data_csv(FrequencyData(
+                [m.omega_rad_s for m in measurements], [m.others[k - 1][0] for m in measurements], [m.others[k - 1][1] for m in measurements]))
+    else:
+        files["measurements.csv"] = _csv_text(cols, ([r[c] for c in cols] for r in rows))
     if measurements:
         from setmem_hil.io.data_file import format_data_csv
 
         files["data.csv"] = format_data_csv(FrequencyData.from_measurements(measurements))
     else:
         files["data.csv"] = "omega,re,im,bound\n"
-    files["bounds.csv"] = _csv_text(
-        ("k", "n_points", "mode", "parameter", "lower", "upper", "name"),
-        (
-            (rec.k, rec.n_points, i + 1, name, float(rec.lower[i, j]), float(rec.upper[i, j]), f"{name}_{i + 1}")
-            for rec in iterations for i in range(rec.lower.shape[0]) for j, name in enumerate(PARAM_NAMES)
-        ),
-    )
+    if names:
+        files["bounds.csv"] = _csv_text(
+            ("k", "n_points", "mode", "parameter", "lower", "upper", "name", "output"),
+            (
+                (rec.k, rec.n_points, i + 1, name, float(lo[i][j]), float(hi[i][j]), f"{name}_{i + 1}", out_name)
+                for rec in iterations if rec.outputs
+                for out_name, lo, hi in zip(rec.outputs["names"], rec.outputs["lower"], rec.outputs["upper"])
+                for i in range(len(lo)) for j, name in enumerate(PARAM_NAMES)
+            ),
+        )
+    else:
+        files["bounds.csv"] = _csv_text(
+            ("k", "n_points", "mode", "parameter", "lower", "upper", "name"),
+            (
+                (rec.k, rec.n_points, i + 1, name, float(rec.lower[i, j]), float(rec.upper[i, j]), f"{name}_{i + 1}")
+                for rec in iterations for i in range(rec.lower.shape[0]) for j, name in enumerate(PARAM_NAMES)
+            ),
+        )
     files["mu.csv"] = _csv_text(
         ("k", "omega_rad_s", "mu"),
         ((rec.k, float(w), float(m)) for rec in iterations for w, m in zip(rec.omega, rec.mu)),
@@ -133,10 +158,29 @@ def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[P
     )
     files["events.csv"] = _csv_text(("id", "utc", "kind", "message"), ((e["id"], e["utc"], e["kind"], e["message"]) for e in events))
     paths = []
-    for name in EXPORT_FILES:
+    for name in EXPORT_FILES + tuple(sorted(n for n in files if n not in EXPORT_FILES)):
         _write(out / name, files[name])
         paths.append(out / name)
     return paths
+
+
+def _output_names(snap) -> tuple[str, ...]:
+    """The outputs' names (control first) of a run with several sensors, else ``()``."""
+    if not any(m.others for m in snap.measurements):
+        return ()
+    from setmem_hil.io.procedure_file import parse_procedure_text
+
+    return parse_procedure_text(snap.info["procedure_text"], "stored procedure").backend.simulation.output_order()
+
+
+def _rows_per_output(rows, cols, names):
+    """One row per sensor per dwell: the stored row for the control output, then the others."""
+    import json
+
+    for r in rows:
+        yield [r[c] for c in cols] + [names[0]]
+        for k, (re, im, bound) in enumerate(json.loads(r["others"] or "[]"), start=1):
+            yield [r["seq"], r["iteration"], r["role"], r["omega_rad_s"], re, im, bound, r["utc"], r["rig_s"], names[k]]
 
 
 def _param_order(key: str) -> tuple[int, int, str]:

@@ -57,6 +57,12 @@ class SimulationSettings:
         """``x=0.4`` etc., in the order of ``sensors``."""
         return tuple(f"x={x:g}" for x in self.sensors)
 
+    def output_order(self) -> tuple[str, ...]:
+        """The outputs as a measurement carries them: the control sensor, then the others in order."""
+        names = self.sensor_names()
+        c = self.control_output - 1
+        return (names[c],) + tuple(n for i, n in enumerate(names) if i != c)
+
 
 @dataclass(frozen=True)
 class InstrumentSettings:
