@@ -87,3 +87,9 @@ def test_three_sensor_export_has_an_output_column_and_files_identify_reads(run_d
     for i, mode in enumerate(doc["modes"]):
         for o, truth in zip(mode["outputs"], truths):
             assert o["b0"][0] <= truth[i, 3] <= o["b0"][1]
+
+
+def test_the_report_lists_every_sensor(run_dir):
+    assert main(["report", str(run_dir)]) == 0
+    html = (run_dir / "report.html").read_text()
+    assert "id='sensors'" in html and "b0 at x=0.4" in html and "b0 at x=0.7" in html and "a1, a0 (shared)" in html

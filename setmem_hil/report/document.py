@@ -233,6 +233,9 @@ def write_report(run_dir: str | os.PathLike) -> Path:
         if cons:
             parts.append(_table(["mode", "embedding gamma", "mismatch ratio"], cons, f"table-conservatism-k{rec.k}"))
 
+    if its and its[-1].outputs:
+        parts += _sensors_section(its[-1])
+
     # -- discrepancy, events, measurements, procedure -------------------------------------------
     parts.append("<h2 id='discrepancy'>Discrepancy checks</h2>")
     if run.discrepancies:
@@ -355,3 +358,20 @@ def _certified_text(record) -> str:
     if record.mu_peak_certified is None:
         return "-"
     return f"yes ({record.mu_certified_intervals} intervals)" if record.mu_peak_certified else "NO"
+
+
+def _sensors_section(rec) -> list[str]:
+    """Several sensors (issue 25): every output's residues of the last iteration, and the
+    shared poles, as the control output's tables above give its own."""
+    outputs = rec.outputs
+    rows = []
+    for i in range(len(outputs["lower"][0])):
+        lo0, hi0 = outputs["lower"][0][i], outputs["upper"][0][i]
+        rows.append([f"mode {i + 1}", "a1, a0 (shared)", f"[{_num(lo0[0])}, {_num(hi0[0])}], [{_num(lo0[1])}, {_num(hi0[1])}]"])
+        for name, lo, hi in zip(outputs["names"], outputs["lower"], outputs["upper"]):
+            rows.append(["", f"b0 at {name}", f"[{_num(lo[i][3])}, {_num(hi[i][3])}]"])
+    return ["<h2 id='sensors'>Sensors</h2>",
+            f"<p>{len(outputs['names'])} sensors share the poles; the first, {_e(outputs['names'][0])}, is the control output whose "
+            "model the analysis, the compensator and the input design use. Intervals after the last iteration "
+            f"(k = {rec.k}).</p>",
+            _table(["mode", "parameter", "interval"], rows, "table-sensors", "Every sensor's residue intervals and the shared poles.")]
