@@ -89,48 +89,51 @@ class SimulatedBeamExperiment:
     def total_bound(self, omega_rad_s, noise_gain=1.0) -> np.ndarray:
         """Noise bound (times ``noise_gain``, see :meth:`measure_many`) plus the W1 term, if any."""
         w = np.asarray(omega_rad_s, dtype=float)
-        bound = self._noise_bound(w) * noise_gain
-        if self.unmodelled_dynamics:
-            bound = bound + polynomial_magnitude(self.w1_num, self.w1_den, w)
-        return bound
+        return self._with_w1(self._noise_bound(w) * noise_gain, w)
 
-    def noise_generator(self, index: int) -> np.random.Generator:
-        """Generator for the ``index``-th measurement (0-based).
+    def _with_w1(self, noise_bound: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """A noise bound plus ``|W1|`` when the truth has unmodelled modes. ``|W1|`` bounds them
+        at every sensor position: a cantilever's mass-normalised shapes are largest at the tip,
+        so ``|phi_i(a) phi_i(x)| <= 4``, the thesis's tip residue."""
+        if self.unmodelled_dynamics:
+            return noise_bound + polynomial_magnitude(self.w1_num, self.w1_den, w)
+        return noise_bound
+
+    def noise_generator(self, index: int, sensor: int | None = None) -> np.random.Generator:
+        """Generator for the ``index``-th measurement (0-based) of a sensor.
 
         Noise depends only on ``(seed, index)``, not on a running stream, so a campaign resumed
         from its journal (``n_measured`` set to the number stored) measures exactly what an
-        uninterrupted run would have, and serial and distributed sweeps agree.
+        uninterrupted run would have, and serial and distributed sweeps agree. The control
+        sensor uses ``(seed, index)``, so its data are those of a one-sensor run; another sensor
+        ``k`` its own stream ``(seed, index, k + 1)``.
         """
-        return np.random.default_rng((self.seed, index))
+        if sensor is None or sensor == self.control_output:
+            return np.random.default_rng((self.seed, index))
+        return np.random.default_rng((self.seed, index, sensor + 1))
 
     def measure_many(self, omega_rad_s, noise_gain=1.0) -> list[Measurement]:
         """Measure each frequency; ``noise_gain`` (per point) multiplies its noise and noise bound.
 
         The noise bound is the error of ``G`` at the unit force the thesis applies; a line of
         a multisine carries a smaller force ``a`` and its error grows as ``1 / a``: pass
-        ``noise_gain = 1 / a``.
+        ``noise_gain = 1 / a``. With several sensors every one is read; the control sensor's
+        reading is the measurement's response, the others its ``others``.
         """
         w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
         gain = np.broadcast_to(np.asarray(noise_gain, dtype=float), w.shape)
-        bound = self._noise_bound(w) * gain
-        noise = np.array([bounded_complex_noise(bound[i : i + 1], self.noise_generator(self.n_measured + i))[0] for i in range(w.size)])
-        g = self.truth.frequency_response(w) + noise
-        bounds = self.total_bound(w, gain)
-        others = [self._other_sensor(k, w, gain) for k in range(len(self.sensors)) if k != self.control_output]
+        readings = [self._reading(k, w, gain) for k in range(len(self.sensors))]
+        g, bounds = readings[self.control_output]
+        others = [r for k, r in enumerate(readings) if k != self.control_output]
         self.n_measured += w.size
         return [Measurement(float(wi), complex(gi), float(bi), others=tuple((complex(o[0][i]), float(o[1][i])) for o in others))
                 for i, (wi, gi, bi) in enumerate(zip(w, g, bounds))]
 
-    def _other_sensor(self, k: int, w: np.ndarray, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Response and bound of sensor ``k`` (not the control one) at ``w``: its own noise
-        stream ``(seed, index, k + 1)``, so the control sensor's data are those of a one-sensor
-        run with the same seed. ``|W1|`` bounds the unmodelled modes at every position: a
-        cantilever's mass-normalised shapes are largest at the tip, so ``|phi_i(a) phi_i(x)| <= 4``."""
+    def _reading(self, k: int, w: np.ndarray, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor ``k``'s response (its truth plus bounded noise) and total bound at ``w``."""
         bound = self._noise_bounds[k](w) * gain
-        noise = np.array([bounded_complex_noise(bound[i : i + 1], np.random.default_rng((self.seed, self.n_measured + i, k + 1)))[0]
-                          for i in range(w.size)])
-        total = bound + (polynomial_magnitude(self.w1_num, self.w1_den, w) if self.unmodelled_dynamics else 0.0)
-        return self._truths[k].frequency_response(w) + noise, total
+        noise = np.array([bounded_complex_noise(bound[i : i + 1], self.noise_generator(self.n_measured + i, k))[0] for i in range(w.size)])
+        return self._truths[k].frequency_response(w) + noise, self._with_w1(bound, w)
 
     def measure(self, omega_rad_s: float) -> Measurement:
         return self.measure_many([omega_rad_s])[0]

@@ -257,11 +257,7 @@ def identify_sensors(measured: list[Measurement], procedure: Procedure, previous
     outputs have tightened its poles) and every output's model, for the next iteration."""
     from setmem_hil.identification.algorithm import identify_outputs
 
-    n_others = len(measured[0].others)
-    datas = [FrequencyData.from_measurements(measured)]
-    for k in range(n_others):
-        datas.append(FrequencyData(np.array([m.omega_rad_s for m in measured]), np.array([m.others[k][0] for m in measured]),
-                                   np.array([m.others[k][1] for m in measured])))
+    datas = [FrequencyData.from_measurements(measured, output=k) for k in range(1 + len(measured[0].others))]
     multi = identify_outputs(datas, [procedure.prior] * len(datas), list(procedure.backend.simulation.output_order()), previous=previous,
                              settings=_identify_settings())
     models = list(multi.models) if previous is None else [m.intersect(p) for m, p in zip(multi.models, previous)]
@@ -518,11 +514,11 @@ def run_campaign(
         with blas_one_thread():
             outcome = safeguarded_design(model, previous_outcome, analyze)
         analysis = outcome.analysis
-        certified = goal_certified(outcome, goal)
         emit("iteration", k=k, n_points=len(measured), mu_peak=outcome.mu_peak,
              mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch,
              rig_s=float(sum(m.rig_s for m in measured)), mu_peak_certified=outcome.certified)
-        reached = certified
+        reached = goal_certified(outcome, goal)
+        certified_intervals = int(getattr(analysis, "mu_certified_intervals", 0))
         budget_spent = n_added >= goal.max_experiments
         choice: InputChoice | None = None
         if not (reached or budget_spent):
@@ -558,7 +554,7 @@ def run_campaign(
                     mismatch_ratio=np.asarray(result.mismatch_ratio, dtype=float),
                     controller=controller_matrices(analysis.controller),
                     mu_peak_certified=bool(outcome.certified),
-                    mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)),
+                    mu_certified_intervals=certified_intervals,
                     outputs=None if sensor_models is None else sensors_document(procedure, sensor_models),
                 ))
                 if choice is not None and np.size(choice.resolved_omega_rad_s):
@@ -579,9 +575,8 @@ def run_campaign(
             k=k, n_points=len(measured), mu_peak=float(outcome.mu_peak), mu_peak_omega=float(analysis.mu_peak_omega),
             next_omega=next_omega, safeguard=outcome.branch, basis="" if choice is None else choice.basis,
             compute_s=float(compute_s), compute_cpu_s=float(compute_cpu_s), mu_peak_certified=bool(outcome.certified),
-            mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)),
+            mu_certified_intervals=certified_intervals,
         ))
-        final_reached = reached
         if choice is None:
             break
         batch = [next_omega]
@@ -602,7 +597,7 @@ def run_campaign(
         k += 1
 
     summary = CampaignSummary(
-        reached_goal=bool(final_reached),
+        reached_goal=bool(reached),
         final_mu_peak=rows[-1].mu_peak,
         experiments_added=n_added,
         wall_s=time.perf_counter() - t_start,
@@ -611,7 +606,7 @@ def run_campaign(
         seed=seed,
         goal_mu=float(goal.mu_target),
         max_experiments=int(goal.max_experiments),
-        stop_reason="goal" if final_reached else "budget",
+        stop_reason="goal" if reached else "budget",
         replayed_measurements=min(replayed_before, source.count),
         rig_s=float(sum(m.rig_s for m in measured)),
     )

@@ -8,46 +8,22 @@ import sys
 from pathlib import Path
 
 from setmem_hil.errors import InputFormatError
-from setmem_hil.io.frf_file import QUANTITIES, load_frf, load_frf_outputs
+from setmem_hil.io.frf_file import QUANTITIES, load_frf_outputs
 from setmem_hil.model.frequency_data import FrequencyData
 
-__all__ = ["add_data_options", "single_data_file", "load_data", "load_outputs", "load_prior", "load_output_priors", "check_out_path"]
+__all__ = ["add_data_options", "load_outputs", "load_prior", "load_output_priors", "check_out_path"]
 
 
 def add_data_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, action="append", metavar="DATA.csv|DATA.uff",
-                   help="CSV with header omega,re,im,bound (rad/s), or a UFF 58 FRF file; identify takes it once per "
-                        "output (shared poles); prior and discrepancy take one file (a second is refused, never dropped)")
+                   help="CSV with header omega,re,im,bound (rad/s), or a UFF 58 FRF file; once per output (sensor): "
+                        "the modes' poles are shared, each output has its own residues")
     p.add_argument("--quantity", choices=QUANTITIES, default=None,
                    help="the response quantity of the data (default displacement; a UFF file's own declaration otherwise); "
                         "converted to receptance with its bound")
     p.add_argument("--bound-rel", type=float, metavar="R", help="UFF: bound = R |H| + A, in the file's units")
     p.add_argument("--bound-abs", type=float, metavar="A", help="UFF: see --bound-rel")
     p.add_argument("--averages", type=int, metavar="N", help="UFF with a coherence record: H1 random-error bound (3 sigma) for N averages")
-
-
-def single_data_file(args: argparse.Namespace) -> str:
-    """The one ``--data`` file; a repeated ``--data`` is refused with a word (it used to keep the
-    last file silently). Also stores it back as ``args.data``."""
-    files = args.data if isinstance(args.data, list) else [args.data]
-    if len(files) > 1:
-        raise InputFormatError(f"setmem-hil {getattr(args, 'command', '')}".strip(), "--data",
-                               f"{len(files)} files given ({', '.join(files)}): this command takes one output so far "
-                               "(setmem-hil identify takes several); give one --data file")
-    args.data = files[0]
-    return args.data
-
-
-def _load_one(path: str, args: argparse.Namespace) -> FrequencyData:
-    loaded = load_frf(path, quantity=args.quantity, bound_rel=args.bound_rel, bound_abs=args.bound_abs, averages=args.averages)
-    for note in loaded.notes:
-        print(f"setmem-hil: note: {path}: {note}", file=sys.stderr)
-    return loaded.data
-
-
-def load_data(args: argparse.Namespace) -> FrequencyData:
-    single_data_file(args)
-    return _load_one(args.data, args)
 
 
 def load_outputs(args: argparse.Namespace) -> list[tuple[str, FrequencyData]]:
@@ -79,21 +55,16 @@ PROCEDURE_TABLES = ("backend", "initial", "safety", "goal", "input_design", "wei
 
 
 def load_prior(path: str):
-    """A PRIOR.toml, or a procedure file whose ``[[mode]]`` tables are the prior (its other tables
-    are validated too, since a procedure with a typo is not a trustworthy prior)."""
-    from setmem_hil.model.prior import load_toml, parse_prior_mapping
-
-    mapping = load_toml(path)
-    if any(key in mapping for key in PROCEDURE_TABLES):
-        from setmem_hil.io.procedure_file import load_procedure
-
-        return load_procedure(path).prior
-    return parse_prior_mapping(mapping, str(path))
+    """One output's prior: a PRIOR.toml, or a procedure file whose ``[[mode]]`` tables are the
+    prior (its other tables are validated too, since a procedure with a typo is not a
+    trustworthy prior)."""
+    return load_output_priors(path, 1)[0][0]
 
 
 def load_output_priors(path: str, n_outputs: int):
     """One prior per output (:func:`setmem_hil.model.prior.parse_output_priors`) and the names the
-    prior gives them (or None). A procedure file's prior serves every output alike."""
+    prior gives them (or None). A procedure file's prior serves every output alike (its other
+    tables are validated too, since a procedure with a typo is not a trustworthy prior)."""
     from setmem_hil.model.prior import load_toml, parse_output_priors
 
     mapping = load_toml(path)

@@ -59,12 +59,11 @@ class ModalEstimate:
     residuals: dict = None  # fitted residual terms: {"lower": r (of r/s^2), "upper": r (constant)}
 
 
-def _lscf_poles(data: FrequencyData | list[FrequencyData], max_order: int):
+def _lscf_poles(datas: list[FrequencyData], max_order: int):
     """sdypy-EMA's LSCF over one output, or over several on one frequency axis (its ``frf`` with
     one row per location: common poles, as in a roving-sensor modal test)."""
     from sdypy import EMA
 
-    datas = data if isinstance(data, list) else [data]
     f_hz = datas[0].omega_rad_s / (2 * np.pi)
     frf = np.vstack([d.response for d in datas])
     with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
@@ -170,8 +169,8 @@ def estimate_common_modes(datas: list[FrequencyData], n_modes: int, band_rad_s: 
         raise ValueError(f"band [{lo:g}, {hi:g}] rad/s holds {int(inside.sum())} lines; need at least 8")
     bands = [d.subset(np.flatnonzero(inside)) for d in datas]
     order = max_order or int(min(80, max(20, 4 * n_modes + 10)))
-    model = _lscf_poles(bands if len(bands) > 1 else bands[0], order)
-    peak_data = bands[0] if len(bands) == 1 else _combined_magnitude(bands)
+    model = _lscf_poles(bands, order)
+    peak_data = bands[0] if len(bands) == 1 else _combined_magnitude(bands)  # one output: its own |G|, as always
     candidates = []
     for n_in_band in (n_modes, n_modes - 1):  # all in band, or one low pseudo-mode below the band
         if n_in_band < 0:

@@ -327,12 +327,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
     mismatch = mode_mismatch_bounds(model, data.omega_rad_s)
     E_all = np.array([_effective_bound(R, mismatch, i) + residual_mismatch(res, data.omega_rad_s) for i in range(n)])
     C_all = np.array([embedding_bound(data.omega_rad_s, E_all[i], lo[i, A0], hi[i, A0], hi[i, A1]) for i in range(n)])
-    owner = _assign_points_to_modes(prior, data.omega_rad_s)
-    ratios = np.ones(n)
-    for i in range(n):
-        pts = (owner == i) & (R > 0)
-        if pts.any():
-            ratios[i] = float(np.max(E_all[i, pts] / R[pts]))
+    ratios = _mismatch_ratios(prior, data, E_all)
     notes = tuple(_gamma_note(i, gammas[i], plans[i], lo[i], hi[i], prior, settings) for i in range(n))
     fixed = model.fixed
     optimizers[fixed[:, :, None, None].repeat(2, axis=2).repeat(4, axis=3)] = np.nan
@@ -352,6 +347,18 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         notes=tuple(note for note in notes if note),
         residuals={name: (float(a), float(b)) for name, (a, b) in res.items()},
     )
+
+
+def _mismatch_ratios(prior: Prior, data: FrequencyData, E_all: np.ndarray) -> np.ndarray:
+    """Per mode, the largest ``E_i / R`` over the points in that mode's band (section 3.2.3):
+    how much the other modes' mismatch inflates the data's bound; 1 where a mode owns no point."""
+    owner = _assign_points_to_modes(prior, data.omega_rad_s)
+    ratios = np.ones(E_all.shape[0])
+    for i in range(E_all.shape[0]):
+        pts = (owner == i) & (data.bound > 0)
+        if pts.any():
+            ratios[i] = float(np.max(E_all[i, pts] / data.bound[pts]))
+    return ratios
 
 
 def _outer_loop(datas: list[FrequencyData], lo: np.ndarray, hi: np.ndarray, res: dict, prior: Prior,
@@ -545,18 +552,15 @@ def identify_outputs(datas: list[FrequencyData], priors: list[Prior], names: lis
     # start from each output identified alone: the joint set lies inside every one of them, so
     # the shared pole intervals can never end wider than the narrowest single-output interval
     # (the joint passes alone follow another path to their fixed point and may stop 1e-3 short)
-    boxes = []
+    boxes, counter = [], _SolveCounter()
     for k, (data, p) in enumerate(zip(datas, priors)):
         try:
             alone = identify(data, p, None if previous is None else previous[k], settings)
         except InconsistentDataError as exc:  # one sensor alone already contradicts the prior: say which
             raise InconsistentDataError(f"output {names[k]}: {exc}", omegas_rad_s=exc.omegas_rad_s, mode_index=exc.mode_index,
                                         suspects_rad_s=exc.suspects_rad_s) from None
-        counter_alone = alone.n_solves
-        boxes.append((alone.model, counter_alone))
-    counter = _SolveCounter()
-    counter.n_solves = sum(c for _, c in boxes)
-    boxes = [b for b, _ in boxes]
+        boxes.append(alone.model)
+        counter.n_solves += alone.n_solves
     _check_poles_intersect(boxes, datas, prior, names)
     n = prior.n_modes
     lo = np.empty((n, 2 + 2 * K))
@@ -575,12 +579,8 @@ def identify_outputs(datas: list[FrequencyData], priors: list[Prior], names: lis
     owner_ratios = np.ones(n)
     for data, model in zip(datas, models):
         mismatch = mode_mismatch_bounds(model, data.omega_rad_s)
-        owner = _assign_points_to_modes(prior, data.omega_rad_s)
-        for i in range(n):
-            pts = (owner == i) & (data.bound > 0)
-            if pts.any():
-                E_i = _effective_bound(data.bound, mismatch, i)
-                owner_ratios[i] = max(owner_ratios[i], float(np.max(E_i[pts] / data.bound[pts])))
+        E_all = np.array([_effective_bound(data.bound, mismatch, i) for i in range(n)])
+        owner_ratios = np.maximum(owner_ratios, _mismatch_ratios(prior, data, E_all))
     notes = tuple(_gamma_note(i, gammas[i], plans[i], lo[i, output_columns(0)], hi[i, output_columns(0)], prior, settings) for i in range(n))
     return MultiOutputResult(
         models=models, names=names, embedding_gamma=gammas, mismatch_ratio=owner_ratios, iterations=iterations,

@@ -108,8 +108,7 @@ def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[P
         from setmem_hil.io.data_file import format_data_csv
 
         for k in range(1, len(names)):
-            files[f"data_{k + 1}.csv"] = format_data_csv(FrequencyData(
-                [m.omega_rad_s for m in measurements], [m.others[k - 1][0] for m in measurements], [m.others[k - 1][1] for m in measurements]))
+            files[f"data_{k + 1}.csv"] = format_data_csv(FrequencyData.from_measurements(measurements, output=k))
     else:
         files["measurements.csv"] = _csv_text(cols, ([r[c] for c in cols] for r in rows))
     if measurements:

@@ -96,9 +96,8 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
     same ``estimate.modes`` frequencies and damping in each); the file then has
     ``outputs = [...]`` and ``b0_min``/``b0_max`` arrays, one entry per output.
     """
-    if outputs:
-        worst = max(e.max_normalized_residual for _, e in outputs)
-        estimate = outputs[int(np.argmax([e.max_normalized_residual for _, e in outputs]))][1] if worst > 1 else outputs[0][1]
+    if outputs:  # the poles are common: the outputs differ in residues, and the header names the worst fit
+        estimate = max((e for _, e in outputs), key=lambda e: e.max_normalized_residual)
     lo_hz, hi_hz = (w / (2 * math.pi) for w in estimate.band_rad_s)
     lines = [
         f"# Prior proposed by `setmem-hil prior` from {source}, band {lo_hz:.6g}-{hi_hz:.6g} Hz.",

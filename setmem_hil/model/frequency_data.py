@@ -45,12 +45,18 @@ class FrequencyData:
         return self.omega_rad_s.size
 
     @classmethod
-    def from_measurements(cls, measurements: Iterable[Measurement]) -> "FrequencyData":
+    def from_measurements(cls, measurements: Iterable[Measurement], output: int = 0) -> "FrequencyData":
+        """The measurements' data; ``output`` k >= 1 takes the k-th of their other sensors
+        (``Measurement.others``, issue 25) instead of the control output."""
         ms = list(measurements)
+        if output == 0:
+            response, bound = [m.response for m in ms], [m.bound for m in ms]
+        else:
+            response, bound = [m.others[output - 1][0] for m in ms], [m.others[output - 1][1] for m in ms]
         return cls(
             np.array([m.omega_rad_s for m in ms], dtype=float),
-            np.array([m.response for m in ms], dtype=complex),
-            np.array([m.bound for m in ms], dtype=float),
+            np.array(response, dtype=complex),
+            np.array(bound, dtype=float),
         )
 
     def measurements(self) -> list[Measurement]:

@@ -297,10 +297,10 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
             w_all, mu = w_all[order_idx], mu[order_idx]
     peak_grid = float(max(b.beta.max() for b in bounds))
     certificate = _certify(cl, structure, omegas, bounds)
-    if certificate.omega.size:
-        omegas.extend(np.atleast_1d(b_w) for b_w in _split(certificate.omega, certificate.bounds))
-        mats.extend(certificate.matrices)
-        bounds.extend(certificate.bounds)
+    n_grid = sum(b.beta.size for b in bounds)  # the grid and its refinement, before the certificate's points
+    omegas.extend(certificate.omegas)
+    mats.extend(certificate.matrices)
+    bounds.extend(certificate.bounds)
     # flatten (frequency, matrix, bound index) for the peak search
     all_w = np.concatenate(omegas)
     all_mu = np.concatenate([b.beta for b in bounds])
@@ -323,7 +323,6 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
     # where the peak is: the grid's, unless the certificate found a larger value beyond the
     # tie tolerance (its points near the grid's peak tie with it to rounding, and must not move
     # the reported frequency by 1e-9 from one time scale to another)
-    n_grid = sum(b.beta.size for b in bounds) - sum(b.beta.size for b in certificate.bounds)
     k_peak = int(np.argmax(all_mu[:n_grid]))
     if all_mu.max() > all_mu[k_peak] * (1.0 + PEAK_TIE_RTOL):
         k_peak = int(np.argmax(all_mu))
@@ -355,9 +354,3 @@ def _certify(cl, structure: MuStructure, omegas: list, bounds: list):
     merged = MixedMuBound(**{name: np.concatenate([getattr(b, name) for b in bounds])
                              for name in ("beta", "d", "g", "eigenvalues", "eigenvectors")})
     return certify_band(cl, structure, (float(w.min()), float(w.max())), w, merged)
-
-
-def _split(omega: np.ndarray, bounds: list) -> list[np.ndarray]:
-    """``omega`` cut into the lengths of ``bounds`` (one array per solve)."""
-    sizes = np.cumsum([b.beta.size for b in bounds])[:-1]
-    return np.split(omega, sizes)

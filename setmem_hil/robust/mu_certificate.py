@@ -85,9 +85,9 @@ class BandCertificate:
         Certified pieces in the cover of the band.
     n_scalings : int
         Hamiltonian tests done.
-    omega, matrices, bounds
-        Frequencies evaluated here (beyond the grid), their ``M(j w)`` and bounds; the analysis
-        adds them to its curve.
+    omegas, matrices, bounds
+        One entry per solve done here (beyond the grid): its frequencies, ``M(j w)`` and bounds;
+        the analysis adds them to its curve.
     pieces : list of (lo, hi, d, g)
         The cover: each certified interval with the scalings (eq. 2.15) that prove it.
     """
@@ -97,10 +97,15 @@ class BandCertificate:
     peak: float
     n_intervals: int
     n_scalings: int
-    omega: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    omegas: list = field(default_factory=list)
     matrices: list = field(default_factory=list)
     bounds: list = field(default_factory=list)
     pieces: list = field(default_factory=list)
+
+    @property
+    def omega(self) -> np.ndarray:
+        """Every frequency solved here, in solve order."""
+        return np.concatenate(self.omegas) if self.omegas else np.zeros(0)
 
 
 def _lmi_scalings(d: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -250,7 +255,7 @@ def certify_band(
     structure : MuStructure
         Block structure of ``Delta`` (eq. 2.11).
     band : (float, float)
-        Frequencies (rad/s) to certify, ``0 < lo < hi``.
+        Frequencies (rad/s) to certify, ``0 <= lo < hi``.
     omega : np.ndarray
         Frequencies already solved (the grid and its refinement) ...
     bound : MixedMuBound
@@ -296,7 +301,7 @@ def certify_band(
             continue
         pool.used[k] = True
         n_tests += 1
-        pieces = certified_pieces(system, pool.d[k], pool.g[k], peak * (1.0 + rtol), uncovered)
+        pieces = certified_pieces(system, pool.d[k], pool.g[k], level, uncovered)
         cover.extend((p_lo, p_hi, pool.d[k], pool.g[k]) for p_lo, p_hi in pieces)
         uncovered = _subtract(uncovered, pieces)
     level = peak * (1.0 + rtol)
@@ -306,7 +311,7 @@ def certify_band(
         peak=peak,
         n_intervals=len(cover),
         n_scalings=n_tests,
-        omega=np.concatenate(new_w) if new_w else np.zeros(0),
+        omegas=new_w,
         matrices=new_M,
         bounds=new_b,
         pieces=cover,

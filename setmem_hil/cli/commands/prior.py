@@ -28,19 +28,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from setmem_hil.estimation.modal_estimate import estimate_modes
+    """One output, or several on one frequency axis (issue 25): common poles by LSCF over every
+    output, residue brackets per output, one PRIOR.toml with ``outputs = [...]`` and arrays."""
+    from setmem_hil.estimation.modal_estimate import estimate_common_modes
     from setmem_hil.io.atomic_file import write_text_atomic
-    from setmem_hil.io.prior_proposal import format_prior_proposal, misfit_advice, suspicious_modes
+    from setmem_hil.io.prior_proposal import format_prior_proposal
     from setmem_hil.report.stability_diagram import plot_stability_diagram
 
     out = check_out_path(args.out)
     if args.modes < 1:
         raise InputFormatError("setmem-hil prior", "--modes", f"expected at least 1, found {args.modes}")
-    outputs = load_outputs(args)
-    several = len(outputs) > 1
-    data = outputs[0][1]
-    if isinstance(args.data, list) and len(args.data) == 1:
-        args.data = args.data[0]  # the file named in messages and in the proposal
     band = None
     if args.band:
         lo, hi = args.band
@@ -48,62 +45,43 @@ def run(args: argparse.Namespace) -> int:
             raise InputFormatError("setmem-hil prior", "--band", f"expected 0 < LO_HZ < HI_HZ, found {lo:g} {hi:g}")
         band = (2 * math.pi * lo, 2 * math.pi * hi)
     residuals = {"none": (), "lower": ("lower",), "upper": ("upper",), "both": ("lower", "upper")}[args.residuals]
-    if several:
-        return _run_outputs(args, out, outputs, band, residuals)
+    outputs = load_outputs(args)
+    if len(outputs) > 1 and residuals:
+        raise InputFormatError("setmem-hil prior", "--residuals", "residual terms with several --data files are not supported "
+                               "yet (identify takes them with one output only)")
+    files = args.data if isinstance(args.data, list) else [args.data]
     try:
-        estimate = estimate_modes(data, args.modes, band, residuals=residuals)
+        estimates = estimate_common_modes([d for _, d in outputs], args.modes, band, residuals=residuals)
     except ValueError as exc:
-        raise InputFormatError(str(args.data), "--modes/--band", str(exc)) from None
-    write_text_atomic(out, format_prior_proposal(estimate, Path(args.data).name, residuals))
-    figure = plot_stability_diagram(estimate, data, out.with_name(out.stem + "-stability.png"))
+        raise InputFormatError(", ".join(files), "--modes/--band", str(exc)) from None
+    named = [(name, est) for (name, _), est in zip(outputs, estimates)] if len(outputs) > 1 else None
+    source = " and ".join(Path(f).name for f in files)
+    write_text_atomic(out, format_prior_proposal(estimates[0], source, residuals, outputs=named))
+    figure = plot_stability_diagram(estimates[0], outputs[0][1], out.with_name(out.stem + "-stability.png"))
+    _summarise(out, figure, estimates[0], named)
+    return 0
+
+
+def _summarise(out: Path, figure, estimate, named) -> None:
+    """The proposed modes on stdout; the flagged modes and a misfit on stderr (issue 25: both
+    used to be written silently)."""
+    from setmem_hil.io.prior_proposal import misfit_advice, suspicious_modes
+
     flags = dict(suspicious_modes(estimate))
     for i, m in enumerate(estimate.modes):
         kind = "low pseudo-mode" if m.low_pseudo_mode else f"{m.omega_n_rad_s / (2 * math.pi):.6g} Hz, zeta {m.zeta:.3g}"
-        print(f"  mode: {kind}, b0 {m.b0:.4g}" + (f"  <- CHECK: {flags[i]}" if i in flags else ""))
-    print(f"prior: {out} ({len(estimate.modes)} modes; worst normalised residual of the estimate "
-          f"{estimate.max_normalized_residual:.3g}); stability diagram: {figure}")
+        b0 = f"{m.b0:.4g}" if named is None else ", ".join(f"{name} {e.modes[i].b0:.4g}" for name, e in named)
+        print(f"  mode: {kind}, b0 {b0}" + (f"  <- CHECK: {flags[i]}" if i in flags else ""))
+    worst_name, worst = max(named or [("", estimate)], key=lambda t: t[1].max_normalized_residual)
+    modes = f"{len(estimate.modes)} modes" if named is None else f"{len(estimate.modes)} common modes, {len(named)} outputs"
+    which = f" ({worst_name})" if named else ""
+    print(f"prior: {out} ({modes}; worst normalised residual of the estimate {worst.max_normalized_residual:.3g}{which}); "
+          f"stability diagram: {figure}")
     for i, reason in flags.items():
         m = estimate.modes[i]
         print(f"setmem-hil: warning: proposed mode {i + 1} at {m.omega_n_rad_s / (2 * math.pi):.6g} Hz: {reason}; likely a "
               "computational mode of the fit: look at the stability diagram, and try one mode fewer or a --band without it",
               file=sys.stderr)
-    advice = misfit_advice(estimate)
+    advice = misfit_advice(worst)
     if advice:
-        print(f"setmem-hil: warning: {advice}", file=sys.stderr)
-    return 0
-
-
-def _run_outputs(args: argparse.Namespace, out: Path, outputs, band, residuals) -> int:
-    """Several ``--data`` files (issue 25): common poles by LSCF over every output, residue
-    brackets per output, one PRIOR.toml with ``outputs = [...]`` and residue arrays."""
-    from setmem_hil.estimation.modal_estimate import estimate_common_modes
-    from setmem_hil.io.atomic_file import write_text_atomic
-    from setmem_hil.io.prior_proposal import format_prior_proposal, misfit_advice, suspicious_modes
-    from setmem_hil.report.stability_diagram import plot_stability_diagram
-
-    if residuals:
-        raise InputFormatError("setmem-hil prior", "--residuals", "residual terms with several --data files are not supported "
-                               "yet (identify takes them with one output only)")
-    files = args.data if isinstance(args.data, list) else [args.data]
-    try:
-        estimates = estimate_common_modes([d for _, d in outputs], args.modes, band)
-    except ValueError as exc:
-        raise InputFormatError(", ".join(files), "--data/--modes/--band", str(exc)) from None
-    named = [(name, est) for (name, _), est in zip(outputs, estimates)]
-    source = " and ".join(Path(f).name for f in files)
-    write_text_atomic(out, format_prior_proposal(estimates[0], source, outputs=named))
-    figure = plot_stability_diagram(estimates[0], outputs[0][1], out.with_name(out.stem + "-stability.png"))
-    flags = dict(suspicious_modes(estimates[0]))
-    for i, m in enumerate(estimates[0].modes):
-        kind = "low pseudo-mode" if m.low_pseudo_mode else f"{m.omega_n_rad_s / (2 * math.pi):.6g} Hz, zeta {m.zeta:.3g}"
-        residues = ", ".join(f"{name} {est.modes[i].b0:.4g}" for name, est in named)
-        print(f"  mode: {kind}, b0 {residues}" + (f"  <- CHECK: {flags[i]}" if i in flags else ""))
-    worst = max(named, key=lambda t: t[1].max_normalized_residual)
-    print(f"prior: {out} ({len(estimates[0].modes)} common modes, {len(named)} outputs; worst normalised residual of the "
-          f"estimate {worst[1].max_normalized_residual:.3g} ({worst[0]})); stability diagram: {figure}")
-    for i, reason in flags.items():
-        print(f"setmem-hil: warning: proposed mode {i + 1}: {reason}; likely a computational mode of the fit", file=sys.stderr)
-    advice = misfit_advice(worst[1])
-    if advice:
-        print(f"setmem-hil: warning: output {worst[0]}: {advice}", file=sys.stderr)
-    return 0
+        print(f"setmem-hil: warning: {f'output {worst_name}: ' if named else ''}{advice}", file=sys.stderr)
