@@ -5,6 +5,7 @@ A proposal whose least-squares estimate misses the data by more than the bound p
 computational mode of the fit. Both used to be written silently with exit 0.
 """
 
+import json
 import math
 from pathlib import Path
 
@@ -46,19 +47,67 @@ def test_a_proposal_that_misses_its_data_says_what_to_do():
     assert "# WARNING" in format_prior_proposal(estimate([1e-3] * 5, worst=1.8), "x.csv")
 
 
-def propose(tmp_path, capsys, folder: str, modes: int):
+def propose(tmp_path, capsys, folder: str, modes: int, *options: str):
     """``setmem-hil prior`` on a real relaxed FRF: (data file, prior file, stderr)."""
     data = REALDATA / folder / "frf_displacement_relaxed.csv"
     prior = tmp_path / "prior.toml"
-    assert main(["prior", "--data", str(data), "--modes", str(modes), "--out", str(prior)]) == 0
+    assert main(["prior", "--data", str(data), "--modes", str(modes), "--out", str(prior), *options]) == 0
     return data, prior, capsys.readouterr().err
 
 
 @needs_realdata
-def test_real_beam_point_2_proposal_warns_and_identify_then_fails(tmp_path, capsys):
-    data, prior, err = propose(tmp_path, capsys, "ladisk-pyuff-beam-point2", 6)
+def test_real_beam_point_2_real_residue_proposal_warns_and_identify_then_fails(tmp_path, capsys):
+    data, prior, err = propose(tmp_path, capsys, "ladisk-pyuff-beam-point2", 6, "--residues", "real")
     assert "warning" in err and "exit 3" in err  # the user saw exit 0 and no word
+    assert "b1_min" not in prior.read_text()
     assert main(["identify", "--data", str(data), "--prior", str(prior), "--out", str(tmp_path / "r.json")]) == 3  # as predicted
+
+
+@needs_realdata
+def test_real_beam_point_2_proposal_turns_to_complex_residues_and_identify_finds_intervals(tmp_path, capsys):
+    """The default (``--residues auto``): the real-residue estimate misses by 1.77 x the bound, so
+    b1 is bracketed too, and the resonances' frequency intervals then hold the data set's own
+    estimates (its README: the peak lines and fits, within half a 1 Hz line)."""
+    data, prior, err = propose(tmp_path, capsys, "ladisk-pyuff-beam-point2", 6)
+    text = prior.read_text()
+    assert "COMPLEX RESIDUES" in text and text.count("b1_min = ") == 5  # not on the low pseudo-mode
+    assert "warning" in err and "may still hold" in err
+    out = tmp_path / "r.json"
+    assert main(["identify", "--data", str(data), "--prior", str(prior), "--out", str(out)]) == 0
+    modes = json.loads(out.read_text())["modes"]
+    for m, f_hz in zip(modes[1:], (142.18, 278.68, 460.39, 687.18, 958.54)):  # "f, fits" of the data set's README
+        f_lo, f_hi = (math.sqrt(a) / (2 * math.pi) for a in m["a0"])
+        assert f_lo <= f_hz + 0.5 and f_hz - 0.5 <= f_hi and f_hi - f_lo < 1.0
+
+
+def test_complex_residues_are_recovered_at_known_poles():
+    """A second formulation: residues ``(b1 s + b0)`` of known modes, noise-free; the refit at
+    the true poles returns them (and a real-residue FRF gives b1 = 0 to rounding)."""
+    from setmem_hil.estimation.modal_estimate import with_complex_residues
+    from setmem_hil.model.frequency_data import FrequencyData
+
+    wn, zeta = np.array([3.0, 11.0]), np.array([0.01, 0.02])
+    b1, b0 = np.array([0.05, -0.2]), np.array([1.0, 4.0])
+    w = np.linspace(1, 20, 200)
+    s = 1j * w
+    g = sum((b1[i] * s + b0[i]) / (s * s + 2 * zeta[i] * wn[i] * s + wn[i] ** 2) for i in range(2))
+    data = FrequencyData(w, g, 0.01 * np.abs(g))
+    start = ModalEstimate(tuple(ModeEstimate(a, z, 0.0) for a, z in zip(wn, zeta)), 9.0, (1.0, 20.0), (), (), ())
+    [fitted] = with_complex_residues([data], [start])
+    assert np.allclose([m.b1 for m in fitted.modes], b1, rtol=1e-8) and np.allclose([m.b0 for m in fitted.modes], b0, rtol=1e-8)
+    assert fitted.max_normalized_residual < 1e-6
+    real = FrequencyData(w, g - sum(b1[i] * s / (s * s + 2 * zeta[i] * wn[i] * s + wn[i] ** 2) for i in range(2)), data.bound)
+    [fitted] = with_complex_residues([real], [start])
+    assert np.allclose([m.b1 for m in fitted.modes], 0.0, atol=1e-10)
+
+
+def test_a_complex_residue_proposal_brackets_b1_around_the_estimate_and_says_why():
+    est = ModalEstimate((ModeEstimate(10.0, 0.01, 2.0, False, 0.03),), 1.5, (1.0, 20.0), (), (), ())
+    text = format_prior_proposal(est, "x.csv", complex_reason="because")
+    lo = float(text.split("b1_min = ")[1].split()[0])
+    hi = float(text.split("b1_max = ")[1].split()[0])
+    assert lo < 0.03 < hi and "COMPLEX RESIDUES (b1 free): because" in text
+    assert "b1 = 0.0" not in text and "b1 = 0.0" in format_prior_proposal(est, "x.csv")
 
 
 @needs_realdata

@@ -7,7 +7,10 @@ the file):
   the bands never overlap;
 * damping: ``zeta_max = max(0.01, 10 zeta_estimate)``, at most 0.5;
 * residue: ``b0`` within +-100 % of its least-squares estimate (the sign is kept), ``b1 = 0``
-  (receptance of a displacement sensor);
+  (receptance of a displacement sensor); with complex residues (``prior --residues complex``, or
+  ``auto`` when the real-residue estimate misses the data), ``b1`` within
+  ``estimate +-(|estimate| + B1_SPREAD |b0| / omega_n)``: the residue's phase may move by about
+  ``atan(B1_SPREAD)`` (14 deg) beyond the estimate's;
 * the low pseudo-mode (what lies below the band): natural frequency in ``[0.01, 0.8]`` times the
   band's lowest frequency, ``zeta_max = 0.1``, ``b0`` within ``[0.1, 10]`` times its estimate.
 
@@ -25,6 +28,10 @@ import numpy as np
 __all__ = ["format_prior_proposal", "WIDTH", "suspicious_modes", "misfit_advice"]
 
 WIDTH = 0.05
+B1_SPREAD = 0.25
+"""Half-width of a complex residue's ``b1`` bracket beyond the estimate, as a fraction of
+``|b0| / omega_n`` (module doc). Our judgement: enough on the public beam data, where the
+estimate's phase is off by a few degrees between lines."""
 
 
 def _num(x: float) -> str:
@@ -71,15 +78,21 @@ def suspicious_modes(estimate) -> list[tuple[int, str]]:
     return flagged
 
 
-def misfit_advice(estimate) -> str | None:
+def misfit_advice(estimate, complex_residues: bool = False) -> str | None:
     """What to say when the proposal's own least-squares estimate misses some point by more than
-    its bound (worst normalised residual > 1): identify will then most likely find no parameters."""
+    its bound (worst normalised residual > 1): identify will then most likely find no parameters.
+    With complex residues the prior gives identify room the estimate did not use (its poles are
+    fixed), so the warning is softer."""
     worst = estimate.max_normalized_residual
     if not worst > 1.0:
         return None
+    what_to_try = ("try another --modes (a missing or spurious mode), --band around the modes of interest, "
+                   "--residuals both, or check the bounds (--bound-rel/--bound-abs)")
+    if complex_residues:
+        return (f"the proposal's own estimate (poles fixed) misses the data by up to {worst:.3g} x the bound; the complex "
+                f"residues' brackets may still hold the data, but if `setmem-hil identify` exits 3: {what_to_try}")
     return (f"the proposal's own estimate misses the data by up to {worst:.3g} x the bound, so `setmem-hil identify` "
-            "with this prior will most likely exit 3: try another --modes (a missing or spurious mode), --band around "
-            "the modes of interest, --residuals both, or check the bounds (--bound-rel/--bound-abs)")
+            f"with this prior will most likely exit 3: {what_to_try}")
 
 
 def _residue_brackets(m) -> tuple[float, float]:
@@ -89,12 +102,34 @@ def _residue_brackets(m) -> tuple[float, float]:
     return tuple(sorted((m.b0 - abs(m.b0), m.b0 + abs(m.b0))))
 
 
-def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = (), outputs=None) -> str:
+def _b1_lines(i: int, m, outputs, complex_residues: bool) -> list[str]:
+    """``b1 = 0.0``, or the ``b1_min``/``b1_max`` brackets of mode ``i`` (arrays with several outputs)."""
+    if not complex_residues or m.low_pseudo_mode:
+        return ["b1 = 0.0"]
+    if not outputs:
+        lo, hi = _b1_bracket(m)
+        return [f"b1_min = {_num(lo)}", f"b1_max = {_num(hi)}"]
+    brackets = [_b1_bracket(e.modes[i]) for _, e in outputs]
+    return ["b1_min = [" + ", ".join(_num(b[0]) for b in brackets) + "]",
+            "b1_max = [" + ", ".join(_num(b[1]) for b in brackets) + "]"]
+
+
+def _b1_bracket(m) -> tuple[float, float]:
+    """``b1`` bracket of one complex-residue estimate (module doc)."""
+    half = abs(m.b1) + B1_SPREAD * abs(m.b0) / m.omega_n_rad_s
+    return m.b1 - half, m.b1 + half
+
+
+def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = (), outputs=None,
+                          complex_reason: str | None = None) -> str:
     """The PRIOR.toml text for ``estimate`` (a :class:`setmem_hil.estimation.modal_estimate.ModalEstimate`).
 
     ``outputs`` (issue 25): ``[(name, estimate), ...]`` of several outputs with common poles (the
     same ``estimate.modes`` frequencies and damping in each); the file then has
     ``outputs = [...]`` and ``b0_min``/``b0_max`` arrays, one entry per output.
+
+    ``complex_reason``: the estimates have complex residues (``b1`` brackets are written), and
+    why they were chosen (a line in the header).
     """
     if outputs:  # the poles are common: the outputs differ in residues, and the header names the worst fit
         estimate = max((e for _, e in outputs), key=lambda e: e.max_normalized_residual)
@@ -102,12 +137,15 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
     lines = [
         f"# Prior proposed by `setmem-hil prior` from {source}, band {lo_hz:.6g}-{hi_hz:.6g} Hz.",
         "# ASSUMPTIONS (edit them if you know better): natural frequency = estimate +-5 % (no overlaps);",
-        "# zeta_max = max(0.01, 10 x estimate); b0 = estimate +-100 %; b1 = 0 (receptance).",
+        "# zeta_max = max(0.01, 10 x estimate); b0 = estimate +-100 %; "
+        + ("b1 = 0 (receptance)." if complex_reason is None else f"b1 = estimate +-(|estimate| + {B1_SPREAD:g} |b0| / omega_n)."),
         "# Identification is guaranteed RELATIVE TO THIS PRIOR: a bracket that excludes the truth",
         f"# gives intervals of the prior's world. Worst normalised residual of the estimate: {estimate.max_normalized_residual:.3g}.",
         "",
     ]
-    advice = misfit_advice(estimate)
+    if complex_reason is not None:
+        lines[-1:-1] = [f"# COMPLEX RESIDUES (b1 free): {complex_reason}."]
+    advice = misfit_advice(estimate, complex_reason is not None)
     if advice:
         lines[-1:-1] = [f"# WARNING: {advice}."]
     if outputs:
@@ -124,7 +162,8 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
             lines.append("# ASSUMED: omega_n in [0.01, 0.8] x the band's lowest frequency, zeta_max 0.1, b0 in [0.1, 10] x estimate")
             zeta_max = 0.1
         else:
-            lines.append(f"# estimate: {m.omega_n_rad_s / (2 * math.pi):.6g} Hz = {m.omega_n_rad_s:.6g} rad/s, zeta {m.zeta:.3g}, b0 {b0_text}")
+            b1_text = "" if complex_reason is None else ", b1 " + (f"{m.b1:.4g}" if not outputs else "[" + ", ".join(f"{e.modes[i].b1:.4g}" for _, e in outputs) + "]")
+            lines.append(f"# estimate: {m.omega_n_rad_s / (2 * math.pi):.6g} Hz = {m.omega_n_rad_s:.6g} rad/s, zeta {m.zeta:.3g}, b0 {b0_text}{b1_text}")
             zeta_max = min(0.5, max(0.01, 10.0 * m.zeta))
         if outputs:
             brackets = [_residue_brackets(e.modes[i]) for _, e in outputs]
@@ -133,8 +172,8 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
         else:
             b_lo, b_hi = _residue_brackets(m)
             b_min, b_max = _num(b_lo), _num(b_hi)
-        lines += [f"omega_min = {_num(lo)}", f"omega_max = {_num(hi)}", f"zeta_max = {_num(zeta_max)}", "b1 = 0.0",
-                  f"b0_min = {b_min}", f"b0_max = {b_max}", ""]
+        lines += [f"omega_min = {_num(lo)}", f"omega_max = {_num(hi)}", f"zeta_max = {_num(zeta_max)}",
+                  *_b1_lines(i, m, outputs, complex_reason is not None), f"b0_min = {b_min}", f"b0_max = {b_max}", ""]
     if residuals:
         lines += ["[residuals]", "# residual terms for modes outside the band (lower: mass line r/s^2, upper: flexibility r)",
                   "# ASSUMED: each within +-100 % of its least-squares estimate (+- the same for a zero estimate)",
