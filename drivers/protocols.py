@@ -28,11 +28,16 @@ class RigMetadata:
 
 @dataclass(frozen=True)
 class SampleBlock:
-    """A block of simultaneously sampled channels; ``t_s`` are the sample timestamps."""
+    """A block of simultaneously sampled channels; ``t_s`` are the sample timestamps.
+
+    ``response`` is the control output's channel; ``others`` the other response channels of a
+    rig with several sensors (issue 25), in the procedure's output order, each as long as ``t_s``.
+    """
 
     t_s: np.ndarray
     force: np.ndarray
     response: np.ndarray
+    others: tuple[np.ndarray, ...] = ()
 
 
 @runtime_checkable

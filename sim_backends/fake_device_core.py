@@ -79,7 +79,7 @@ from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.errors import DeviceRejectedError, ProcedureError
 from setmem_hil.io.fault_kinds import DATA_FAULT_KINDS, FAULT_KINDS, FRAME_FAULT_KINDS  # noqa: F401 (re-exported)
 from setmem_hil.model.modal_model import ModalParameters
-from setmem_hil.sim_backends.beam import beam_parameters
+from setmem_hil.sim_backends.beam import beam_parameters, beam_parameters_at
 from setmem_hil.sim_backends.time_domain_beam import TimeDomainBeam
 
 
@@ -213,6 +213,13 @@ class FakeDeviceCore:
     faults : FaultSettings, optional
     max_samples : int
         Largest capture.
+    other_truths : tuple of ModalParameters
+        Further displacement sensors on the same structure (issue 25; same poles as ``truth``,
+        own residues): each capture's ``others`` channels, in this order.
+    other_noise_rms : tuple of (float or callable)
+        Each further sensor's noise RMS, as ``response_noise_rms``; its own noise stream
+        ``(seed, index, attempt, k)`` for sensor ``k >= 1``, so the first sensor's samples are
+        those of a one-sensor core.
     """
 
     min_rate_hz = 1e-3
@@ -230,9 +237,15 @@ class FakeDeviceCore:
         response_range: float = 1000.0,
         faults: FaultSettings | None = None,
         max_samples: int = 20000,
+        other_truths: tuple[ModalParameters, ...] = (),
+        other_noise_rms: tuple = (),
     ):
         self.truth = truth if truth is not None else beam_parameters()
-        self.beam = TimeDomainBeam(self.truth)
+        if len(other_noise_rms) != len(other_truths):
+            raise ValueError(f"other_noise_rms: expected one per other sensor ({len(other_truths)}), found {len(other_noise_rms)}")
+        self.other_truths = tuple(other_truths)
+        self._other_noise = tuple(other_noise_rms)
+        self.beam = TimeDomainBeam(self.truth, self.other_truths)
         self.seed = int(seed)
         self._response_noise = response_noise_rms
         self.force_noise_n = float(force_noise_n)
@@ -247,6 +260,7 @@ class FakeDeviceCore:
         self.measurement_index = 0
         self.attempt = 0
         self._noise_rng = np.random.default_rng((self.seed, 0, 0))
+        self._other_rngs = self._sensor_rngs()
         self._buffer = SampleBlock(np.zeros(0), np.zeros(0), np.zeros(0))
         self._last_request_id: object = None
 
@@ -263,20 +277,21 @@ class FakeDeviceCore:
         from setmem_hil.sim_backends.noise import noise_bound_function
 
         sim = procedure.backend.simulation
-        full = beam_parameters()
         n_modelled = procedure.prior.n_modes
-        truth = full if sim.unmodelled_dynamics else full.truncated(n_modelled)
-        bound = noise_bound_function(sim.noise_profile, full, sim.noise_scale)
         per_bound = float(procedure.backend.transport.get("response_noise_per_bound", 1.0))
         floor = 1e-6
-
-        def response_noise(omega_rad_s: float) -> float:
-            return max(floor, per_bound * float(bound(np.array([omega_rad_s]))[0]))
-
+        truths, noises = [], []
+        for x in (sim.sensors[sim.control_output - 1],) + tuple(x for i, x in enumerate(sim.sensors) if i != sim.control_output - 1):
+            # the thesis's beam exactly for the tip sensor and tip force; mode shapes elsewhere (issue 25)
+            full = beam_parameters() if (x, sim.actuator) == (1.0, 1.0) else beam_parameters_at(x, sim.actuator)
+            truths.append(full if sim.unmodelled_dynamics else full.truncated(n_modelled))
+            bound = noise_bound_function(sim.noise_profile, full, sim.noise_scale)
+            noises.append(lambda w, bound=bound: max(floor, per_bound * float(bound(np.array([w]))[0])))
         faults = FaultSettings.from_mapping(procedure.backend.faults, procedure.source_path or procedure.name)
-        kwargs = dict(seed=seed, response_noise_rms=response_noise, faults=faults)
+        kwargs = dict(seed=seed, response_noise_rms=noises[0], faults=faults, other_truths=tuple(truths[1:]),
+                      other_noise_rms=tuple(noises[1:]))
         kwargs.update(overrides)
-        return cls(truth, **kwargs)
+        return cls(truths[0], **kwargs)
 
     # -- commands --------------------------------------------------------------------------
     def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
@@ -318,11 +333,16 @@ class FakeDeviceCore:
             raise DeviceRejectedError("range", f"fake device: measurement index {index} / attempt {attempt} must be >= 0")
         self.measurement_index, self.attempt = int(index), int(attempt)
         self._noise_rng = np.random.default_rng((self.seed, self.measurement_index, self.attempt))
+        self._other_rngs = self._sensor_rngs()
         self.faults.reseed(self.measurement_index, self.attempt)
         self.beam.reset()
         self.time_s = 0.0  # the virtual clock restarts with each measurement (bit-identical resumes)
         self._buffer = SampleBlock(np.zeros(0), np.zeros(0), np.zeros(0))
         self._last_request_id = None
+
+    def _sensor_rngs(self) -> tuple[np.random.Generator, ...]:
+        return tuple(np.random.default_rng((self.seed, self.measurement_index, self.attempt, k))
+                     for k in range(1, 1 + len(self.other_truths)))
 
     # -- acquisition -----------------------------------------------------------------------
     def response_noise_rms(self) -> float:
@@ -337,23 +357,28 @@ class FakeDeviceCore:
             return self.buffer_length
         dt = 1.0 / self.sample_rate_hz
         t = self.time_s + dt * np.arange(n)
-        force, disp = self.beam.simulate(n, dt)
+        force, outputs = self.beam.simulate_outputs(n, dt)
+        disp = outputs[:, 0]
         self.time_s += n * dt
         force = force + self.force_noise_n * self._noise_rng.standard_normal(n)
         disp = disp + self._response_noise_samples(n, dt)
+        others = tuple(np.clip(outputs[:, k] + self._response_noise_samples(n, dt, self._other_noise[k - 1], self._other_rngs[k - 1]),
+                               -self.metadata.response_range, self.metadata.response_range)
+                       for k in range(1, outputs.shape[1]))
         force = np.clip(force, -self.metadata.force_range_n, self.metadata.force_range_n)
         disp = np.clip(disp, -self.metadata.response_range, self.metadata.response_range)
         t, force, disp = self._inject_data_faults(t, force, disp)
-        self._buffer = SampleBlock(t, force, disp)
+        self._buffer = SampleBlock(t, force, disp, others)
         self._last_request_id = request_id
         return n
 
-    def _response_noise_samples(self, n: int, dt: float) -> np.ndarray:
-        """White noise at the commanded frequency's RMS; coloured by the profile during a multisine."""
-        white = self._noise_rng.standard_normal(n)
-        r = self._response_noise
+    def _response_noise_samples(self, n: int, dt: float, r=None, rng: np.random.Generator | None = None) -> np.ndarray:
+        """White noise at the commanded frequency's RMS; coloured by the profile during a multisine.
+        ``r``, ``rng``: another sensor's noise RMS and stream (default the control sensor's)."""
+        r = self._response_noise if r is None else r
+        white = (self._noise_rng if rng is None else rng).standard_normal(n)
         if len(self.beam.line_omegas_rad_s) <= 1 or not callable(r) or n < 4:
-            return self.response_noise_rms() * white
+            return (float(r(self.beam.omega_rad_s)) if callable(r) else float(r)) * white
         omega = 2 * np.pi * np.fft.rfftfreq(n, dt)
         omega[0] = omega[1]
         grid = np.geomspace(omega[1], omega[-1], 256)
@@ -400,7 +425,8 @@ class FakeDeviceCore:
         if off < 0 or cnt < 0 or off + cnt > self.buffer_length:
             raise DeviceRejectedError("range", f"fake device: read of [{off}, {off + cnt}) outside buffer of {self.buffer_length}")
         b = self._buffer
-        return SampleBlock(b.t_s[off : off + cnt].copy(), b.force[off : off + cnt].copy(), b.response[off : off + cnt].copy())
+        return SampleBlock(b.t_s[off : off + cnt].copy(), b.force[off : off + cnt].copy(), b.response[off : off + cnt].copy(),
+                           tuple(o[off : off + cnt].copy() for o in b.others))
 
     def status(self) -> DeviceStatus:
         return DeviceStatus(

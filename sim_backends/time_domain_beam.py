@@ -54,6 +54,9 @@ class TimeDomainBeam:
     ----------
     params : ModalParameters
         The true structure (all its modes are simulated).
+    others : tuple of ModalParameters
+        Further sensors on the same structure (issue 25): the same poles, their own residues.
+        Each is one more output row ``C_k`` of the same state (eq. 2.8 per output).
 
     Attributes
     ----------
@@ -72,6 +75,7 @@ class TimeDomainBeam:
     """
 
     params: ModalParameters
+    others: tuple[ModalParameters, ...] = ()
     x: np.ndarray = field(init=False)
     z: np.ndarray = field(init=False)
     omega_rad_s: float = field(init=False, default=0.0)
@@ -80,7 +84,13 @@ class TimeDomainBeam:
 
     def __post_init__(self):
         A, B, C, _ = self.params.state_space_matrices()
-        self._A, self._B, self._C = A, B, C
+        rows = [C]
+        for k, other in enumerate(self.others, start=2):
+            A_k, _, C_k, _ = other.state_space_matrices()
+            if A_k.shape != A.shape or not np.allclose(A_k, A, rtol=1e-12, atol=0.0):
+                raise ValueError(f"sensor {k}: its poles differ from sensor 1's (one structure has one set of poles)")
+            rows.append(C_k)
+        self._A, self._B, self._C = A, B, np.vstack(rows)
         self._n = A.shape[0]
         self._phi_cache: dict[tuple, np.ndarray] = {}
         self.reset()
@@ -153,6 +163,11 @@ class TimeDomainBeam:
         Sample ``k`` is taken at ``k dt`` after the current time; on return the state is at
         ``n_samples dt``. Exact for the continuous-time system (no discretisation error).
         """
+        force, outputs = self.simulate_outputs(n_samples, dt_s)
+        return force, outputs[:, 0]
+
+    def simulate_outputs(self, n_samples: int, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`simulate`, with every sensor's displacement: shape ``(n_samples, 1 + len(others))``."""
         if n_samples < 0 or not (dt_s > 0):
             raise ValueError(f"simulate: expected n_samples >= 0 and dt_s > 0, found {n_samples}, {dt_s}")
         phi = self.transition_matrix(dt_s)
@@ -164,8 +179,8 @@ class TimeDomainBeam:
             s = phi @ s
         self.x, self.z = s[:n].copy(), s[n:].copy()
         force = states[:, n::2].sum(axis=1)  # the lines' first states (one line: exactly z[0])
-        disp = states[:, :n] @ self._C[0]
-        return force, disp
+        # row by row: the first output is computed exactly as a one-sensor beam computes it
+        return force, np.column_stack([states[:, :n] @ row for row in self._C])
 
     def true_response(self, omega_rad_s) -> np.ndarray:
         """Steady-state response over force, ``G(j omega)`` (eq. 2.3)."""

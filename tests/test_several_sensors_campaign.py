@@ -38,7 +38,7 @@ def test_procedure_keys_round_trip_and_are_checked():
         with pytest.raises(ProcedureError, match=fragment):
             parse_procedure_text(changed)
     serial = text.replace('kind = "sim"', 'kind = "serial-loopback"')
-    with pytest.raises(ProcedureError, match='kind = "sim" only'):
+    with pytest.raises(ProcedureError, match='"time-domain" only'):
         parse_procedure_text(serial)
 
 

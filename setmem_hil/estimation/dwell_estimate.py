@@ -337,12 +337,14 @@ def check_block(block, force_range_n: float, response_range: float, rate_hz: flo
     ``block`` has ``t_s``, ``force`` and ``response`` arrays (:class:`setmem_hil.drivers.protocols.SampleBlock`).
     """
     t, f, y = (np.asarray(a, dtype=float) for a in (block.t_s, block.force, block.response))
-    if not (t.size == f.size == y.size) or t.size < 8:
-        raise DataQualityError(f"sample block: channel lengths {t.size}, {f.size}, {y.size} (need equal, >= 8)")
-    bad = int(np.sum(~np.isfinite(t)) + np.sum(~np.isfinite(f)) + np.sum(~np.isfinite(y)))
+    others = [np.asarray(o, dtype=float) for o in getattr(block, "others", ())]
+    sizes = [t.size, f.size, y.size, *(o.size for o in others)]
+    if len(set(sizes)) != 1 or t.size < 8:
+        raise DataQualityError(f"sample block: channel lengths {', '.join(map(str, sizes))} (need equal, >= 8)")
+    bad = int(sum(np.sum(~np.isfinite(a)) for a in (t, f, y, *others)))
     if bad:
         raise DataQualityError(f"sample block: {bad} NaN or infinite samples")
-    clipped = int(np.sum(np.abs(f) >= 0.999 * force_range_n) + np.sum(np.abs(y) >= 0.999 * response_range))
+    clipped = int(np.sum(np.abs(f) >= 0.999 * force_range_n) + sum(np.sum(np.abs(a) >= 0.999 * response_range) for a in (y, *others)))
     if clipped:
         raise DataQualityError(f"sample block: {clipped} samples at full scale (sensor saturation)")
     dt = np.diff(t)
@@ -416,34 +418,26 @@ def _estimate_lines(settings: DwellSettings, model, tracker: PoleTracker, extra_
     between the halves (the later half has less of it) beyond the difference their noise
     explains (its RMS, ``sqrt(trace(cov_a + cov_b))``); it is added to the bound.
     """
-    t, f, y = block.t_s, block.force, block.response
+    t, f = block.t_s, block.force
     lines = np.asarray(omegas, dtype=float)
     n_lines = lines.size
     t_ref = float(t[0])
     window_s = float(t[-1] - t[0])
-    rfit, transient_terms = fit_response(settings, model, tracker, t, y, lines, t_ref, window_s)
     ffit = fit_sine(t, f, lines, t_ref_s=t_ref)
-    ratios = [phasor_ratio(rfit.line(k), ffit.line(k)) for k in range(n_lines)]
-    mismatch = np.zeros(n_lines)
     half = t.size // 2
-    if half >= 16 and rfit.n_params < half - 4:
-        ra = fit_sine(t[:half], y[:half], lines, rfit.poles, t_ref_s=t_ref)
-        rb = fit_sine(t[half:], y[half:], lines, rfit.poles, t_ref_s=t_ref)
-        fa = fit_sine(t[:half], f[:half], lines, t_ref_s=t_ref)
-        fb = fit_sine(t[half:], f[half:], lines, t_ref_s=t_ref)
-        threshold = -2.0 * (math.log1p(-settings.settle_confidence) - math.log(n_lines))
-        for k in range(n_lines):
-            ha, ca = phasor_ratio(ra.line(k), fa.line(k))
-            hb, cb = phasor_ratio(rb.line(k), fb.line(k))
-            d = np.array([(ha - hb).real, (ha - hb).imag])
-            cd = ca + cb
-            try:
-                stat = float(d @ np.linalg.solve(cd, d))
-            except np.linalg.LinAlgError:
-                stat = math.inf
-            if stat > threshold:
-                return None
-            mismatch[k] = settings.mismatch_factor * max(0.0, abs(ha - hb) - math.sqrt(float(np.trace(cd))))
+    halves = None
+    if half >= 16:
+        halves = (fit_sine(t[:half], f[:half], lines, t_ref_s=t_ref), fit_sine(t[half:], f[half:], lines, t_ref_s=t_ref))
+    channels = (block.response, *getattr(block, "others", ()))
+    # the settling level is split over every line of every channel (Bonferroni)
+    threshold = -2.0 * (math.log1p(-settings.settle_confidence) - math.log(n_lines * len(channels)))
+    points = []
+    for y in channels:
+        point = _channel_points(settings, model, tracker, t, y, lines, t_ref, window_s, ffit, halves, threshold)
+        if point is None:
+            return None
+        points.append(point)
+    rfit, ratios, transient_terms, mismatch = points[0]
     results = []
     for k, w in enumerate(lines):
         h, cov = ratios[k]
@@ -455,6 +449,48 @@ def _estimate_lines(settings: DwellSettings, model, tracker: PoleTracker, extra_
         if not (math.isfinite(bound) and math.isfinite(h.real) and math.isfinite(h.imag)):
             where = f"dwell at {w:g} rad/s" if n_lines == 1 else f"multisine record, line {w:g} rad/s"
             raise DataQualityError(f"{where}: non-finite estimate")
-        m = Measurement(float(w), complex(h), float(bound))
+        others = tuple(_other_point(point, k, force_phasor, settings, extra) for point in points[1:])
+        m = Measurement(float(w), complex(h), float(bound), others=others)
         results.append(DwellResult(m, plan, rfit.line(k), ffit.line(k), cov, radius, t_term, extra, dwell_s, attempt + 1, extensions))
     return results
+
+
+def _channel_points(settings: DwellSettings, model, tracker: PoleTracker, t, y, lines, t_ref, window_s, ffit, halves,
+                    threshold):
+    """One response channel of a settled window: its transient-aware fit, each line's ratio over
+    the force with its covariance, the fixed-pole terms and the halves' mismatch term; None when
+    the halves disagree beyond ``threshold`` (not settled)."""
+    rfit, transient_terms = fit_response(settings, model, tracker, t, y, lines, t_ref, window_s)
+    ratios = [phasor_ratio(rfit.line(k), ffit.line(k)) for k in range(lines.size)]
+    mismatch = np.zeros(lines.size)
+    half = t.size // 2
+    if halves is None or rfit.n_params >= half - 4:
+        return rfit, ratios, transient_terms, mismatch
+    fa, fb = halves
+    ra = fit_sine(t[:half], y[:half], lines, rfit.poles, t_ref_s=t_ref)
+    rb = fit_sine(t[half:], y[half:], lines, rfit.poles, t_ref_s=t_ref)
+    for k in range(lines.size):
+        ha, ca = phasor_ratio(ra.line(k), fa.line(k))
+        hb, cb = phasor_ratio(rb.line(k), fb.line(k))
+        d = np.array([(ha - hb).real, (ha - hb).imag])
+        cd = ca + cb
+        try:
+            stat = float(d @ np.linalg.solve(cd, d))
+        except np.linalg.LinAlgError:
+            stat = math.inf
+        if stat > threshold:
+            return None
+        mismatch[k] = settings.mismatch_factor * max(0.0, abs(ha - hb) - math.sqrt(float(np.trace(cd))))
+    return rfit, ratios, transient_terms, mismatch
+
+
+def _other_point(point, k: int, force_phasor: complex, settings: DwellSettings, extra: float) -> tuple[complex, float]:
+    """Line ``k`` of another sensor's channel as ``Measurement.others`` carries it: the ratio and
+    its bound (confidence radius, transient terms and the same extra term as the control
+    output's: ``|W1|`` bounds the unmodelled modes at every sensor, see the simulated beam)."""
+    _, ratios, transient_terms, mismatch = point
+    h, cov = ratios[k]
+    bound = confidence_radius(cov, settings.confidence) + float(transient_terms[k]) / abs(force_phasor) + float(mismatch[k]) + extra
+    if not (math.isfinite(bound) and math.isfinite(h.real) and math.isfinite(h.imag)):
+        raise DataQualityError("another sensor's channel: non-finite estimate")
+    return complex(h), float(bound)

@@ -130,7 +130,7 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("backend.simulation", "noise_scale", "number", "", _SIM.noise_scale, "Multiplies the noise bound.", ge=0.0),
     KeySpec("backend.simulation", "first_mode_rad_s", "number", "rad/s", _SIM.first_mode_rad_s, "First natural frequency of the simulated beam; all its modes scale with it, its residues with its square, and the simulated noise bounds follow the response (time-scale [weights] with it).", gt=0.0, le=1e9),
     KeySpec("backend.simulation", "unmodelled_dynamics", "bool", "", _SIM.unmodelled_dynamics, "Keep modes 4-8 in the simulated truth and add |W1| to each point's bound."),
-    KeySpec("backend.simulation", "sensors", "numbers", "", list(_SIM.sensors), "Displacement sensors along the cantilever, as fractions of its length from the clamp; every dwell reads all of them (shared poles, issue 25). kind = \"sim\" only so far.", gt=0.0, le=1.0),
+    KeySpec("backend.simulation", "sensors", "numbers", "", list(_SIM.sensors), "Displacement sensors along the cantilever, as fractions of its length from the clamp; every dwell reads all of them (shared poles, issue 25). kind = \"sim\" and \"time-domain\".", gt=0.0, le=1.0),
     KeySpec("backend.simulation", "actuator", "number", "", _SIM.actuator, "Where the force acts, as a fraction of the length from the clamp (the thesis: the tip).", gt=0.0, le=1.0),
     KeySpec("backend.simulation", "control_output", "output", "", _SIM.control_output, "The sensor whose model the robust analysis, the H2 design and the input design use (the collocated one): its index from 1 in the order of sensors, or its name \"x=<position>\"; the others tighten the shared poles.", ge=1),
     # [backend.transport]: one schema per backend kind, the same limits for every transport
@@ -215,6 +215,10 @@ SCHEMA: tuple[KeySpec, ...] = (
 _BY_TABLE: dict[str, dict[str, KeySpec]] = {}
 for _spec in SCHEMA:
     _BY_TABLE.setdefault(_spec.table, {})[_spec.key] = _spec
+
+
+SEVERAL_SENSOR_KINDS = ("sim", "time-domain")
+"""Backends whose simulated beam reads ``[backend.simulation] sensors`` (issue 25)."""
 
 
 def _fmt(v: Any) -> str:
@@ -334,9 +338,10 @@ def _backend(top: _Table) -> BackendSettings:
         raise s.error(f"control_output: {sim.control_output} but only {len(sim.sensors)} sensor(s)")
     if len(set(sim.sensors)) != len(sim.sensors):
         raise s.error(f"sensors: each position once, found {list(sim.sensors)}")
-    if kind != "sim" and (sim.sensors != _SIM.sensors or sim.actuator != _SIM.actuator):
+    if kind not in SEVERAL_SENSOR_KINDS and (sim.sensors != _SIM.sensors or sim.actuator != _SIM.actuator):
         raise ProcedureError(top.source, "[backend.simulation] key 'sensors'",
-                             f"several sensors and another actuator are simulated by kind = \"sim\" only so far; kind is {kind!r}")
+                             f"several sensors and another actuator are simulated by kind = \"sim\" and \"time-domain\" only "
+                             f"(the serial, CAN and Modbus wire formats carry one response channel); kind is {kind!r}")
     transport = _transport_options(top, t, kind)
     faults: dict[str, Any] = {}
     if t.has("faults"):
