@@ -176,3 +176,106 @@ def test_generator_plus_daq_runs_the_sine_dwell_and_bounds_the_force(gain_ratio)
         assert not bench.output_on
     finally:
         server.close()
+
+
+def _several_response_procedure(generator_resource: str, control: str = "daq_tip"):
+    from setmem_hil.io.procedure_file import parse_procedure_text
+
+    from setmem_hil.io.procedure_writer import format_procedure
+
+    one = _daq_procedure(generator_resource)
+    text = format_procedure(one).replace('response = "daq_response"',
+                                         f'response = ["daq_tip", "daq_root", "daq_mid"]\ncontrol_output = "{control}"')
+    tables = "".join(f'\n[instruments.{name}]\nprofile = "ni-daqmx"\nresource = "Dev1/ai{k}"\nvolt_per_unit = {vpu}\n'
+                     for name, k, vpu in (("daq_tip", 1, 0.004), ("daq_root", 2, 0.04), ("daq_mid", 3, 0.01)))
+    return parse_procedure_text(text + tables, "daq3.toml")
+
+
+def _three_channel_daq(bench, wiring):
+    """A nidaqmx stand-in sampling the bench's force on ai0 and the steady state of sensors on the
+    same beam on the other inputs (``wiring``: physical channel -> (truth, volts per metre);
+    residues from the cantilever's mode shapes: an independent truth per channel), returning the
+    rows in the order the task's channels were added, as NI-DAQmx does."""
+
+    class Task:
+        def __init__(self):
+            self.names = []
+            self.ai_channels = types.SimpleNamespace(add_ai_voltage_chan=lambda name, **k: self.names.append(name))
+            self.timing = types.SimpleNamespace(cfg_samp_clk_timing=self._timing)
+
+        def _timing(self, rate, **k):
+            self.rate, self.n = rate, k["samps_per_chan"]
+
+        def read(self, **k):
+            t = np.arange(self.n) / self.rate
+            w = 2 * math.pi * bench.frequency_hz
+            a = bench.force_amplitude_n
+            rows = []
+            for name in self.names:
+                if name == "Dev1/ai0":
+                    rows.append(0.0225 * a * np.sin(w * t))
+                    continue
+                truth, scale = wiring[name]
+                g = truth.frequency_response(np.array([w]))[0]
+                rows.append(scale * a * abs(g) * np.sin(w * t + np.angle(g)))
+            return [r.tolist() for r in rows]
+
+        def close(self):
+            pass
+
+    return types.SimpleNamespace(Task=Task, constants=nidaqmx.constants, errors=nidaqmx.errors)
+
+
+@pytest.mark.parametrize("control", ["daq_tip", "daq_mid"])
+def test_several_daq_response_channels_are_outputs_with_their_own_bounds(control):
+    """Issue 25 on the DAQ path: `response = [...]` reads every channel in one task; the control
+    output (`control_output`) is the measurement's response, the others follow in file order."""
+    from setmem_hil.drivers.instruments.instrument_set import check_instruments, open_daq_experiment
+    from setmem_hil.sim_backends.beam import beam_parameters, beam_parameters_at
+    from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBench
+    from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer
+
+    truths = {"daq_tip": beam_parameters(), "daq_root": beam_parameters_at(0.4), "daq_mid": beam_parameters_at(0.7)}
+    bench = EmulatedBench(beam_parameters(), BenchSettings())
+    server = InstrumentServer(GeneratorEmulator(bench, "33500B"))
+    try:
+        procedure = _several_response_procedure(server.resource, control)
+        order = procedure.backend.output_order()
+        assert order[0] == control and sorted(order) == sorted(truths)
+        daq = _three_channel_daq(bench, {"Dev1/ai1": (truths["daq_tip"], 0.004), "Dev1/ai2": (truths["daq_root"], 0.04),
+                                         "Dev1/ai3": (truths["daq_mid"], 0.01)})
+        with open_daq_experiment(procedure, check_instruments(procedure), nidaqmx_module=daq) as exp:
+            m = exp.measure(3.0)
+        readings = [(m.response, m.bound), *m.others]
+        assert len(readings) == 3
+        for (g, bound), name in zip(readings, order):
+            assert abs(g - truths[name].frequency_response(np.array([3.0]))[0]) <= bound, name
+        assert not bench.output_on
+    finally:
+        server.close()
+
+
+def test_several_response_lock_ins_are_refused_naming_them():
+    from setmem_hil.errors import ProcedureError
+    from setmem_hil.drivers.instruments.instrument_set import check_instruments
+    from setmem_hil.io.procedure_file import parse_procedure_text
+    from setmem_hil.io.procedure_writer import format_procedure
+
+    text = format_procedure(_daq_procedure("TCPIP::127.0.0.1::5025::SOCKET"))
+    text = text.replace('response = "daq_response"', 'response = ["lia1", "lia2"]')
+    text += "".join(f'\n[instruments.{n}]\nprofile = "srs-sr860"\nresource = "TCPIP::127.0.0.1::{p}::SOCKET"\nvolt_per_unit = 0.004\n'
+                    for n, p in (("lia1", 5026), ("lia2", 5027)))
+    text = text.replace('profile = "ni-daqmx"\nresource = "Dev1/ai0"', 'profile = "srs-sr860"\nresource = "TCPIP::127.0.0.1::5028::SOCKET"')
+    procedure = parse_procedure_text(text, "two-lockins.toml")
+    with pytest.raises(ProcedureError, match=r"several response lock-ins \(lia1, lia2\)"):
+        check_instruments(procedure)
+
+
+def test_a_channel_at_its_rails_is_refused_naming_it():
+    from setmem_hil.errors import DataQualityError
+
+    rec = Recorder()
+    sensor = NidaqSensor("Dev1/ai0", ["Dev1/ai1"], 0.0225, [100.0], range_v=0.25, nidaqmx_module=rec.module())  # 0.3 V peak > 0.25 V
+    sensor.set_sample_rate(7.0 * 32)
+    with pytest.raises(DataQualityError, match=r"NI-DAQ Dev1/ai1: \d+ samples at the \+-0.25 V input range"):
+        sensor.acquire(1.0)

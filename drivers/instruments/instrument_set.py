@@ -53,8 +53,8 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
     """``{name: (settings, profile, role)}`` for the backend's three roles; ProcedureError otherwise."""
     backend = procedure.backend
     found = {}
-    for role in ROLES:
-        name = getattr(backend, role)
+    named = [("exciter", backend.exciter), ("force", backend.force)] + [("response", n) for n in backend.response_instruments()]
+    for role, name in named:
         settings = procedure.instruments[name]
         where = f"[instruments.{name}] key 'profile'"
         try:
@@ -77,10 +77,14 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
             except ValueError as exc:
                 raise ProcedureError(_source(procedure), f"[instruments.{name}] key 'resource'", str(exc)) from None
         found[name] = (settings, profile, role)
-    kinds = {found[getattr(backend, r)][1].kind for r in ("force", "response")}
+    kinds = {found[name][1].kind for name in (backend.force, *backend.response_instruments())}
     if len(kinds) > 1:
         raise ProcedureError(_source(procedure), "[backend] key 'response'", "force and response must both be lock-ins or both "
                              f"DAQ channels, found {' and '.join(sorted(kinds))}")
+    if len(backend.response_instruments()) > 1 and kinds == {"scpi-lockin"}:
+        raise ProcedureError(_source(procedure), "[backend] key 'response'",
+                             f"several response lock-ins ({', '.join(backend.response_instruments())}) are not supported yet; "
+                             "read several response sensors through DAQ channels (profile ni-daqmx)")
     return found
 
 
@@ -153,17 +157,21 @@ def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None
     from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
 
     backend = procedure.backend
-    exciter, force, response = (procedure.instruments[getattr(backend, r)] for r in ROLES)
+    exciter, force = procedure.instruments[backend.exciter], procedure.instruments[backend.force]
+    responses = [procedure.instruments[name] for name in backend.response_instruments()]  # control output first (issue 25)
     daq: DaqProfile = checked[force.name][1]
     source = open_instrument(exciter, checked[exciter.name][1])
     try:
         source.check_identity()
         source.initialise()
-        sensor = NidaqSensor(force.resource, response.resource, force.volt_per_unit, response.volt_per_unit,
+        sensor = NidaqSensor(force.resource, [r.resource for r in responses], force.volt_per_unit, [r.volt_per_unit for r in responses],
                              range_v=daq.range_v, terminal=daq.terminal, nidaqmx_module=nidaqmx_module)
         limits = procedure.safety
+        # the sensor refuses a channel at its rails in volts; the dwell's own check then must not
+        # flag a channel with a larger full scale than another's: the largest full scale
+        response_range = max(daq.range_v / r.volt_per_unit for r in responses)
         rig = SampledInstrumentRig(source, sensor, exciter.newton_per_volt, exciter.max_drive_v or math.inf, limits.max_amplitude_n,
-                                   force_range_n=daq.range_v / force.volt_per_unit, response_range=daq.range_v / response.volt_per_unit,
+                                   force_range_n=daq.range_v / force.volt_per_unit, response_range=response_range,
                                    sample_rate_hz=1000.0)
     except BaseException:
         source.close()

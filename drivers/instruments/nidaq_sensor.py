@@ -2,8 +2,11 @@
 
 Implements :class:`setmem_hil.drivers.protocols.Sensor` (``acquire``) and
 :class:`~setmem_hil.drivers.protocols.RateConfigurableSensor` (``set_sample_rate``): each
-acquisition is one finite task with two analog voltage inputs (force, response), hardware
-sample clock at the set rate; volts are converted with the sensors' ``volt_per_unit``. The
+acquisition is one finite task with the analog voltage inputs force, response (and further
+response channels: several sensors, issue 25, the block's ``others``), hardware sample clock at
+the set rate; volts are converted with the sensors' ``volt_per_unit``. A channel at its input
+range's rails is refused (a :class:`~setmem_hil.errors.DataQualityError` naming it: the dwell is
+measured again). The
 samples then go through the existing sine fit (:mod:`setmem_hil.estimation.sine_fit`), as for
 any sampled rig. NI's driver (NI-DAQmx runtime) must be installed on the PC; an error from it is
 one :class:`~setmem_hil.errors.DeviceError` line naming the channels.
@@ -16,15 +19,19 @@ import math
 import numpy as np
 
 from setmem_hil.drivers.protocols import SampleBlock
-from setmem_hil.errors import DeviceError
+from setmem_hil.errors import DataQualityError, DeviceError
 
 __all__ = ["NidaqSensor"]
 
 
 class NidaqSensor:
-    """Force and response voltages from two analog inputs (e.g. ``"Dev1/ai0"``, ``"Dev1/ai1"``)."""
+    """Force and response voltages from analog inputs (e.g. ``"Dev1/ai0"``, ``"Dev1/ai1"``).
 
-    def __init__(self, force_channel: str, response_channel: str, force_volt_per_unit: float, response_volt_per_unit: float, *,
+    ``response_channel`` and ``response_volt_per_unit`` may be lists (several response sensors,
+    the control output's first)."""
+
+    def __init__(self, force_channel: str, response_channel: str | list[str], force_volt_per_unit: float,
+                 response_volt_per_unit: float | list[float], *,
                  range_v: float = 10.0, terminal: str = "DIFF", sample_rate_hz: float = 1000.0, nidaqmx_module=None):
         if nidaqmx_module is None:
             try:
@@ -32,15 +39,19 @@ class NidaqSensor:
             except ImportError:  # pragma: no cover - the [daq] extra is in [test]
                 raise DeviceError("NI-DAQ: the nidaqmx package is not installed; pip install 'setmem-hil[daq]'") from None
         self.nidaqmx = nidaqmx_module
-        self.channels = (force_channel, response_channel)
-        self.scale = (float(force_volt_per_unit), float(response_volt_per_unit))
+        responses = [response_channel] if isinstance(response_channel, str) else list(response_channel)
+        scales = [response_volt_per_unit] if isinstance(response_volt_per_unit, (int, float)) else list(response_volt_per_unit)
+        if len(scales) != len(responses):
+            raise ValueError(f"NI-DAQ: {len(responses)} response channels but {len(scales)} volt_per_unit values")
+        self.channels = (force_channel, *responses)
+        self.scale = (float(force_volt_per_unit), *(float(v) for v in scales))
         self.range_v, self.terminal = float(range_v), terminal
         self.sample_rate_hz = float(sample_rate_hz)
         self._t = 0.0  # the sensor's own time axis: acquisitions follow each other
 
     @property
     def where(self) -> str:
-        return f"NI-DAQ {self.channels[0]}, {self.channels[1]}"
+        return f"NI-DAQ {', '.join(self.channels)}"
 
     def set_sample_rate(self, rate_hz: float) -> None:
         if not (math.isfinite(rate_hz) and rate_hz > 0):
@@ -63,8 +74,13 @@ class NidaqSensor:
         except self.nidaqmx.errors.DaqError as exc:
             raise DeviceError(f"{self.where}: {' '.join(str(exc).split())[:300]}") from None
         volts = np.asarray(data, dtype=float)
-        if volts.shape != (2, n):
-            raise DeviceError(f"{self.where}: expected 2 x {n} samples, the driver returned shape {volts.shape}")
+        if volts.shape != (len(self.channels), n):
+            raise DeviceError(f"{self.where}: expected {len(self.channels)} x {n} samples, the driver returned shape {volts.shape}")
         t = self._t + np.arange(n) / self.sample_rate_hz
         self._t += n / self.sample_rate_hz
-        return SampleBlock(t_s=t, force=volts[0] / self.scale[0], response=volts[1] / self.scale[1])
+        at_rails = np.sum(np.abs(volts) >= 0.999 * self.range_v, axis=1)
+        for channel, count in zip(self.channels, at_rails):
+            if count:
+                raise DataQualityError(f"NI-DAQ {channel}: {int(count)} samples at the +-{self.range_v:g} V input range (saturated)")
+        units = volts / np.asarray(self.scale)[:, None]
+        return SampleBlock(t_s=t, force=units[0], response=units[1], others=tuple(units[2:]))

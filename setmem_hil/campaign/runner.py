@@ -258,7 +258,7 @@ def identify_sensors(measured: list[Measurement], procedure: Procedure, previous
     from setmem_hil.identification.algorithm import identify_outputs
 
     datas = [FrequencyData.from_measurements(measured, output=k) for k in range(1 + len(measured[0].others))]
-    multi = identify_outputs(datas, [procedure.prior] * len(datas), list(procedure.backend.simulation.output_order()), previous=previous,
+    multi = identify_outputs(datas, [procedure.prior] * len(datas), list(procedure.backend.output_order()), previous=previous,
                              settings=_identify_settings())
     models = list(multi.models) if previous is None else [m.intersect(p) for m, p in zip(multi.models, previous)]
     return multi.for_output(0), models
@@ -266,7 +266,7 @@ def identify_sensors(measured: list[Measurement], procedure: Procedure, previous
 
 def sensors_document(procedure: Procedure, models) -> dict:
     """The journal's ``iteration.outputs``: every output's bounds, control output first."""
-    return {"names": list(procedure.backend.simulation.output_order()), "lower": [m.lower.tolist() for m in models], "upper": [m.upper.tolist() for m in models]}
+    return {"names": list(procedure.backend.output_order()), "lower": [m.lower.tolist() for m in models], "upper": [m.upper.tolist() for m in models]}
 
 
 def goal_certified(outcome: SafeguardOutcome, goal) -> bool:

@@ -169,7 +169,7 @@ def _output_names(snap) -> tuple[str, ...]:
         return ()
     from setmem_hil.io.procedure_file import parse_procedure_text
 
-    return parse_procedure_text(snap.info["procedure_text"], "stored procedure").backend.simulation.output_order()
+    return parse_procedure_text(snap.info["procedure_text"], "stored procedure").backend.output_order()
 
 
 def _rows_per_output(rows, cols, names):

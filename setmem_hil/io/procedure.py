@@ -99,8 +99,26 @@ class BackendSettings:
     faults: Mapping[str, Any] = field(default_factory=dict)  # fault injection of fake devices
     exciter: str = ""  # kind = "instruments": names of [instruments.<name>] tables
     force: str = ""
-    response: str = ""
+    response: str = ""  # the control output's response instrument
     emulation: EmulationSettings | None = None
+    responses: tuple[str, ...] = ()  # several response instruments (issue 25), as the file lists them
+    control_output: int = 1  # index from 1 into responses
+
+    def response_instruments(self) -> tuple[str, ...]:
+        """Every response instrument as a measurement carries them: the control output, then the
+        others in the file's order (one name when ``response`` is a string)."""
+        names = self.responses or ((self.response,) if self.response else ())
+        if len(names) <= 1:
+            return names
+        c = self.control_output - 1
+        return (names[c],) + tuple(n for i, n in enumerate(names) if i != c)
+
+    def output_order(self) -> tuple[str, ...]:
+        """The outputs' names in measurement order: response instruments (kind = "instruments"),
+        else the simulated sensors (``x=<position>``)."""
+        if self.kind == "instruments" and len(self.responses) > 1:
+            return self.response_instruments()
+        return self.simulation.output_order()
 
 
 @dataclass(frozen=True)

@@ -120,7 +120,8 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("backend", "faults", "table", "", "", "Fault injection of the fake devices (issue 8). Not allowed with kind = \"sim\"."),
     KeySpec("backend", "exciter", "string", "", "required with kind = \"instruments\"", "The [instruments.<name>] that drives the shaker (a generator or a Modbus controller)."),
     KeySpec("backend", "force", "string", "", "required with kind = \"instruments\"", "The [instruments.<name>] lock-in reading the force sensor."),
-    KeySpec("backend", "response", "string", "", "required with kind = \"instruments\"", "The [instruments.<name>] lock-in reading the response sensor."),
+    KeySpec("backend", "response", "names", "", "required with kind = \"instruments\"", "The [instruments.<name>] reading the response sensor (a lock-in or a DAQ channel); an array of names for several response sensors (DAQ channels, issue 25): every dwell reads all of them, shared poles."),
+    KeySpec("backend", "control_output", "output", "", 1, "With several response instruments: the one whose model the robust analysis, the H2 design and the input design use (the collocated sensor), by index from 1 in the order of response or by name.", ge=1),
     KeySpec("backend", "emulation", "table", "", "absent: real instruments", "kind = \"instruments\" only: start emulators of the named instruments on their 127.0.0.1 resources, backed by the simulated beam on a virtual clock (CI, demos, rehearsals)."),
     KeySpec("backend.emulation", "drive_gain_ratio", "number", "", 1.0, "True drive gain of the emulated amplifier over the declared newton_per_volt.", gt=0.0, le=10.0),
     KeySpec("backend.emulation", "noise_v_per_rthz", "number", "V/sqrt(Hz)", 2e-6, "Noise density at the emulated lock-ins' inputs.", ge=0.0, le=1.0),
@@ -291,6 +292,13 @@ class _Table:
             if isinstance(v, bool) or not isinstance(v, int):
                 raise self.error(f"{key}: expected an index from 1 or a name, found {_type_name(v)} {_fmt(v)}")
             return int(self._bounded(spec, v))
+        if kind == "names":  # one name, or an array of distinct names
+            names = [v] if isinstance(v, str) else v
+            if not isinstance(names, list) or not names or not all(isinstance(x, str) and x for x in names):
+                raise self.error(f"{key}: expected a name or a non-empty array of names, found {_type_name(v)} {_fmt(v)}")
+            if len(set(names)) != len(names):
+                raise self.error(f"{key}: each name once, found {_fmt(v)}")
+            return tuple(names)
         if kind == "strings":
             if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
                 raise self.error(f"{key}: expected an array of strings, found {_type_name(v)} {_fmt(v)}")
@@ -375,14 +383,25 @@ def _backend(top: _Table) -> BackendSettings:
             if t.has(key):
                 where = "; the instruments' settings go in [instruments.<name>] tables" if kind == "instruments" else ""
                 raise ProcedureError(top.source, f"[backend.{key}]", f"only used by transport backends ({', '.join(LOOPBACK_BACKENDS)}); kind is {kind!r}{where}")
-    roles = {role: t.get(role, "") for role in ("exciter", "force", "response")}
+    roles = {role: t.get(role, "") for role in ("exciter", "force")}
+    responses = t.get("response", ())
+    control = t.get("control_output", 1)
+    if isinstance(control, str):
+        if control not in responses:
+            raise t.error(f"control_output {control!r} is not one of the response instruments {list(responses)}")
+        control = responses.index(control) + 1
+    if responses and control > len(responses):
+        raise t.error(f"control_output: {control} but only {len(responses)} response instrument(s)")
+    roles["response"] = responses[control - 1] if responses else ""
+    roles["responses"] = responses if len(responses) > 1 else ()
+    roles["control_output"] = control
     emulation = None
     if t.has("emulation"):
         e = t.sub("emulation")
         emulation = EmulationSettings(drive_gain_ratio=e.get("drive_gain_ratio", 1.0), noise_v_per_rthz=e.get("noise_v_per_rthz", 2e-6),
                                       damping=e.get("damping", None), relock_s=e.get("relock_s", 0.0))
     if kind != "instruments":
-        given = [k for k in ("exciter", "force", "response", "emulation") if t.has(k)]
+        given = [k for k in ("exciter", "force", "response", "control_output", "emulation") if t.has(k)]
         if given:
             raise ProcedureError(top.source, f"[backend] key '{given[0]}'", f"only used with kind = \"instruments\"; kind is {kind!r}")
     return BackendSettings(kind=kind, simulation=sim, transport=transport, faults=faults, emulation=emulation, **roles)
@@ -406,8 +425,9 @@ def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentS
         )
     if backend.kind != "instruments":
         return found
-    for role, needs in (("exciter", "newton_per_volt"), ("force", "volt_per_unit"), ("response", "volt_per_unit")):
-        name = getattr(backend, role)
+    roles = [("exciter", backend.exciter, "newton_per_volt"), ("force", backend.force, "volt_per_unit")]
+    roles += [("response", name, "volt_per_unit") for name in backend.response_instruments() or ("",)]
+    for role, name, needs in roles:
         where = f"[backend] key '{role}'"
         if not name:
             raise ProcedureError(top.source, where, f"missing: name the [instruments.<name>] table of the {role} (kind = \"instruments\")")
@@ -417,13 +437,14 @@ def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentS
             raise ProcedureError(top.source, where, f"no [instruments.{name}] table{hint} (tables: {', '.join(found) or 'none'})")
         if getattr(found[name], needs) is None:
             raise ProcedureError(top.source, f"[instruments.{name}]", f"missing key {needs!r} (the {role} needs it)")
-    force, response = found[backend.force], found[backend.response]
+    force = found[backend.force]
     if (force.quantity or "force") != "force":
         raise ProcedureError(top.source, f"[instruments.{force.name}] key 'quantity'", f"the force role's sensor must measure force, found {force.quantity!r}")
-    if response.quantity == "force":
-        raise ProcedureError(top.source, f"[instruments.{response.name}] key 'quantity'", "the response role's sensor must measure displacement, velocity or acceleration")
-    if backend.force == backend.response:
-        raise ProcedureError(top.source, "[backend] key 'response'", f"force and response name the same instrument {backend.force!r}; a lock-in reads one signal")
+    for response in (found[name] for name in backend.response_instruments()):
+        if response.quantity == "force":
+            raise ProcedureError(top.source, f"[instruments.{response.name}] key 'quantity'", "the response role's sensor must measure displacement, velocity or acceleration")
+        if backend.force == response.name:
+            raise ProcedureError(top.source, "[backend] key 'response'", f"force and response name the same instrument {backend.force!r}; a lock-in reads one signal")
     return found
 
 

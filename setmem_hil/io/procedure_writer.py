@@ -60,6 +60,8 @@ def format_procedure(procedure: Procedure) -> str:
     out = [f"name = {_toml_value(p.name)}", f"description = {_toml_value(p.description)}", f"seed = {int(p.seed)}", ""]
     b, s = p.backend, p.backend.simulation
     roles = [f"{role} = {_toml_value(getattr(b, role))}" for role in ("exciter", "force", "response") if getattr(b, role)]
+    if b.responses:  # several response instruments (issue 25): the list as given, and the control output
+        roles[-1:] = [f"response = {_toml_value(list(b.responses))}", f"control_output = {b.control_output}"]
     out += ["[backend]", f"kind = {_toml_value(b.kind)}", *roles, "", "[backend.simulation]",
             f"noise_profile = {_toml_value(s.noise_profile)}", f"noise_scale = {_toml_value(float(s.noise_scale))}",
             f"unmodelled_dynamics = {_toml_value(bool(s.unmodelled_dynamics))}",
