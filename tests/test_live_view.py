@@ -159,3 +159,59 @@ def test_view_serves_a_finished_run_read_only(tmp_path):
     finally:
         child.terminate()
         child.wait(timeout=30)
+
+
+def _several_sensor_run(tmp_path: Path) -> Path:
+    """A finished simulated campaign with three sensors (issue 25), one added experiment."""
+    import dataclasses
+
+    from setmem_hil.cli.main import main
+    from setmem_hil.io.procedure import default_procedure
+    from setmem_hil.io.procedure_file import format_procedure
+
+    p = default_procedure()
+    sim = dataclasses.replace(p.backend.simulation, sensors=(1.0, 0.4, 0.7))
+    p = dataclasses.replace(p, backend=dataclasses.replace(p.backend, simulation=sim), goal=dataclasses.replace(p.goal, max_experiments=1))
+    (tmp_path / "three.toml").write_text(format_procedure(p), encoding="utf-8")
+    assert main(["run", str(tmp_path / "three.toml"), "--out", str(tmp_path / "three"), "--quiet"]) in (0, 1)
+    return tmp_path / "three"
+
+
+def test_state_carries_every_output_of_a_several_sensor_run(tmp_path):
+    from setmem_hil.live.state import journal_state
+
+    state = journal_state(_several_sensor_run(tmp_path))
+    assert state["outputs"] == ["x=1", "x=0.4", "x=0.7"]
+    assert all(len(m["others"]) == 2 for m in state["measurements"])
+    last = state["iterations"][-1]
+    assert last["outputs"]["names"] == state["outputs"] and len(last["outputs"]["lower"]) == 3
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian package chromium; .ci/run installs it)")
+def test_page_shows_every_sensor_with_a_legend_and_its_residues(tmp_path):
+    pytest.importorskip("playwright", reason="playwright (pip) drives the browser")
+    from playwright.sync_api import sync_playwright
+
+    run = _several_sensor_run(tmp_path)
+    child = subprocess.Popen([sys.executable, "-m", "setmem_hil.cli.main", "view", str(run)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = child.stdout.readline().strip().removeprefix("live view: ")
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--headless", "--no-sandbox", "--disable-gpu"])
+            page = browser.new_page(viewport={"width": 1280, "height": 1000})
+            page.goto(url)
+            page.wait_for_function("document.querySelectorAll('#mag circle').length >= 3", timeout=60_000)
+            legend = page.inner_text("#legend")
+            n_points = page.evaluate("fetch('/api/state', {headers: {'X-Token': new URLSearchParams(location.search).get('token')}})"
+                                     ".then(r => r.json()).then(s => s.n_points)")
+            colours = page.eval_on_selector_all("#mag circle", "els => els.map(e => e.getAttribute('stroke'))")
+            table = page.inner_text("#intervals")
+            page.screenshot(path=str((SCREENSHOTS or tmp_path) / "live-view-three-sensors.png"), full_page=True)
+            browser.close()
+    finally:
+        child.terminate()
+        child.wait(timeout=30)
+    assert "x=1 (control)" in legend and "x=0.4" in legend and "x=0.7" in legend
+    assert len(colours) == 3 * n_points and len(set(colours)) == 3  # every output's points, one colour each
+    assert "b0_1 (x=0.4)" in table and "b0_3 (x=0.7)" in table

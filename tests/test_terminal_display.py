@@ -55,3 +55,27 @@ def test_iteration_table_rounds_mu_bar(short_campaign_events, width):
     assert f"final mu-bar {summary.final_mu_peak:.4f}," in text
     assert repr(summary.final_mu_peak) not in text
     assert all(len(line.rstrip()) <= width for line in text.splitlines())
+
+
+def test_a_several_sensor_campaign_prints_the_shared_poles_and_every_output_residues():
+    """Issue 25: each iteration's terminal lines name every sensor with its b0 intervals; the
+    truth (the cantilever's residues at each sensor, beam theory) lies inside what is printed."""
+    import re
+
+    from setmem_hil.sim_backends.beam import beam_parameters_at
+
+    p = default_procedure()
+    sim = dataclasses.replace(p.backend.simulation, sensors=(1.0, 0.4, 0.7))
+    procedure = dataclasses.replace(p, backend=dataclasses.replace(p.backend, simulation=sim), goal=Goal(mu_target=1.0, max_experiments=1))
+    console = Console(record=True, width=120, color_system=None)
+    with CampaignProgress(console, live=False) as display, open_experiment(procedure, procedure.seed) as experiment:
+        run_campaign(procedure, experiment, progress=display)
+    lines = console.export_text().splitlines()
+    assert any(line.startswith("  shared natural frequencies (rad/s): [") for line in lines)
+    for x, name in ((1.0, "x=1 (control)"), (0.4, "x=0.4"), (0.7, "x=0.7")):
+        last = [line for line in lines if line.startswith(f"  {name}: b0 ")][-1]
+        intervals = [tuple(map(float, pair)) for pair in re.findall(r"\[([^,\]]+), ([^\]]+)\]", last)]
+        truth = beam_parameters_at(x, n_modes=3).values[:, 3]
+        assert len(intervals) == 3
+        for (lo, hi), b0 in zip(intervals, truth):
+            assert lo - 5e-3 * abs(lo) <= b0 <= hi + 5e-3 * abs(hi)  # printed to 3 significant digits

@@ -433,7 +433,8 @@ def run_campaign(
         ``"max-reduction"``.
     progress : callable, optional
         ``progress(event, **info)`` with events ``"measure"`` (index, total, omega_rad_s,
-        replayed), ``"iteration"`` (k, n_points, mu_peak, mu_peak_omega, safeguard),
+        replayed), ``"iteration"`` (k, n_points, mu_peak, mu_peak_omega, safeguard, outputs: every
+        sensor's bounds with several sensors, else None),
         ``"chosen"`` (k, next_omega) and ``"finished"`` (summary).
     continue_stored : bool, optional
         Continue a stopped run with a changed procedure (``run --resume DIR --procedure FILE``):
@@ -516,7 +517,8 @@ def run_campaign(
         analysis = outcome.analysis
         emit("iteration", k=k, n_points=len(measured), mu_peak=outcome.mu_peak,
              mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch,
-             rig_s=float(sum(m.rig_s for m in measured)), mu_peak_certified=outcome.certified)
+             rig_s=float(sum(m.rig_s for m in measured)), mu_peak_certified=outcome.certified,
+             outputs=None if sensor_models is None else sensors_document(procedure, sensor_models))
         reached = goal_certified(outcome, goal)
         certified_intervals = int(getattr(analysis, "mu_certified_intervals", 0))
         budget_spent = n_added >= goal.max_experiments

@@ -185,6 +185,8 @@ class CampaignProgress:
                 f"iteration {self.k}: {info.get('n_points')} points, mu-bar peak {format_mu(self.mu_peak)}"
                 f" at {format_frequency(float(info.get('mu_peak_omega', math.nan)))}{rig_text}{extra}"
             )
+            for line in output_lines(info.get("outputs")):
+                self._line(line)
         elif event == "chosen":
             self.next_omega = float(info["next_omega"])
             self._show_status()
@@ -261,6 +263,24 @@ class CampaignProgress:
             return float(self.planned_dwell_s(omega_rad_s))
         except Exception:  # a display nicety must never stop a campaign
             return None
+
+
+def output_lines(outputs: dict | None) -> list[str]:
+    """Several sensors (issue 25): the shared natural-frequency intervals and each output's
+    ``b0`` intervals, one line each (nothing for one sensor)."""
+    if not outputs or len(outputs["names"]) < 2:
+        return []
+    lower, upper = outputs["lower"], outputs["upper"]
+
+    def interval(lo, hi, fmt=".4g"):
+        return f"[{lo:{fmt}}, {hi:{fmt}}]"
+
+    poles = ", ".join(interval(math.sqrt(max(lo[1], 0.0)), math.sqrt(max(hi[1], 0.0))) for lo, hi in zip(lower[0], upper[0]))
+    lines = [f"  shared natural frequencies (rad/s): {poles}"]
+    for k, name in enumerate(outputs["names"]):
+        residues = ", ".join(interval(lo[3], hi[3], ".3g") for lo, hi in zip(lower[k], upper[k]))
+        lines.append(f"  {name}{' (control)' if k == 0 else ''}: b0 {residues}")
+    return lines
 
 
 def terminal_display(console: Console):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -34,6 +35,23 @@ def _model_band(rec, omega_lo: float, omega_hi: float) -> dict:
             "mid": np.abs(model.midpoint.frequency_response(w)).tolist()}
 
 
+def _output_names(info: dict, last) -> list[str]:
+    """Every output's name, the control output first (several sensors, issue 25; one sensor:
+    one name): from the last iteration, or from the procedure before the first one."""
+    if last is not None and last.outputs:
+        return list(last.outputs["names"])
+    text = info.get("procedure_text")
+    if not text:
+        return []
+    from setmem_hil.errors import ProcedureError
+    from setmem_hil.io.procedure_file import parse_procedure_text
+
+    try:
+        return list(parse_procedure_text(text, "stored procedure").backend.output_order())
+    except ProcedureError:  # a procedure of another version: the names are only a label
+        return []
+
+
 def journal_state(run_dir: str | Path, live: dict | None = None) -> dict:
     """The API's state document (``GET /api/state``); ``live`` adds what only the running process
     knows (status from the buttons, the current dwell)."""
@@ -64,11 +82,12 @@ def journal_state(run_dir: str | Path, live: dict | None = None) -> dict:
         "rig_s": live.get("rig_s"),
         "dwell": live.get("dwell"),
         "measurements": [{"omega": r["omega_rad_s"], "re": r["re"], "im": r["im"], "bound": r["bound"], "role": r["role"],
-                          "iteration": r["iteration"]} for r in rows],
+                          "iteration": r["iteration"], "others": json.loads(r["others"]) if r["others"] else []} for r in rows],
+        "outputs": _output_names(info, last),
         "iterations": [{"k": it.k, "n_points": it.n_points, "mu_peak": _num(it.mu_peak), "mu_peak_omega": _num(it.mu_peak_omega),
                         "next_omega": _num(it.next_omega), "omega": [float(w) for w in it.omega],
                         "mu": [_num(m) for m in it.mu], "lower": it.lower.tolist(), "upper": it.upper.tolist(),
-                        "sensitivities": it.sensitivities} for it in iterations],
+                        "sensitivities": it.sensitivities, "outputs": it.outputs} for it in iterations],
         "model_band": band,
         "events": [{"utc": e["utc"], "kind": e["kind"], "message": e["message"][:300]}
                    for e in events if e["kind"] != "exact-resolve"][-50:],  # that one is data for figure 6-14
