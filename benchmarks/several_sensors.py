@@ -72,7 +72,8 @@ def main() -> None:
                                              for label, r in row.items()))
     for label in SENSOR_SETS:
         rs = [r for r in results if r["label"] == label]
-        print(f"{label}: median {statistics.median(r['added'] for r in rs)} added, median rig {statistics.median(r['rig_s'] for r in rs):.0f} s, "
+        print(f"{label}: median {statistics.median(r['added'] for r in rs)} added (mean {statistics.mean(r['added'] for r in rs):.1f}), "
+              f"median rig {statistics.median(r['rig_s'] for r in rs):.0f} s (mean {statistics.mean(r['rig_s'] for r in rs):.0f} s), "
               f"goal {sum(r['goal'] for r in rs)}/{len(rs)}, truth inside every interval {sum(r['inside'] for r in rs)}/{len(rs)}")
 
 

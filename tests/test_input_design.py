@@ -132,3 +132,38 @@ def test_closeness_fallback_prefers_the_candidate_nearest_to_cutting_a_bound():
 
 def test_top_indices_orders_best_first_and_breaks_ties_by_index():
     assert top_indices(np.array([0.1, 0.5, 0.5, 0.2]), 3).tolist() == [1, 2, 3]
+
+
+def test_a_candidate_seen_only_by_another_sensor_is_predicted_to_narrow_the_shared_poles():
+    """Issue 25, item 3: a dwell reads every sensor, so the prediction adds a point to every
+    output. The control sensor sits on mode 2's node (its residue there is zero), another sensor
+    sees mode 2 fully: a dwell at mode 2's resonance can only narrow mode 2's poles through that
+    other sensor. The control-only prediction must see (almost) nothing, the every-output one a
+    large narrowing."""
+    from setmem_hil.design.input_design import OtherOutputs
+    from setmem_hil.identification.algorithm import IdentifySettings, identify, identify_outputs
+    from setmem_hil.model.frequency_data import FrequencyData
+    from setmem_hil.model.modal_model import ModalParameters
+    from setmem_hil.model.prior import ModePrior, Prior
+
+    truths = [ModalParameters(np.array([[0.04, 1.0, 0.0, 4.0], [0.25, 39.3, 0.0, b0]])) for b0 in (0.0, 4.0)]
+    w = np.array([0.6, 0.8, 0.9, 1.1, 1.3, 3.0, 4.5, 9.0, 12.0])  # none near mode 2 (6.27 rad/s)
+    rng = np.random.default_rng(5)
+    datas = []
+    for truth in truths:
+        g = truth.frequency_response(w)
+        bound = 0.05 * np.abs(g) + 1e-3
+        datas.append(FrequencyData(w, g + 0.8 * bound * np.exp(2j * np.pi * rng.uniform(size=w.size)), bound))
+    modes = lambda b0: Prior((ModePrior(0.884, 1.125, 0.5, 0.0, 0.0, 0.0, 10.0), ModePrior(5.41, 7.34, 0.5, 0.0, 0.0, *b0)))  # noqa: E731
+    priors = [modes((-0.05, 0.05)), modes((0.0, 10.0))]
+    joint = identify_outputs(datas, priors)
+    control = joint.models[0]
+    omega = np.array([6.27])
+    bounds = tuple(np.array([0.05 * abs(t.frequency_response(omega)[0]) + 1e-3]) for t in truths)
+    every = OtherOutputs(tuple(datas), tuple(priors), ("node", "tip"), tuple(joint.models), bounds)
+    predicted_every = every.predicted_control_model(0, 6.27, IdentifySettings())
+    nominal = control.midpoint.frequency_response(omega)
+    predicted_control_only = identify(datas[0].appended(FrequencyData(omega, nominal, bounds[0])), priors[0], previous=control).model
+    width = lambda m: m.upper[1, 1] - m.lower[1, 1]  # noqa: E731  (a0 of mode 2)
+    assert width(predicted_control_only) > 0.9 * width(control)
+    assert width(predicted_every) < 0.3 * width(control)

@@ -309,8 +309,11 @@ def next_frequency(
     experiment: Any,
     measured: list[Measurement],
     seed: int | None,
+    sensor_models=None,
 ) -> InputChoice:
-    """Algorithm 5.1 steps 5-7 for one strategy (see :mod:`setmem_hil.design.strategies`)."""
+    """Algorithm 5.1 steps 5-7 for one strategy (see :mod:`setmem_hil.design.strategies`);
+    ``sensor_models`` (several sensors): every output's model, so the exact re-solves predict
+    every sensor's point (:class:`~setmem_hil.design.input_design.OtherOutputs`)."""
     settings = procedure.input_design.resolved(procedure.weights.reference_frequency_rad_s(), procedure.safety)
     empty = np.zeros(0)
     if strategy == "log-sweep":
@@ -341,7 +344,20 @@ def next_frequency(
         exact_resolve_top=settings.exact_resolve_top,
         identify_settings=_identify_settings(exact_resolve=True),
         cost_s=cost,
+        other_outputs=None if sensor_models is None else other_outputs(procedure, measured, sensor_models, omega, R),
     )
+
+
+def other_outputs(procedure: Procedure, measured: list[Measurement], sensor_models, omega: np.ndarray, control_bound: np.ndarray):
+    """Every sensor's data, model and expected bound at the candidates (issue 25): the control
+    output's as for one sensor, each other output's interpolated from its own measured bounds
+    (log-log, as :func:`candidate_noise_bound` does on a rig that cannot predict them)."""
+    from setmem_hil.design.input_design import OtherOutputs
+
+    outputs = range(len(sensor_models))
+    datas = tuple(FrequencyData.from_measurements(measured, output=k) for k in outputs)
+    bounds = (control_bound,) + tuple(candidate_noise_bound(None, omega, datas[k].measurements()) for k in outputs if k > 0)
+    return OtherOutputs(datas, (procedure.prior,) * len(datas), tuple(procedure.backend.output_order()), tuple(sensor_models), bounds)
 
 
 def dwell_seconds(experiment: Any, model, omega_rad_s: np.ndarray) -> np.ndarray:
@@ -525,7 +541,8 @@ def run_campaign(
         choice: InputChoice | None = None
         if not (reached or budget_spent):
             with blas_one_thread():
-                choice = next_frequency(strategy, k, n_added, procedure, result, data, outcome, experiment, measured, seed)
+                choice = next_frequency(strategy, k, n_added, procedure, result, data, outcome, experiment, measured, seed,
+                                        sensor_models=sensor_models)
         next_omega = None if choice is None else choice.next_omega_rad_s
         compute_s = time.perf_counter() - t_it
         compute_cpu_s = time.process_time() - cpu_it

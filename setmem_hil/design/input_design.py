@@ -32,7 +32,7 @@ import numpy as np
 
 from setmem_hil.errors import InconsistentDataError, SolverError
 from setmem_hil.model.frequency_data import FrequencyData
-from setmem_hil.identification.algorithm import IdentifySettings, identify
+from setmem_hil.identification.algorithm import IdentifySettings, identify, identify_outputs
 from setmem_hil.design.input_effects import InputEffects, estimate_input_effects
 from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel
 from setmem_hil.io.procedure import InputDesignSettings
@@ -156,6 +156,32 @@ def top_indices(score: np.ndarray, count: int) -> np.ndarray:
     return order[: max(0, int(count))]
 
 
+@dataclass(frozen=True)
+class OtherOutputs:
+    """Several sensors (issue 25): every output's data, prior, name, current model and the bound
+    expected at each candidate; index 0 is the control output (the one ``choose_input`` scores).
+
+    With it, an exact re-solve adds a predicted point to *every* output (eq. 4.53 per output:
+    that output's model midpoint at the candidate, with that output's own expected bound) and
+    re-identifies them with shared poles: a dwell reads every sensor, and the other sensors'
+    points narrow the control output's poles too.
+    """
+
+    datas: tuple[FrequencyData, ...]
+    priors: tuple
+    names: tuple[str, ...]
+    models: tuple[IntervalModel, ...]
+    bounds: tuple[np.ndarray, ...]
+
+    def predicted_control_model(self, index: int, omega_rad_s: float, settings) -> IntervalModel:
+        """The control output's model after a dwell at candidate ``index`` (``omega_rad_s``)."""
+        w = np.array([omega_rad_s])
+        augmented = [data.appended(FrequencyData(w, model.midpoint.frequency_response(w), [float(bound[index])]))
+                     for data, model, bound in zip(self.datas, self.models, self.bounds)]
+        trial = identify_outputs(augmented, list(self.priors), list(self.names), previous=list(self.models), settings=settings)
+        return trial.models[0]
+
+
 def choose_input(
     result,
     data: FrequencyData,
@@ -168,6 +194,7 @@ def choose_input(
     exact_resolve_top: int = 5,
     identify_settings=None,
     cost_s: np.ndarray | None = None,
+    other_outputs: OtherOutputs | None = None,
 ) -> InputChoice:
     """Algorithm 5.1 steps 6-7: rank the candidates and pick the next input.
 
@@ -193,6 +220,8 @@ def choose_input(
         Rig seconds a dwell at each candidate is expected to take. Given, candidates are ranked
         by improvement *per second* (approximate scores to pick the ones re-identified exactly,
         then the exact improvements); ``estimated_improvement`` stays the improvement itself.
+    other_outputs : OtherOutputs, optional
+        Several sensors: the exact re-solves predict every output's point (see there).
 
     Returns
     -------
@@ -211,10 +240,13 @@ def choose_input(
         for n, idx in enumerate(top):
             extra = FrequencyData([omega[idx]], [g_nominal[n]], [R[idx]])
             try:
-                trial = identify(data.appended(extra), prior, previous=model, settings=settings)
+                if other_outputs is None:
+                    trial_model = identify(data.appended(extra), prior, previous=model, settings=settings).model
+                else:
+                    trial_model = other_outputs.predicted_control_model(int(idx), float(omega[idx]), settings)
             except (InconsistentDataError, SolverError):
                 continue
-            new_width = np.minimum(trial.model.width, model.width)
+            new_width = np.minimum(trial_model.width, model.width)
             resolved[n] = float(improvement_from_widths(model.width, new_width, weights, scoring))
     # final ranking: exact improvement where available, the approximate score breaking ties
     exact_key = np.where(np.isnan(resolved), estimate[top], resolved) * per_second[top]
