@@ -18,6 +18,8 @@ never loosen (eq. 5.4-5.5), and the start is guaranteed (:mod:`setmem_hil.identi
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -552,10 +554,15 @@ def identify_outputs(datas: list[FrequencyData], priors: list[Prior], names: lis
     # start from each output identified alone: the joint set lies inside every one of them, so
     # the shared pole intervals can never end wider than the narrowest single-output interval
     # (the joint passes alone follow another path to their fixed point and may stop 1e-3 short)
+    # (independent problems: threads, since the conic solver spends most of its time outside the
+    # GIL; 1.6 s against 2.3 s for the public beam's two points on two cores)
     boxes, counter = [], _SolveCounter()
-    for k, (data, p) in enumerate(zip(datas, priors)):
+    with ThreadPoolExecutor(max_workers=max(1, min(K, os.cpu_count() or 1))) as pool:
+        singles = [pool.submit(identify, data, p, None if previous is None else previous[k], settings)
+                   for k, (data, p) in enumerate(zip(datas, priors))]
+    for k, single in enumerate(singles):  # in output order: the first output that fails is named
         try:
-            alone = identify(data, p, None if previous is None else previous[k], settings)
+            alone = single.result()
         except InconsistentDataError as exc:  # one sensor alone already contradicts the prior: say which
             raise InconsistentDataError(f"output {names[k]}: {exc}", omegas_rad_s=exc.omegas_rad_s, mode_index=exc.mode_index,
                                         suspects_rad_s=exc.suspects_rad_s) from None
