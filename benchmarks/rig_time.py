@@ -19,7 +19,7 @@ A naive "wait five time constants" rig is reported as a computed figure: every d
 
 Usage::
 
-    .venv/bin/python benchmarks/rig_time.py --seeds 10 --workers 2
+    .venv/bin/python benchmarks/rig_time.py --seeds 1-10 --workers 2
 """
 
 from __future__ import annotations
@@ -96,12 +96,14 @@ def run_one(config: str, seed: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--seeds", default="1-10", help="A-B (inclusive), or N for 1-N")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--only", help="comma-separated configurations")
     args = parser.parse_args()
     configs = args.only.split(",") if args.only else list(CONFIGS)
-    jobs = [(c, s) for c in configs for s in range(1, args.seeds + 1)]
+    first, _, last = args.seeds.partition("-")
+    seeds = range(1, int(first) + 1) if not last else range(int(first), int(last) + 1)
+    jobs = [(c, s) for c in configs for s in seeds]
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(run_one, *zip(*jobs)))
     baseline = statistics.median(r["rig_s"] for r in results if r["config"] == "single-sine") if "single-sine" in configs else None

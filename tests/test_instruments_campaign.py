@@ -274,3 +274,14 @@ def test_transport_settings_with_instruments_are_refused_not_ignored(tmp_path, c
     assert main(["run", "--check", str(path)]) == 2
     err = capsys.readouterr().err
     assert "[backend.transport]" in err and "[instruments.<name>]" in err
+
+
+def test_multisine_on_lock_ins_exits_2_naming_the_instrument_and_the_key(tmp_path, capsys):
+    """Issue 26's contract: lock-ins demodulate one frequency, so `[dwell] signal = "multisine"`
+    on them is exit 2 naming the instrument and the key, before any instrument is touched."""
+    text = (Path(__file__).resolve().parents[1] / "procedures" / "instruments_emulated.toml").read_text()
+    proc = tmp_path / "multisine.toml"
+    proc.write_text(text + '\n[dwell]\nsignal = "multisine"\n', encoding="utf-8")
+    assert main(["run", str(proc), "--out", str(tmp_path / "run"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "[dwell] key 'signal'" in err[0] and "[instruments.lia_force]" in err[0] and "lock-in" in err[0]

@@ -85,7 +85,20 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
         raise ProcedureError(_source(procedure), "[backend] key 'response'",
                              f"several response lock-ins ({', '.join(backend.response_instruments())}) are not supported yet; "
                              "read several response sensors through DAQ channels (profile ni-daqmx)")
+    if procedure.dwell_signal == "multisine":
+        raise ProcedureError(_source(procedure), "[dwell] key 'signal'", _multisine_refusal(procedure, found))
     return found
+
+
+def _multisine_refusal(procedure: Procedure, found: dict) -> str:
+    """Why this instrument rig cannot play multisine records, naming the instrument (issue 26)."""
+    backend = procedure.backend
+    settings, profile, _ = found[backend.force]
+    if profile.kind == "scpi-lockin":
+        return (f"multisine needs sampled sensors (a DAQ) and an arbitrary-waveform generator; [instruments.{settings.name}] "
+                f"is a lock-in ({profile.model}), which demodulates one frequency")
+    return (f"multisine needs an exciter that plays a sum of sines; [instruments.{backend.exciter}] is driven as a single-sine "
+            "generator (arbitrary waveforms are not supported yet)")
 
 
 def instrument_warnings(procedure: Procedure) -> list[str]:

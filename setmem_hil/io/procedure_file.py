@@ -638,7 +638,8 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
     instruments = _instruments(top, backend)
     unmodelled_bound = top.sub("identification").get("unmodelled_bound")
     dwell_signal = top.sub("dwell").get("signal", "sine")
-    if dwell_signal == "multisine" and backend.kind not in MULTISINE_BACKENDS:
+    # instruments: check_instruments decides, from the profiles (lock-ins or sampled sensors)
+    if dwell_signal == "multisine" and backend.kind not in (*MULTISINE_BACKENDS, "instruments"):
         raise ProcedureError(top.source, "[dwell] key 'signal'", f"multisine needs an exciter that plays a sum of sines "
                              f"(kind {' or '.join(repr(k) for k in MULTISINE_BACKENDS)}); the {backend.kind} exciter plays single sines only")
     return Procedure(
