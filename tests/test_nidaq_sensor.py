@@ -129,28 +129,9 @@ omega_rad_s = [3.0]
 
 
 def _daq_from_bench(bench):
-    """A nidaqmx stand-in sampling the emulated bench's steady state (what the generator drives)."""
-
-    class Task:
-        def __init__(self):
-            self.ai_channels = types.SimpleNamespace(add_ai_voltage_chan=lambda *a, **k: None)
-            self.timing = types.SimpleNamespace(cfg_samp_clk_timing=self._timing)
-
-        def _timing(self, rate, **k):
-            self.rate, self.n = rate, k["samps_per_chan"]
-
-        def read(self, **k):
-            t = np.arange(self.n) / self.rate
-            w = 2 * math.pi * bench.frequency_hz
-            force = bench.force_amplitude_n * np.sin(w * t)
-            g = bench.true_response(w)
-            resp = bench.force_amplitude_n * abs(g) * np.sin(w * t + np.angle(g))
-            return [(0.0225 * force).tolist(), (0.004 * resp).tolist()]
-
-        def close(self):
-            pass
-
-    return types.SimpleNamespace(Task=Task, constants=nidaqmx.constants, errors=nidaqmx.errors)
+    """A nidaqmx stand-in sampling the emulated bench's steady state (what the generator drives):
+    force on ai0, the bench's own response sensor on ai1."""
+    return _three_channel_daq(bench, {"Dev1/ai1": (bench.params, 0.004)})
 
 
 @pytest.mark.parametrize("gain_ratio", [1.0, 1.2])
