@@ -95,17 +95,33 @@ class BenchSettings:
     noise_v_per_rthz: tuple[float, float] = (2e-6, 2e-6)  # at the lock-in inputs (force, response)
     seed: int = 0
     relock_s: float = 0.0  # the lock-ins report "unlocked" this long after every frequency step
+    other_response_volt_per_unit: tuple[float, ...] = ()  # more response sensors (issue 25): lock-ins "response2", ...
 
 
 class EmulatedBench:
-    """The physics behind the emulated instruments (thread-safe; one lock for every command)."""
+    """The physics behind the emulated instruments (thread-safe; one lock for every command).
 
-    def __init__(self, params: ModalParameters, settings: BenchSettings = BenchSettings(), clock: VirtualClock | None = None):
+    ``other_outputs`` are more response sensors on the same structure (issue 25): the same poles
+    (checked), their own residues, so one more output row of the same state each; their lock-ins
+    are ``"response2"``, ``"response3"``, ... with ``settings.other_response_volt_per_unit``.
+    """
+
+    def __init__(self, params: ModalParameters, settings: BenchSettings = BenchSettings(), clock: VirtualClock | None = None,
+                 other_outputs: tuple[ModalParameters, ...] = ()):
         self.params = params
         self.settings = settings
         self.clock = clock or VirtualClock()
         A, B, C, _ = params.state_space_matrices()
-        self._A, self._B, self._C = A, B[:, 0], C[0]
+        self._A, self._B = A, B[:, 0]
+        if len(other_outputs) != len(settings.other_response_volt_per_unit):
+            raise ValueError(f"{len(other_outputs)} other outputs but {len(settings.other_response_volt_per_unit)} sensitivities")
+        self.outputs = (params, *other_outputs)
+        rows = [C[0]]
+        for other in other_outputs:
+            if not np.allclose(other.values[:, :2], params.values[:, :2], rtol=1e-12, atol=0.0):
+                raise ValueError("every output of the emulated bench must have the same poles")
+            rows.append(other.state_space_matrices()[2][0])
+        self._C = dict(zip(self.response_names(len(rows)), rows))
         self.x = np.zeros(A.shape[0])
         self.frequency_hz = 1000.0
         self.frequency_set_at = -math.inf  # clock time of the last frequency change (lock-in relock)
@@ -119,6 +135,8 @@ class EmulatedBench:
             "force": LockInState(settings.force_volt_per_unit * (1 + ef), noise_v_per_rthz=nf),
             "response": LockInState(settings.response_volt_per_unit * (1 + er), noise_v_per_rthz=nr),
         }
+        for name, vpu in zip(self.response_names(len(rows))[1:], settings.other_response_volt_per_unit):
+            self.lockins[name] = LockInState(vpu * (1 + er), noise_v_per_rthz=nr)
         self.rng = np.random.default_rng(settings.seed)
         self.lock = threading.RLock()
         self.peak_force_n = 0.0  # the largest force amplitude ever applied (tests check the 5 % rule)
@@ -163,8 +181,14 @@ class EmulatedBench:
         with self.lock:
             return self.clock.now() - self.frequency_set_at >= self.settings.relock_s
 
-    def true_response(self, omega_rad_s: float) -> complex:
-        return complex(np.ravel(self.params.frequency_response(np.array([float(omega_rad_s)])))[0])
+    @staticmethod
+    def response_names(n_outputs: int) -> tuple[str, ...]:
+        """The response lock-ins' names: ``"response"``, then ``"response2"``, ``"response3"``..."""
+        return ("response",) + tuple(f"response{k}" for k in range(2, n_outputs + 1))
+
+    def true_response(self, omega_rad_s: float, output: int = 0) -> complex:
+        """The structure's receptance at ``omega`` seen by response sensor ``output`` (0: the first)."""
+        return complex(np.ravel(self.outputs[output].frequency_response(np.array([float(omega_rad_s)])))[0])
 
     # -- physics ---------------------------------------------------------------------------------
     def advance(self) -> None:
@@ -179,31 +203,34 @@ class EmulatedBench:
         self.t = now
 
     def _system(self, omega: float, dt: float) -> np.ndarray:
-        lf, lr = self.lockins["force"], self.lockins["response"]
-        key = (omega, dt, lf.tau_s, lf.order, lr.tau_s, lr.order, lf.volt_per_unit, lr.volt_per_unit)
+        """The transition matrix over ``dt``: structure (demodulated), drive and every lock-in's
+        filter cascade (force first, then the responses in :meth:`response_names` order)."""
+        chain = list(self.lockins.items())
+        key = (omega, dt, *((li.tau_s, li.order, li.volt_per_unit) for _, li in chain))
         phi = self._cache.get(key)
         if phi is not None:
             return phi
         n = self._A.shape[0]
-        mf, mr = lf.order, lr.order
-        size = n + 2 + mf + mr
+        size = n + 2 + sum(li.order for _, li in chain)
         M = np.zeros((size, size), complex)
-        ic, ir, i_f, i_r = n, n + 1, n + 2, n + 2 + mf
+        ic, ir = n, n + 1
         M[:n, :n] = self._A - 1j * omega * np.eye(n)
         M[:n, ic] = self._B
         M[:n, ir] = self._B
         M[ir, ir] = -2j * omega
         gain = 1j * math.sqrt(2.0)
-        for start, m, li, drive in ((i_f, mf, lf, "force"), (i_r, mr, lr, "response")):
+        start = n + 2
+        for name, li in chain:
             k = 1.0 / li.tau_s
-            if drive == "force":
+            if name == "force":
                 M[start, ic] = M[start, ir] = gain * li.volt_per_unit * k
             else:
-                M[start, :n] = gain * li.volt_per_unit * self._C * k
-            for j in range(m):
+                M[start, :n] = gain * li.volt_per_unit * self._C[name] * k
+            for j in range(li.order):
                 M[start + j, start + j] = -k
                 if j:
                     M[start + j, start + j - 1] = k
+            start += li.order
         with blas_one_thread():
             phi = expm(M * dt)
         if len(self._cache) > 256:
@@ -214,15 +241,17 @@ class EmulatedBench:
     def _advance_signal(self, dt: float) -> None:
         omega = 2 * math.pi * self.frequency_hz
         force = self.force_amplitude_n
-        lf, lr = self.lockins["force"], self.lockins["response"]
         n = self.x.size
         c = force / 2j
-        state = np.concatenate([self.x * np.exp(-1j * self.phase), [c, -c * np.exp(-2j * self.phase)], lf.filters, lr.filters])
+        chain = list(self.lockins.values())
+        state = np.concatenate([self.x * np.exp(-1j * self.phase), [c, -c * np.exp(-2j * self.phase)], *(li.filters for li in chain)])
         state = self._system(omega, dt) @ state
         self.phase = (self.phase + omega * dt) % (2 * math.pi)
         self.x = np.real(state[:n] * np.exp(1j * self.phase))
-        lf.filters = state[n + 2:n + 2 + lf.order].copy()
-        lr.filters = state[n + 2 + lf.order:].copy()
+        start = n + 2
+        for li in chain:
+            li.filters = state[start:start + li.order].copy()
+            start += li.order
 
     def _advance_noise(self, li: LockInState, dt: float) -> None:
         """White input noise through the filter cascade, in steps of tau/8 (only the last 40 tau

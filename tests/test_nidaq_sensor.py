@@ -236,7 +236,7 @@ def test_several_daq_response_channels_are_outputs_with_their_own_bounds(control
         server.close()
 
 
-def test_several_response_lock_ins_are_refused_naming_them():
+def test_several_response_lock_ins_are_each_checked_as_a_response():
     from setmem_hil.errors import ProcedureError
     from setmem_hil.drivers.instruments.instrument_set import check_instruments
     from setmem_hil.io.procedure_file import parse_procedure_text
@@ -248,8 +248,12 @@ def test_several_response_lock_ins_are_refused_naming_them():
                     for n, p in (("lia1", 5026), ("lia2", 5027)))
     text = text.replace('profile = "ni-daqmx"\nresource = "Dev1/ai0"', 'profile = "srs-sr860"\nresource = "TCPIP::127.0.0.1::5028::SOCKET"')
     procedure = parse_procedure_text(text, "two-lockins.toml")
-    with pytest.raises(ProcedureError, match=r"several response lock-ins \(lia1, lia2\)"):
-        check_instruments(procedure)
+    checked = check_instruments(procedure)  # several lock-ins are read together (tests/test_several_lockins.py)
+    assert [checked[n][2] for n in ("lia1", "lia2")] == ["response", "response"]
+    mixed = parse_procedure_text(text.replace('profile = "srs-sr860"\nresource = "TCPIP::127.0.0.1::5027::SOCKET"',
+                                              'profile = "ni-daqmx"\nresource = "Dev1/ai3"'), "mixed.toml")
+    with pytest.raises(ProcedureError, match="must both be lock-ins or both DAQ channels"):
+        check_instruments(mixed)
 
 
 def test_a_channel_at_its_rails_is_refused_naming_it():

@@ -81,10 +81,6 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
     if len(kinds) > 1:
         raise ProcedureError(_source(procedure), "[backend] key 'response'", "force and response must both be lock-ins or both "
                              f"DAQ channels, found {' and '.join(sorted(kinds))}")
-    if len(backend.response_instruments()) > 1 and kinds == {"scpi-lockin"}:
-        raise ProcedureError(_source(procedure), "[backend] key 'response'",
-                             f"several response lock-ins ({', '.join(backend.response_instruments())}) are not supported yet; "
-                             "read several response sensors through DAQ channels (profile ni-daqmx)")
     if procedure.dwell_signal == "multisine":
         raise ProcedureError(_source(procedure), "[dwell] key 'signal'", _multisine_refusal(procedure, found))
     return found
@@ -199,16 +195,15 @@ def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = No
     checked = check_instruments(procedure)
     if isinstance(checked[procedure.backend.force][1], DaqProfile):
         return open_daq_experiment(procedure, checked, extra_bound=extra_bound)
-    opened = {}
+    opened = {}  # instrument name -> opened driver, in the order checked: exciter, force, responses
     try:
         for name, (settings, profile, role) in checked.items():
-            opened[role] = open_instrument(settings, profile)
+            opened[name] = open_instrument(settings, profile)
         identities = {}
-        for role in ROLES:  # identities first: a wrong instrument never sees an init command
-            identities[opened[role].name] = opened[role].check_identity()
-        opened["exciter"].initialise()  # output forced off first
-        opened["force"].initialise()
-        opened["response"].initialise()
+        for inst in opened.values():  # identities first: a wrong instrument never sees an init command
+            identities[inst.name] = inst.check_identity()
+        for inst in opened.values():  # the exciter first: its output is forced off before anything else
+            inst.initialise()
     except BaseException:
         for inst in opened.values():
             inst.close()
@@ -218,11 +213,12 @@ def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = No
     backend = procedure.backend
     exciter = procedure.instruments[backend.exciter]
     force = procedure.instruments[backend.force]
-    response = procedure.instruments[backend.response]
+    responses = [procedure.instruments[name] for name in backend.response_instruments()]  # control output first (issue 25)
+    channels = [SensorChannel(r.volt_per_unit, r.calibration_uncertainty, r.quantity or "displacement") for r in responses]
     return PhasorDwellExperiment(
-        source=opened["exciter"], force=opened["force"], response=opened["response"],
+        source=opened[exciter.name], force=opened[force.name], response=opened[responses[0].name],
         force_sensor=SensorChannel(force.volt_per_unit, force.calibration_uncertainty, force.quantity or "force"),
-        response_sensor=SensorChannel(response.volt_per_unit, response.calibration_uncertainty, response.quantity or "displacement"),
+        response_sensor=channels[0],
         drive=DriveChannel(exciter.newton_per_volt, exciter.max_drive_v if exciter.max_drive_v is not None else math.inf),
         limits=procedure.safety,
         clock=clock or WallClock(),
@@ -233,4 +229,6 @@ def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = No
         owned=owned,
         identities=identities,
         model=procedure.prior.initial_bounds(),
+        other_responses=tuple(opened[r.name] for r in responses[1:]),
+        other_sensors=tuple(channels[1:]),
     )

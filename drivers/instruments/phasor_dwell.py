@@ -135,6 +135,9 @@ class PhasorDwellExperiment:
     gain_estimate: float = 0.0
     closed: bool = False
     identities: dict = field(default_factory=dict)  # instrument name -> identity answer (journaled)
+    other_responses: tuple = ()  # more response lock-ins (issue 25): every dwell reads them all
+    other_sensors: tuple = ()  # their sensors, in the same order
+    output_models: tuple = ()  # every output's interval model, control first (None: self.model for all)
 
     @property
     def exciter(self) -> str:
@@ -143,7 +146,27 @@ class PhasorDwellExperiment:
     def __post_init__(self) -> None:
         if self.force_sensor.quantity != "force":
             raise SafetyLimitError(f"the force lock-in's sensor measures {self.force_sensor.quantity!r}; it must measure force")
+        if len(self.other_responses) != len(self.other_sensors):
+            raise ValueError(f"{len(self.other_responses)} other response lock-ins but {len(self.other_sensors)} sensors")
         self.gain_estimate = self.drive.newton_per_volt
+
+    @property
+    def _responses(self) -> tuple[LockIn, ...]:
+        """Every response lock-in, the control output's first."""
+        return (self.response, *self.other_responses)
+
+    @property
+    def _response_sensors(self) -> tuple[SensorChannel, ...]:
+        return (self.response_sensor, *self.other_sensors)
+
+    @property
+    def _lockins(self) -> tuple[LockIn, ...]:
+        return (self.force, *self._responses)
+
+    def _model_of(self, output: int):
+        """Output ``output``'s interval model (its own residues once identified; the shared
+        model until then)."""
+        return self.output_models[output] if len(self.output_models) > output else self.model
 
     # -- the Experiment protocol -----------------------------------------------------------------
     def measure(self, omega_rad_s: float) -> Measurement:
@@ -157,7 +180,7 @@ class PhasorDwellExperiment:
         try:
             self.source.set_frequency_hz(frequency_hz)
             tau = self._set_time_constants(omega_rad_s)
-            for li in (self.force, self.response):  # every dwell starts on the largest full scale
+            for li in self._lockins:  # every dwell starts on the largest full scale
                 li.set_range_for(complex(math.inf, 0.0))
             self._wait_locked(frequency_hz)
             self._level_up(target)
@@ -166,9 +189,9 @@ class PhasorDwellExperiment:
             self._auto_range()  # after the wait: a lightly damped response is still growing before it
             all_f, all_r, times = self._settle_and_read(omega_rad_s, target)
             window = slice(-2 * self.settings.readings_per_half, None)
-            force_v, response_v = all_f[window], all_r[window]
-            allowance = self._free_response_allowance(omega_rad_s, tau, times[window], force_v)
-            trend = self._trend_gap(all_f, all_r, times)
+            force_v = all_f[window]
+            allowances = [self._free_response_allowance(omega_rad_s, tau, times[window], force_v, k) for k in range(len(all_r))]
+            trends = [self._trend_gap(all_f, r, times, k) for k, r in enumerate(all_r)]
             self._ramp_down(target)
         except BaseException:
             self._output_off_keeping_the_cause()  # Ctrl-C stays Ctrl-C, a fault stays that fault
@@ -180,22 +203,30 @@ class PhasorDwellExperiment:
             self.rig_s += self.last_dwell_s
         self.counters["dwells"] += 1
         self.n_measured += 1
-        point = phasor_point(force_v, response_v, self.force_sensor.volt_per_unit, self.response_sensor.volt_per_unit,
-                             self.force_sensor.calibration_uncertainty, self.response_sensor.calibration_uncertainty,
-                             self.settings.confidence)
-        quantity = self.response_sensor.quantity
-        g = to_receptance(point.response, omega_rad_s, quantity)
-        bound = (point.bound + trend) * _receptance_scale(omega_rad_s, quantity)
-        bound += allowance * _receptance_scale(omega_rad_s, "displacement")
-        self.last_ringdown["trend"] = trend
+        self.last_ringdown["allowance"], self.last_ringdown["trend"] = allowances[0], trends[0]
+        outputs = [self._output_point(omega_rad_s, force_v, r[window], self._response_sensors[k], allowances[k], trends[k])
+                   for k, r in enumerate(all_r)]
+        (g, bound, point), others = outputs[0], tuple((g_k, b_k) for g_k, b_k, _ in outputs[1:])
         if self._free is not None:  # what the structure did: caps its free ringing from now on
-            own = point.bound * _receptance_scale(omega_rad_s, quantity)  # statistical: no allowance fed back
+            own = point.bound * _receptance_scale(omega_rad_s, self.response_sensor.quantity)  # statistical: no allowance fed back
             self._free.record_motion(self.clock.now(), (abs(g) + own) * point.force_amplitude)
+        log.info("dwell at %.6g rad/s: %d readings, %.1f s, force %.4g N, |g| %.4g, bound %.3g%s", omega_rad_s, point.n_readings,
+                 self.last_dwell_s, point.force_amplitude, abs(g), bound, f", {len(others)} more outputs" if others else "")
+        return Measurement(float(omega_rad_s), complex(g), float(bound), rig_s=float(self.last_dwell_s), others=others)
+
+    def _output_point(self, omega_rad_s: float, force_v: np.ndarray, response_v: np.ndarray, sensor: SensorChannel,
+                      allowance: float, trend: float):
+        """One output's receptance and its bound: the readings' point (:func:`phasor_point`) and
+        trend gap in the sensor's quantity, the free-response allowance (receptance) and
+        ``extra_bound`` (``|W1|``: the unmodelled modes at every sensor)."""
+        point = phasor_point(force_v, response_v, self.force_sensor.volt_per_unit, sensor.volt_per_unit,
+                             self.force_sensor.calibration_uncertainty, sensor.calibration_uncertainty, self.settings.confidence)
+        g = to_receptance(point.response, omega_rad_s, sensor.quantity)
+        bound = (point.bound + trend) * _receptance_scale(omega_rad_s, sensor.quantity)
+        bound += allowance * _receptance_scale(omega_rad_s, "displacement")
         if self.extra_bound is not None:
             bound += float(self.extra_bound(omega_rad_s))
-        log.info("dwell at %.6g rad/s: tau %.3g s, %d readings, %.1f s, force %.4g N, |g| %.4g, bound %.3g",
-                 omega_rad_s, tau, point.n_readings, self.last_dwell_s, point.force_amplitude, abs(g), bound)
-        return Measurement(float(omega_rad_s), complex(g), float(bound), rig_s=float(self.last_dwell_s))
+        return complex(g), float(bound), point
 
     def _expected_response(self, omega_rad_s: float) -> float:
         """|G| of the model's midpoint (nan while residues are unbounded)."""
@@ -206,6 +237,11 @@ class PhasorDwellExperiment:
         """The campaign's interval model after each identification: tighter damping bounds
         shorten the wait and the allowance of later dwells."""
         self.model = model
+
+    def update_output_models(self, models) -> None:
+        """Every output's interval model (control first; several sensors, issue 25): each
+        output's free-response allowance uses its own residues."""
+        self.output_models = tuple(models)
 
     def _wait_out_ringing(self, omega_rad_s: float, tau: float) -> None:
         """Wait ``DECAY_TIMES`` decay times of every mode whose beat passes the output filter
@@ -229,38 +265,38 @@ class PhasorDwellExperiment:
         if wait > 0:
             self._wait(wait)
 
-    def _free_response_allowance(self, omega_rad_s: float, tau: float, times: np.ndarray, force_v: np.ndarray) -> float:
-        """What the modes' free response may still add to the mean of the readings (receptance
-        units; :class:`~setmem_hil.estimation.ringdown.FreeResponseBound`)."""
-        allowance = 0.0
-        if self._free is not None:
-            force_n = self._force_amplitude(complex(np.mean(force_v)))
-            allowance = self._free.allowance(self.model, times, omega_rad_s, tau, self._filter_order, force_n)
-        self.last_ringdown["allowance"] = allowance
-        return allowance
+    def _free_response_allowance(self, omega_rad_s: float, tau: float, times: np.ndarray, force_v: np.ndarray, output: int = 0) -> float:
+        """What the modes' free response may still add to the mean of output ``output``'s
+        readings (receptance units; :class:`~setmem_hil.estimation.ringdown.FreeResponseBound`
+        with that output's residues)."""
+        if self._free is None:
+            return 0.0
+        force_n = self._force_amplitude(complex(np.mean(force_v)))
+        return self._free.allowance(self._model_of(output), times, omega_rad_s, tau, self._filter_order, force_n)
 
-    def _still_ringing(self, forces: list, responses: list, times: list, window: np.ndarray) -> bool:
+    def _still_ringing(self, forces: list, responses: list, times: list, window: np.ndarray, output: int = 0) -> bool:
         """A ringing mode the halves test cannot see (its beat inflates the scatter instead of
         shifting the mean): the exponential fit of every reading still shows a transient above
         the fit's residual noise. Reading on lets it decay (up to ``max_dwell_s``)."""
-        _, ringing_now = exponential_trend(np.array(times), self._ratios(forces, responses), complex(window.mean()),
+        _, ringing_now = exponential_trend(np.array(times), self._ratios(forces, responses, output), complex(window.mean()),
                                            self.settings.confidence)
         return ringing_now > 0
 
-    def _trend_gap(self, force_v: np.ndarray, response_v: np.ndarray, times: np.ndarray) -> float:
+    def _trend_gap(self, force_v: np.ndarray, response_v: np.ndarray, times: np.ndarray, output: int = 0) -> float:
         """The exponential trend of every reading of the dwell (:func:`exponential_gap`), in the
         ratio's units: what a transient slower than the window may still hide."""
-        ratio = self._ratios(force_v, response_v)
+        ratio = self._ratios(force_v, response_v, output)
         window = ratio[-2 * self.settings.readings_per_half:]
         return exponential_gap(times, ratio, complex(window.mean()), self.settings.confidence)
 
-    def _ratios(self, forces, responses) -> np.ndarray:
+    def _ratios(self, forces, responses, output: int = 0) -> np.ndarray:
         """Each reading's response per force, in the sensors' units."""
-        return (np.asarray(responses) / self.response_sensor.volt_per_unit) / (np.asarray(forces) / self.force_sensor.volt_per_unit)
+        sensor = self._response_sensors[output]
+        return (np.asarray(responses) / sensor.volt_per_unit) / (np.asarray(forces) / self.force_sensor.volt_per_unit)
 
     @property
     def _filter_order(self) -> int:
-        return max(self.force.profile.filter_order, self.response.profile.filter_order)
+        return max(li.profile.filter_order for li in self._lockins)
 
     def confirm_output_off(self) -> None:
         """Output off, read back (a fresh connection if the link failed); raises when it cannot
@@ -274,7 +310,7 @@ class PhasorDwellExperiment:
         try:
             self._output_off()
         finally:
-            for inst in (self.source, self.force, self.response, *self.owned):
+            for inst in (self.source, *self._lockins, *self.owned):
                 try:
                     inst.close()
                 except Exception as exc:  # noqa: BLE001 - close everything, report nothing over the cause
@@ -317,9 +353,11 @@ class PhasorDwellExperiment:
             wanted = leak_time_constant(self._free, self.model, omega_rad_s, self._filter_order, self.clock.now(), values, base,
                                         self._target_force(), self._expected_response(omega_rad_s))
         tau = self.force.set_time_constant(wanted)
-        tau_r = self.response.set_time_constant(tau)
-        if tau_r != tau:  # different instruments: use the longer for both
-            tau = self.force.set_time_constant(tau_r)
+        taus = [li.set_time_constant(tau) for li in self._responses]
+        if any(t != tau for t in taus):  # different instruments: the longest for all
+            tau = max(taus + [tau])
+            for li in self._lockins:
+                li.set_time_constant(tau)
         return tau
 
     def _wait(self, duration_s: float) -> None:
@@ -331,7 +369,7 @@ class PhasorDwellExperiment:
             self.source.keepalive()
 
     def _settle_time(self) -> float:
-        return max(self.force.settling_time_s, self.response.settling_time_s)
+        return max(li.settling_time_s for li in self._lockins)
 
     def _drive_volts(self, volts: float) -> float:
         vlo, vhi = self.source.amplitude_limits_v
@@ -407,7 +445,7 @@ class PhasorDwellExperiment:
         """Both lock-ins to the smallest full scale with room for the signal (better resolution
         and dynamic reserve for small responses); the readings keep their units (volts)."""
         changed = False
-        for li in (self.force, self.response):
+        for li in self._lockins:
             changed |= li.set_range_for(self._read(li))
         if changed:
             self._wait(self._settle_time() / 10.0)
@@ -445,7 +483,7 @@ class PhasorDwellExperiment:
     RELOCK_TAUS = 10.0
 
     def relock_timeout_s(self, frequency_hz: float) -> float:
-        tau = max(self.force.time_constant_s, self.response.time_constant_s)
+        tau = max(li.time_constant_s for li in self._lockins)
         return max(self.RELOCK_MIN_S, self.RELOCK_PERIODS / frequency_hz + self.RELOCK_TAUS * tau)
 
     def _wait_locked(self, frequency_hz: float, after_unlock: bool = False) -> None:
@@ -456,7 +494,7 @@ class PhasorDwellExperiment:
         poll = max(0.005, timeout / 200.0)
         start = self.clock.now()
         waited = False
-        for li in (self.force, self.response):
+        for li in self._lockins:
             while not li.locked():
                 waited = True
                 if self.clock.now() - start > timeout:
@@ -467,7 +505,7 @@ class PhasorDwellExperiment:
             self._wait(self._settle_time())
 
     def _check_reference(self, frequency_hz: float) -> None:
-        for li in (self.force, self.response):
+        for li in self._lockins:
             ref = li.reference_frequency_hz()
             if abs(ref / frequency_hz - 1.0) > self.settings.reference_tolerance:
                 raise DeviceRejectedError("instrument", f"{li.where}: reference at {ref:.6g} Hz, the drive at {frequency_hz:.6g} Hz: "
@@ -476,23 +514,24 @@ class PhasorDwellExperiment:
     def _settle_and_read(self, omega_rad_s: float, target: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Readings spaced irregularly (``SPACING_PATTERN`` times the filters' settling time, so
         that a ringing mode's beat cannot alias into a constant) until the settling test passes
-        twice in a row; returns every force and response reading and their clock times (the
-        window is the last ``2 m``)."""
+        twice in a row for every output; returns every force reading, every output's response
+        readings (one row per output, control first) and their clock times (the window is the
+        last ``2 m``)."""
         m = self.settings.readings_per_half
         start = self.clock.now()
         forces: list[complex] = []
-        responses: list[complex] = []
+        responses: list[list[complex]] = [[] for _ in self._responses]
         times: list[float] = []
         passes = 0
         while True:
             times.append(self.clock.now())
             forces.append(self._read_force())
-            responses.append(self._read(self.response))
-            self._check_response(responses[-1], omega_rad_s)
+            for readings, li in zip(responses, self._responses):
+                readings.append(self._read(li))
+            self._check_response(responses[0][-1], omega_rad_s)
             spacing = self._settle_time() * SPACING_PATTERN[len(forces) % len(SPACING_PATTERN)]
             if len(forces) >= 2 * m:
-                ratio = self._ratios(forces[-2 * m:], responses[-2 * m:])
-                settled = settling_test(ratio, self.settings.confidence) and not self._still_ringing(forces, responses, times, ratio)
+                settled = all(self._output_settled(forces, r, times, k) for k, r in enumerate(responses))
                 passes = passes + 1 if settled else 0
                 if passes >= 2:  # two windows in a row: one lucky draw does not end the dwell
                     return np.array(forces), np.array(responses), np.array(times)
@@ -502,6 +541,12 @@ class PhasorDwellExperiment:
                                 omega_rad_s, self.limits.max_dwell_s)
                     return np.array(forces), np.array(responses), np.array(times)
             self._wait(spacing)
+
+    def _output_settled(self, forces: list, responses: list, times: list, output: int) -> bool:
+        """The halves test and the exponential-trend test on one output's last ``2 m`` readings."""
+        m = self.settings.readings_per_half
+        ratio = self._ratios(forces[-2 * m:], responses[-2 * m:], output)
+        return settling_test(ratio, self.settings.confidence) and not self._still_ringing(forces, responses, times, ratio, output)
 
     def _check_response(self, r_v: complex, omega_rad_s: float) -> None:
         if self.max_response is None:

@@ -56,6 +56,7 @@ from setmem_hil.model.experiment import (
     Experiment,
     Measurement,
     ModelAwareExperiment,
+    OutputModelsAwareExperiment,
     PlanningExperiment,
     MultisineExperiment,
     OutputConfirmingExperiment,
@@ -528,6 +529,8 @@ def run_campaign(
         model = result.model if previous_model is None else result.model.intersect(previous_model)
         if isinstance(experiment, ModelAwareExperiment):  # later dwells model their transients with these poles
             experiment.update_model(model)
+        if sensor_models is not None and isinstance(experiment, OutputModelsAwareExperiment):
+            experiment.update_output_models(sensor_models)
         with blas_one_thread():
             outcome = safeguarded_design(model, previous_outcome, analyze)
         analysis = outcome.analysis

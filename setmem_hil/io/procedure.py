@@ -89,6 +89,8 @@ class EmulationSettings:
     noise_v_per_rthz: float = 2e-6  # lock-in input noise density
     damping: float | None = None  # damping ratio of every emulated mode (None: the beam's 0.01)
     relock_s: float = 0.0  # the emulated lock-ins relock this long after every frequency step
+    sensors: tuple[float, ...] = (1.0,)  # emulated sensor position per response instrument, in [backend] response's order
+    actuator: float = 1.0  # where the emulated force acts
 
 
 @dataclass(frozen=True)

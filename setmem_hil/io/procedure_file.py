@@ -120,13 +120,15 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("backend", "faults", "table", "", "", "Fault injection of the fake devices (issue 8). Not allowed with kind = \"sim\"."),
     KeySpec("backend", "exciter", "string", "", "required with kind = \"instruments\"", "The [instruments.<name>] that drives the shaker (a generator or a Modbus controller)."),
     KeySpec("backend", "force", "string", "", "required with kind = \"instruments\"", "The [instruments.<name>] lock-in reading the force sensor."),
-    KeySpec("backend", "response", "names", "", "required with kind = \"instruments\"", "The [instruments.<name>] reading the response sensor (a lock-in or a DAQ channel); an array of names for several response sensors (DAQ channels, issue 25): every dwell reads all of them, shared poles."),
+    KeySpec("backend", "response", "names", "", "required with kind = \"instruments\"", "The [instruments.<name>] reading the response sensor (a lock-in or a DAQ channel); an array of names for several response sensors (lock-ins or DAQ channels, issue 25): every dwell reads all of them, shared poles."),
     KeySpec("backend", "control_output", "output", "", 1, "With several response instruments: the one whose model the robust analysis, the H2 design and the input design use (the collocated sensor), by index from 1 in the order of response or by name.", ge=1),
     KeySpec("backend", "emulation", "table", "", "absent: real instruments", "kind = \"instruments\" only: start emulators of the named instruments on their 127.0.0.1 resources, backed by the simulated beam on a virtual clock (CI, demos, rehearsals)."),
     KeySpec("backend.emulation", "drive_gain_ratio", "number", "", 1.0, "True drive gain of the emulated amplifier over the declared newton_per_volt.", gt=0.0, le=10.0),
     KeySpec("backend.emulation", "noise_v_per_rthz", "number", "V/sqrt(Hz)", 2e-6, "Noise density at the emulated lock-ins' inputs.", ge=0.0, le=1.0),
     KeySpec("backend.emulation", "damping", "number", "", "0.01 (the beam's)", "Damping ratio of every emulated mode (lightly damped structures: 0.002, 0.0005).", gt=0.0, le=0.5),
     KeySpec("backend.emulation", "relock_s", "number", "s", 0.0, "Time the emulated lock-ins need to relock their reference after a frequency step.", ge=0.0, le=60.0),
+    KeySpec("backend.emulation", "sensors", "numbers", "", "[1.0] (the tip)", "Where each response instrument's emulated displacement sensor sits on the cantilever (fraction of its length from the clamp), one per name in [backend] response, in that order (issue 25); required with several response instruments.", gt=0.0, le=1.0),
+    KeySpec("backend.emulation", "actuator", "number", "", 1.0, "Where the emulated shaker's force acts (fraction of the length from the clamp; the thesis: the tip).", gt=0.0, le=1.0),
     KeySpec("backend.simulation", "noise_profile", "choice", "", _SIM.noise_profile, "Additive-noise bound R(omega) of section 6.2: fully damped model (6.3.2), SNR 10 (6.3.3), resonance noise (6.3.4) or none.", choices=NOISE_PROFILES),
     KeySpec("backend.simulation", "noise_scale", "number", "", _SIM.noise_scale, "Multiplies the noise bound.", ge=0.0),
     KeySpec("backend.simulation", "first_mode_rad_s", "number", "rad/s", _SIM.first_mode_rad_s, "First natural frequency of the simulated beam; all its modes scale with it, its residues with its square, and the simulated noise bounds follow the response (time-scale [weights] with it).", gt=0.0, le=1e9),
@@ -398,8 +400,13 @@ def _backend(top: _Table) -> BackendSettings:
     emulation = None
     if t.has("emulation"):
         e = t.sub("emulation")
+        n_responses = max(1, len(responses))
+        sensors = tuple(float(x) for x in e.get("sensors", [1.0] * (1 if n_responses == 1 else 0)))
+        if len(sensors) != n_responses:
+            raise e.error(f"sensors: one position per response instrument ({n_responses}: {list(responses)}), found {list(sensors)}")
         emulation = EmulationSettings(drive_gain_ratio=e.get("drive_gain_ratio", 1.0), noise_v_per_rthz=e.get("noise_v_per_rthz", 2e-6),
-                                      damping=e.get("damping", None), relock_s=e.get("relock_s", 0.0))
+                                      damping=e.get("damping", None), relock_s=e.get("relock_s", 0.0),
+                                      sensors=sensors, actuator=e.get("actuator", 1.0))
     if kind != "instruments":
         given = [k for k in ("exciter", "force", "response", "control_output", "emulation") if t.has(k)]
         if given:

@@ -75,7 +75,9 @@ def format_procedure(procedure: Procedure) -> str:
     if b.emulation is not None:
         out += ["[backend.emulation]", f"drive_gain_ratio = {_toml_value(float(b.emulation.drive_gain_ratio))}",
                 f"noise_v_per_rthz = {_toml_value(float(b.emulation.noise_v_per_rthz))}",
-                f"relock_s = {_toml_value(float(b.emulation.relock_s))}"]
+                f"relock_s = {_toml_value(float(b.emulation.relock_s))}",
+                f"sensors = {_toml_value([float(x) for x in b.emulation.sensors])}",
+                f"actuator = {_toml_value(float(b.emulation.actuator))}"]
         if b.emulation.damping is not None:
             out.append(f"damping = {_toml_value(float(b.emulation.damping))}")
         out.append("")

@@ -22,7 +22,7 @@ from setmem_hil.drivers.instruments.profile import LockInProfile, ModbusProfile,
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import Procedure
 from setmem_hil.model.modal_model import ModalParameters
-from setmem_hil.sim_backends.beam import BEAM_DAMPING_RATIO, BEAM_RESIDUE, beam_natural_frequencies
+from setmem_hil.sim_backends.beam import BEAM_DAMPING_RATIO, BEAM_RESIDUE, beam_natural_frequencies, beam_parameters_at
 from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBench
 from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer, LockInEmulator, SiglentGeneratorEmulator
 from setmem_hil.sim_backends.modbus_controller_emulator import ModbusControllerEmulator
@@ -51,17 +51,19 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
     emulation = procedure.backend.emulation
     checked = check_instruments(procedure)
     backend = procedure.backend
-    exciter, force, response = (procedure.instruments[getattr(backend, r)] for r in ("exciter", "force", "response"))
-    if (response.quantity or "displacement") != "displacement":
-        raise ProcedureError(source, f"[instruments.{response.name}] key 'quantity'", "the emulated response sensor measures displacement")
-    damping = emulation.damping if emulation.damping is not None else BEAM_DAMPING_RATIO
-    beam = ModalParameters.from_modal(beam_natural_frequencies(), damping, BEAM_RESIDUE, 0.0)
-    bench = EmulatedBench(beam, BenchSettings(
+    exciter, force = procedure.instruments[backend.exciter], procedure.instruments[backend.force]
+    responses = [procedure.instruments[name] for name in backend.response_instruments()]  # control output first
+    for response in responses:
+        if (response.quantity or "displacement") != "displacement":
+            raise ProcedureError(source, f"[instruments.{response.name}] key 'quantity'", "the emulated response sensor measures displacement")
+    outputs = _emulated_outputs(procedure)
+    bench = EmulatedBench(outputs[0], BenchSettings(
         newton_per_volt=exciter.newton_per_volt, drive_gain_ratio=emulation.drive_gain_ratio,
-        force_volt_per_unit=force.volt_per_unit, response_volt_per_unit=response.volt_per_unit,
+        force_volt_per_unit=force.volt_per_unit, response_volt_per_unit=responses[0].volt_per_unit,
         noise_v_per_rthz=(emulation.noise_v_per_rthz, emulation.noise_v_per_rthz), seed=seed,
-        relock_s=emulation.relock_s,
-    ))
+        relock_s=emulation.relock_s, other_response_volt_per_unit=tuple(r.volt_per_unit for r in responses[1:]),
+    ), other_outputs=tuple(outputs[1:]))
+    lockin_of = dict(zip((r.name for r in responses), EmulatedBench.response_names(len(responses))))
     servers = []
     resources = {}
     try:
@@ -86,7 +88,7 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
                     emulator = GeneratorEmulator(bench, model, channel=settings.channel)
                 else:
                     assert isinstance(profile, LockInProfile)
-                    emulator = LockInEmulator(bench, "force" if role == "force" else "response", model)
+                    emulator = LockInEmulator(bench, "force" if role == "force" else lockin_of[name], model)
                 server = InstrumentServer(emulator, port=int(m.group(2)))
                 resources[name] = server.resource
             servers.append(server)
@@ -96,6 +98,25 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
         raise
     instruments = {n: dataclasses.replace(s, resource=resources.get(n, s.resource)) for n, s in procedure.instruments.items()}
     return dataclasses.replace(procedure, instruments=instruments), bench, servers
+
+
+def _emulated_outputs(procedure: Procedure) -> list[ModalParameters]:
+    """The emulated beam as each response instrument sees it, control output first: every mode
+    at the emulation's damping, residues ``phi_i(actuator) phi_i(sensor)`` (issue 25; the
+    thesis's ``b0 = 4`` for a sensor at the tip with the force at the tip)."""
+    backend, emulation = procedure.backend, procedure.backend.emulation
+    damping = emulation.damping if emulation.damping is not None else BEAM_DAMPING_RATIO
+    file_order = backend.responses or (backend.response,)
+    where = dict(zip(file_order, emulation.sensors))
+    outputs = []
+    for name in backend.response_instruments():
+        x = where[name]
+        if x == 1.0 and emulation.actuator == 1.0:  # the thesis's beam exactly (b0 = 4 for every mode)
+            residues = BEAM_RESIDUE
+        else:
+            residues = beam_parameters_at(x, emulation.actuator).values[:, 3]
+        outputs.append(ModalParameters.from_modal(beam_natural_frequencies(), damping, residues, 0.0))
+    return outputs
 
 
 def open_emulated_instruments(procedure: Procedure, seed: int, extra_bound=None) -> PhasorDwellExperiment:
@@ -116,8 +137,8 @@ def with_damping(procedure: Procedure, damping: float, calibration: float | None
     if backend.emulation is None:
         raise ProcedureError(procedure.source_path or procedure.name, "[backend.emulation]", "with_damping needs an emulated procedure")
     instruments = dict(procedure.instruments)
-    for role in ("force", "response"):
-        settings = instruments[getattr(backend, role)]
+    for role, name in (("force", backend.force), *(("response", n) for n in backend.response_instruments())):
+        settings = instruments[name]
         changes = {} if calibration is None else {"calibration_uncertainty": calibration}
         if role == "response":
             changes["volt_per_unit"] = settings.volt_per_unit * damping / BEAM_DAMPING_RATIO

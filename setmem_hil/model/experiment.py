@@ -3,7 +3,8 @@
 Optional capabilities are declared protocols too (checked with ``isinstance``, never probed
 with ``getattr``): :class:`ResumableExperiment`, :class:`ModelAwareExperiment`,
 :class:`BoundPredictingExperiment`, :class:`CountingExperiment`, :class:`PlanningExperiment`,
-:class:`IdentifiedExperiment`, :class:`MultisineExperiment`, :class:`OutputConfirmingExperiment`.
+:class:`IdentifiedExperiment`, :class:`MultisineExperiment`, :class:`OutputConfirmingExperiment`,
+:class:`OutputModelsAwareExperiment`.
 
 One call applies a unit-amplitude sinusoid at ``omega_rad_s`` and returns the steady-state
 complex response ``G(j omega)`` with an absolute bound on its total error (noise, estimation
@@ -78,6 +79,14 @@ class ModelAwareExperiment(Protocol):
     """Uses the current interval model (e.g. to fit transients with the identified poles)."""
 
     def update_model(self, model: Any) -> None: ...
+
+
+@runtime_checkable
+class OutputModelsAwareExperiment(Protocol):
+    """Reads several sensors and uses every output's own interval model (issue 25; control
+    output first), e.g. for each output's free-response allowance."""
+
+    def update_output_models(self, models: Any) -> None: ...
 
 
 @runtime_checkable
