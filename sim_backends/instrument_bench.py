@@ -181,6 +181,68 @@ class EmulatedBench:
         with self.lock:
             return self.clock.now() - self.frequency_set_at >= self.settings.relock_s
 
+    # -- sampled records (an oscilloscope or a DAQ on the bench, issue 26) ------------------------
+    def sync_edge_after(self, t: float) -> float | None:
+        """The first rising edge of the generator's sync output (the drive sine's phase at 0) at
+        or after clock time ``t``, with the drive as it is now; None while the output is off
+        (the emulated sync follows the output relay)."""
+        with self.lock:
+            self.advance()
+            if not self.output_on:
+                return None
+            omega = 2 * math.pi * self.frequency_hz
+            phase_at_t = (self.phase + omega * (t - self.t)) % (2 * math.pi)
+            return t + ((2 * math.pi - phase_at_t) % (2 * math.pi)) / omega
+
+    def record(self, t0: float, dt: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The force (N) and every output's displacement at ``t0 + k dt``, ``k < n``, exactly
+        (the same transition matrices over each sample interval). ``t0`` must not be earlier
+        than the bench's present. The bench ends at the last sample: a command during the
+        record would take effect at its end (the drivers change nothing while recording)."""
+        with self.lock:
+            self.advance()
+            if t0 < self.t - 1e-12:
+                raise ValueError(f"record from {t0} s asked at {self.t} s: the bench cannot go back")
+            if t0 > self.t:
+                self._advance_to(t0)
+            omega = 2 * math.pi * self.frequency_hz
+            force = np.empty(n)
+            rows = np.array([self._C[name] for name in self.response_names(len(self.outputs))])
+            ys = np.empty((len(self.outputs), n))
+            step = self._structure_step(omega, dt)
+            xh = self.x * np.exp(-1j * self.phase)
+            c = self.force_amplitude_n / 2j
+            drive = np.array([c, -c * np.exp(-2j * self.phase)])
+            for k in range(n):
+                if k:
+                    xh = step[0] @ xh + step[1] @ drive
+                    drive = drive * np.array([1.0, np.exp(-2j * omega * dt)])
+                phase = self.phase + omega * dt * k
+                x = np.real(xh * np.exp(1j * phase))
+                force[k] = self.force_amplitude_n * math.sin(phase)
+                ys[:, k] = rows @ x
+            self._advance_to(t0 + dt * (n - 1))
+            return force, ys
+
+    def _advance_to(self, t: float) -> None:
+        dt = t - self.t
+        if dt > 0:
+            self._advance_signal(dt)
+            for li in self.lockins.values():
+                self._advance_noise(li, dt)
+            self.t = t
+
+    def _structure_step(self, omega: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """The structure's part of :meth:`_system` over ``dt``: ``xh <- P xh + Q [c, r]``."""
+        n = self._A.shape[0]
+        M = np.zeros((n + 2, n + 2), complex)
+        M[:n, :n] = self._A - 1j * omega * np.eye(n)
+        M[:n, n] = M[:n, n + 1] = self._B
+        M[n + 1, n + 1] = -2j * omega
+        with blas_one_thread():
+            phi = expm(M * dt)
+        return phi[:n, :n], phi[:n, n:]
+
     @staticmethod
     def response_names(n_outputs: int) -> tuple[str, ...]:
         """The response lock-ins' names: ``"response"``, then ``"response2"``, ``"response3"``..."""

@@ -58,7 +58,7 @@ class _Emulator:
         self.errors: list[str] = []
         self.commands: list[str] = []  # every command received (tests read the transcript)
 
-    def handle_line(self, line: str) -> str | None:
+    def handle_line(self, line: str) -> str | bytes | None:
         replies = []
         for command in (c.strip() for c in line.split(";")):
             if not command:
@@ -70,6 +70,8 @@ class _Emulator:
                 self.errors.append(OUT_OF_RANGE)
                 self.esr |= 1 << 4  # execution error
                 reply = None
+            if isinstance(reply, bytes):  # a binary block ends the answer (an IEEE 488.2 definite-length block)
+                return reply
             if reply is not None:
                 replies.append(reply)
         return ";".join(replies) if replies else None
@@ -509,7 +511,7 @@ class InstrumentServer:
                             if server._garble > 0:
                                 server._garble -= 1
                                 reply = server.GARBLE
-                            self.wfile.write((reply + "\n").encode("ascii"))
+                            self.wfile.write(reply + b"\n" if isinstance(reply, bytes) else (reply + "\n").encode("ascii"))
                 except (ConnectionError, OSError):
                     pass
                 finally:

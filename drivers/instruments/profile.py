@@ -39,7 +39,7 @@ from setmem_hil.model.prior import parse_toml_text
 
 __all__ = [
     "SHIPPED_PROFILE_DIR", "shipped_profiles", "load_profile", "parse_profile", "Setting", "ScpiGeneratorProfile",
-    "LockInProfile", "RegisterSpec", "ModbusProfile", "Profile", "REGISTER_TYPES", "REGISTER_TABLES",
+    "LockInProfile", "RegisterSpec", "ModbusProfile", "ScopeProfile", "SCOPE_COMMANDS", "Profile", "REGISTER_TYPES", "REGISTER_TABLES",
 ]
 
 SHIPPED_PROFILE_DIR = Path(__file__).with_name("profiles")
@@ -206,7 +206,72 @@ class DaqProfile:
     channels: tuple[int, ...] = (1,)
 
 
-Profile = ScpiGeneratorProfile | LockInProfile | ModbusProfile | DbcProfile | DaqProfile
+@dataclass(frozen=True)
+class ScopeProfile:
+    """An oscilloscope reading force and responses as sampled records (issue 26).
+
+    The command templates take ``{ch}`` (a channel number), ``{value}`` (a number) and
+    ``{source}`` (the trigger source: ``trigger_sources`` maps ``"ext"`` or a channel to the
+    instrument's name for it); the record's transfer templates take ``{start}``/``{stop}``
+    (1-based points). Volts from codes follow ``y_origin``: ``"codes"`` (Rigol:
+    ``(code - yorigin - yreference) * yincrement``) or ``"volts"`` (Keysight:
+    ``(code - yreference) * yincrement + yorigin``).
+    """
+
+    name: str
+    source: str
+    model: str
+    identity_query: str
+    identity_expect: str
+    error_query: str
+    no_error: str
+    init: tuple[str, ...]
+    channels: tuple[int, ...]
+    has_ext_trigger: bool
+    adc_bits: int
+    divisions: float  # vertical divisions of the screen (full scale = divisions x V/div)
+    time_divisions: float  # horizontal divisions (record length = time_divisions x s/div)
+    vertical_scales_v: tuple[float, ...]  # V/div the scope offers, ascending
+    time_scales_s: tuple[float, ...]  # s/div, ascending
+    record_points: Mapping[int, int]  # points asked for per channel, by the number of channels switched on
+    max_transfer_points: int  # points per :WAV:DATA? transfer; longer records are read in pieces
+    gain_accuracy: float  # DC vertical gain accuracy, fraction of full scale (datasheet)
+    timebase_ppm: float  # sample-clock accuracy
+    trigger_jitter_s: float  # rms trigger jitter
+    commands: Mapping[str, str]  # role -> template (see SCOPE_COMMANDS)
+    done_expect: str  # regex the done query answers once the record is complete ("" with done_clear_mask)
+    data_format: str  # "byte" or "word"
+    word_msb_first: bool
+    y_origin: str  # "codes" or "volts"
+    clip_codes: tuple[int, ...]  # codes that mean clipped (or a hole): refused
+    trigger_sources: Mapping[str, str]
+    termination: str = "\n"
+    timeout_s: float = 5.0
+    kind: str = "scpi-scope"
+    done_clear_mask: int = 0  # or: done when these bits of the done query's integer answer are clear
+
+
+# the scope command roles a profile gives in [commands]; the driver sends them in this sense
+SCOPE_COMMANDS = {
+    "channel_on": "switch channel {ch} on, DC coupled, no offset (a list of commands joined by ';')",
+    "channel_off": "switch channel {ch} off",
+    "vertical_scale": "set channel {ch} to {value} V/div",
+    "vertical_scale_query": "read channel {ch}'s V/div back",
+    "time_scale": "set {value} s/div with the trigger at the left edge of the record",
+    "record_points": "ask for {value} points per channel",
+    "trigger": "edge trigger on {source}, rising, level {value} V",
+    "arm": "start one single acquisition",
+    "done_query": "answers done_expect once the record is complete",
+    "waveform_source": "select channel {ch} for the transfer",
+    "waveform_setup": "the transfer format (raw record, byte or word)",
+    "waveform_range": "the points {start}..{stop} of the next transfer (absent: the whole record at once)",
+    "preamble": "the preamble query (format,type,points,count,xincrement,xorigin,xreference,yincrement,yorigin,yreference)",
+    "data": "the data query (an IEEE 488.2 definite-length block)",
+}
+_SCOPE_REQUIRED = ("channel_on", "vertical_scale", "time_scale", "trigger", "arm", "done_query", "waveform_source", "preamble", "data")
+
+
+Profile = ScpiGeneratorProfile | LockInProfile | ModbusProfile | DbcProfile | DaqProfile | ScopeProfile
 
 _COMMON = {"kind", "model", "description", "extends"}
 PROFILE_KEYS: dict[str, set[str]] = {
@@ -215,6 +280,10 @@ PROFILE_KEYS: dict[str, set[str]] = {
     "modbus": _COMMON | {"device_id", "identity", "frequency_hz", "amplitude_v", "output", "watchdog_s", "watchdog_timeout_s", "limits", "timeout_s"},
     "dbc": _COMMON | {"dbc", "command", "status", "identity", "canopen_identity", "limits"},
     "nidaqmx": _COMMON | {"range_v", "terminal", "max_sample_rate_hz"},
+    "scpi-scope": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "channels", "ext_trigger", "adc_bits",
+                             "divisions", "time_divisions", "vertical_scales_v", "time_scales_s", "record_points",
+                             "max_transfer_points", "gain_accuracy", "timebase_ppm", "trigger_jitter_s", "commands", "done",
+                             "waveform", "trigger_sources"},
 }
 _TABLE_KEYS = {
     "identity": {"query", "expect"},
@@ -232,6 +301,10 @@ _TABLE_KEYS = {
     "dbc-status": {"message", "frequency_hz", "amplitude_v", "output", "timeout_s"},
     "dbc-identity": {"message", "signal", "expect", "request"},
     "canopen-identity": {"node", "vendor_id", "product_code"},
+    "scope-commands": set(SCOPE_COMMANDS),
+    "scope-done": {"expect", "clear_mask"},
+    "scope-waveform": {"format", "byte_order", "y_origin", "clip_codes"},
+    "scope-trigger-sources": {"ext", "channel"},
 }
 
 
@@ -554,7 +627,78 @@ def _daq(name: str, source: str, top: _Reader) -> DaqProfile:
                       terminal=terminal, max_sample_rate_hz=top.number("max_sample_rate_hz", 100e3, positive=True))
 
 
-_BUILDERS = {"scpi-generator": _generator, "scpi-lockin": _lockin, "modbus": _modbus, "dbc": _dbc, "nidaqmx": _daq}
+def _ascending(top: _Reader, key: str) -> tuple[float, ...]:
+    values = top.mapping.get(key)
+    if not isinstance(values, list) or not values or any(isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0 for v in values) \
+            or list(values) != sorted(values):
+        raise top.error(f"{key}: expected positive numbers, ascending, found {values!r}")
+    return tuple(float(v) for v in values)
+
+
+def _record_points(top: _Reader, n_channels: int) -> dict[int, int]:
+    """``record_points``: one number, or a table by the number of channels on (``{ "1" = 12000,
+    "2" = 6000, "4" = 3000 }``: a count not listed uses the next larger one listed)."""
+    v = top.mapping.get("record_points", 10000)
+    table = {str(n): v for n in range(1, n_channels + 1)} if isinstance(v, int) and not isinstance(v, bool) else v
+    if not isinstance(table, Mapping) or not table or any(not str(k).isdigit() or isinstance(p, bool) or not isinstance(p, int) or p < 100
+                                                          for k, p in table.items()):
+        raise top.error(f"record_points: expected a number of points (>= 100) or a table by channel count, found {v!r}")
+    listed = sorted((int(k), int(p)) for k, p in table.items())
+    out = {}
+    for n in range(1, n_channels + 1):
+        larger = [p for k, p in listed if k >= n]
+        if not larger:
+            raise top.error(f"record_points: no entry for {n} channels or more")
+        out[n] = larger[0]
+    return out
+
+
+def _scope(name: str, source: str, top: _Reader) -> ScopeProfile:
+    identity_query, identity_expect, error_query, no_error = _identity_and_errors(top)
+    cmds = top.sub("commands", "scope-commands")
+    commands = {}
+    for role in SCOPE_COMMANDS:
+        if role in cmds.mapping:
+            commands[role] = cmds.template(role, {"ch", "value", "source", "start", "stop", "offset"})
+        elif role in _SCOPE_REQUIRED:
+            raise cmds.error(f"missing key {role!r} ({SCOPE_COMMANDS[role]})")
+    wave = top.sub("waveform", "scope-waveform")
+    data_format = wave.string("format", "byte")
+    if data_format not in ("byte", "word"):
+        raise wave.error(f"format: expected \"byte\" or \"word\", found {data_format!r}")
+    order = wave.string("byte_order", "msb")
+    y_origin = wave.string("y_origin", "volts")
+    if order not in ("msb", "lsb") or y_origin not in ("codes", "volts"):
+        raise wave.error(f"byte_order: \"msb\" or \"lsb\"; y_origin: \"codes\" or \"volts\"; found {order!r}, {y_origin!r}")
+    clip = wave.mapping.get("clip_codes", [0, 255] if data_format == "byte" else [0, 65535])
+    if not isinstance(clip, list) or any(isinstance(c, bool) or not isinstance(c, int) for c in clip):
+        raise wave.error(f"clip_codes: expected an array of integers, found {clip!r}")
+    done = top.sub("done", "scope-done")
+    if ("expect" in done.mapping) == ("clear_mask" in done.mapping):
+        raise done.error("give exactly one of expect (a regular expression) and clear_mask (bits clear when done)")
+    n_channels = top.integer("channels", 4, 1, 16)
+    ext = bool(top.mapping.get("ext_trigger", False))
+    sources = top.sub("trigger_sources", "scope-trigger-sources") if "trigger_sources" in top.mapping else None
+    trigger_sources = {"channel": sources.string("channel", "CHAN{ch}") if sources else "CHAN{ch}",
+                       "ext": sources.string("ext", "EXT") if sources else "EXT"}
+    return ScopeProfile(
+        name=name, source=source, model=top.string("model", name),
+        identity_query=identity_query, identity_expect=identity_expect, error_query=error_query, no_error=no_error,
+        init=top.strings("init"), channels=tuple(range(1, n_channels + 1)), has_ext_trigger=ext,
+        adc_bits=top.integer("adc_bits", 8, 4, 16), divisions=top.number("divisions", 8.0, positive=True),
+        time_divisions=top.number("time_divisions", 10.0, positive=True),
+        vertical_scales_v=_ascending(top, "vertical_scales_v"), time_scales_s=_ascending(top, "time_scales_s"),
+        record_points=_record_points(top, n_channels),
+        max_transfer_points=top.integer("max_transfer_points", 250000, 100, 10**8),
+        gain_accuracy=top.number("gain_accuracy"), timebase_ppm=top.number("timebase_ppm", 50.0),
+        trigger_jitter_s=top.number("trigger_jitter_s", 1e-9),
+        commands=commands, done_expect=done.regex("expect", ""), done_clear_mask=done.integer("clear_mask", 0, 0, 2**31),
+        data_format=data_format, word_msb_first=order == "msb", y_origin=y_origin, clip_codes=tuple(int(c) for c in clip),
+        trigger_sources=trigger_sources, termination=top.string("termination", "\n"), timeout_s=top.number("timeout_s", 5.0, positive=True),
+    )
+
+
+_BUILDERS = {"scpi-generator": _generator, "scpi-lockin": _lockin, "modbus": _modbus, "dbc": _dbc, "nidaqmx": _daq, "scpi-scope": _scope}
 
 
 def parse_profile(text: str, source: str, name: str = "") -> Profile:

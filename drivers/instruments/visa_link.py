@@ -16,7 +16,7 @@ import select
 import socket
 import time
 
-from setmem_hil.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError
+from setmem_hil.errors import DeviceDisconnectedError, DeviceError, DeviceRejectedError, DeviceTimeoutError
 
 __all__ = ["VisaLink"]
 
@@ -84,6 +84,43 @@ class VisaLink:
             raise self._error(command, exc) from None
         self.answered = True
         return reply
+
+    def query_block(self, command: str, datatype: str = "B", big_endian: bool = True):
+        """An IEEE 488.2 definite-length block (``#<n><length><data>``) as a numpy array of
+        ``datatype`` (``"B"`` bytes, ``"H"`` 16-bit words); a reply that is not such a block is a
+        :class:`~setmem_hil.errors.DeviceRejectedError` naming the instrument and the query."""
+        import numpy as np
+
+        self.transcript.append(command)
+        self._refuse_if_closed(command)
+        try:
+            values = self._inst.query_binary_values(command, datatype=datatype, is_big_endian=big_endian, header_fmt="ieee",
+                                                    container=np.array, expect_termination=True)
+        except DeviceError:
+            raise
+        except (ValueError, TypeError) as exc:  # pyvisa: "Could not find start of IEEE block", a length that does not match...
+            self._drain()
+            raise DeviceRejectedError("garbled", f"{self.name} ({self.resource}): {command!r} did not answer an IEEE 488.2 "
+                                                 f"definite-length block ({_reason(exc)})") from None
+        except Exception as exc:  # noqa: BLE001
+            raise self._error(command, exc) from None
+        self.answered = True
+        return values
+
+    def _drain(self) -> None:
+        """Read and drop whatever is left of a malformed reply (the next query must not see it)."""
+        try:
+            self._inst.clear()
+        except Exception:  # noqa: BLE001 - a raw socket may not support clear: read until silence instead
+            old = self._inst.timeout
+            try:
+                self._inst.timeout = 200
+                while True:
+                    self._inst.read_raw()
+            except Exception:  # noqa: BLE001
+                pass
+            finally:
+                self._inst.timeout = old
 
     def _socket(self) -> socket.socket | None:
         """The TCP socket under a pyvisa-py session (raw SOCKET resources), else None."""

@@ -1,0 +1,242 @@
+"""An oscilloscope as a sampling sensor: force and responses as one triggered record (issue 26).
+
+:class:`ScpiScope` interprets a ``kind = "scpi-scope"`` profile
+(:class:`~setmem_hil.drivers.instruments.profile.ScopeProfile`). One :meth:`ScpiScope.record`:
+
+1. picks the shortest time scale whose record (``time_divisions`` x s/div) covers the asked
+   duration, asks the profile's points for the channels on, and sets it;
+2. arms a single acquisition, triggered on the generator's sync output (a channel or the EXT
+   input), and polls the done query on the caller's clock; no trigger within the timeout is a
+   :class:`~setmem_hil.errors.DeviceRejectedError` ("no trigger") naming the scope and the source;
+3. reads each channel: the preamble (``format,type,points,count,xincrement,xorigin,xreference,
+   yincrement,yorigin,yreference``), then the data as IEEE 488.2 definite-length blocks through
+   PyVISA's ``query_binary_values``, in pieces of ``max_transfer_points`` where the profile has
+   a range command; a record shorter than its preamble says, or a block that is not one, is
+   refused naming the scope;
+4. refuses a record with a code at the ADC's rails (``clip_codes``: clipped, or a hole) naming
+   the channel; the caller moves that channel's vertical scale up and records again
+   (:class:`ClippedChannel`).
+
+Volts: ``(code - yorigin - yreference) * yincrement`` where the profile's ``y_origin`` is
+``"codes"`` (Rigol), ``(code - yreference) * yincrement + yorigin`` where it is ``"volts"``
+(Keysight). Times: ``(i - xreference) * xincrement + xorigin`` from the trigger.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from setmem_hil.drivers.clock import Clock
+from setmem_hil.drivers.instruments.profile import ScopeProfile
+from setmem_hil.drivers.instruments.scpi_commands import parse_number, render
+from setmem_hil.drivers.instruments.scpi_instrument import ScpiInstrument
+from setmem_hil.drivers.instruments.visa_link import VisaLink
+from setmem_hil.errors import DeviceRejectedError
+
+__all__ = ["ScpiScope", "Preamble", "ClippedChannel", "ScopeRecord", "volts_from_codes"]
+
+log = logging.getLogger(__name__)
+
+PREAMBLE_FIELDS = ("format", "type", "points", "count", "xincrement", "xorigin", "xreference", "yincrement", "yorigin", "yreference")
+
+
+@dataclass(frozen=True)
+class Preamble:
+    """The waveform preamble (IEEE-style, as the DS1000Z and InfiniiVision guides define it)."""
+
+    points: int
+    xincrement: float
+    xorigin: float
+    xreference: float
+    yincrement: float
+    yorigin: float
+    yreference: float
+
+    @classmethod
+    def parse(cls, reply: str) -> "Preamble":
+        parts = [p.strip() for p in reply.split(",")]
+        if len(parts) != len(PREAMBLE_FIELDS):
+            raise ValueError(f"{len(parts)} fields, expected {len(PREAMBLE_FIELDS)}")
+        v = dict(zip(PREAMBLE_FIELDS, (float(p) for p in parts)))
+        if not (v["points"] >= 1 and v["xincrement"] > 0 and v["yincrement"] > 0):
+            raise ValueError("points, xincrement and yincrement must be positive")
+        return cls(int(v["points"]), v["xincrement"], v["xorigin"], v["xreference"], v["yincrement"], v["yorigin"], v["yreference"])
+
+
+def volts_from_codes(codes: np.ndarray, pre: Preamble, y_origin: str) -> np.ndarray:
+    """Codes to volts by the profile's convention (module docstring)."""
+    codes = np.asarray(codes, dtype=float)
+    if y_origin == "codes":
+        return (codes - pre.yorigin - pre.yreference) * pre.yincrement
+    return (codes - pre.yreference) * pre.yincrement + pre.yorigin
+
+
+class ClippedChannel(DeviceRejectedError):
+    """A channel's record touched the ADC's rails (or has holes); ``channel`` names it."""
+
+    def __init__(self, where: str, channel: int, count: int, scale_v: float):
+        self.channel = channel
+        super().__init__("overload", f"{where}: channel {channel}: {count} samples at the ADC's rails at {scale_v:g} V/div "
+                                     "(clipped): the record is refused")
+
+
+@dataclass(frozen=True)
+class ScopeRecord:
+    """One triggered record: sample times from the trigger (s) and each channel's volts."""
+
+    t_s: np.ndarray
+    volts: dict[int, np.ndarray]
+    scales_v: dict[int, float]  # V/div of each channel when recorded
+    sample_interval_s: float
+
+
+class ScpiScope(ScpiInstrument):
+    """The driver of a ``kind = "scpi-scope"`` profile (module docstring)."""
+
+    DONE_POLLS = 200  # polls of the done query over the wait (the wait itself is the caller's clock)
+
+    def __init__(self, name: str, profile: ScopeProfile, link: VisaLink, channels: tuple[int, ...], trigger_source: str,
+                 trigger_level_v: float, clock: Clock):
+        super().__init__(name, profile, link)
+        self.profile: ScopeProfile = profile
+        bad = [c for c in (*channels, *([int(trigger_source[2:])] if trigger_source.startswith("ch") else [])) if c not in profile.channels]
+        if bad:
+            raise DeviceRejectedError("instrument", f"{self.where}: channel {bad[0]} does not exist on a {profile.model} (channels {list(profile.channels)})")
+        self.channels, self.trigger_source, self.trigger_level_v, self.clock = tuple(channels), trigger_source, trigger_level_v, clock
+        self.scales_v = {c: profile.vertical_scales_v[-1] for c in channels}  # every record starts on the largest scale
+        self.time_scale_s = 0.0
+
+    # -- set-up ---------------------------------------------------------------------------------
+    def initialise(self) -> None:
+        self.run_init()
+        for ch in self.channels:
+            self._command("channel_on", ch=ch)
+            self.set_vertical_scale(ch, self.scales_v[ch])
+        if self.trigger_source.startswith("ch"):
+            trigger_channel = int(self.trigger_source[2:])
+            if trigger_channel not in self.channels:
+                self._command("channel_on", ch=trigger_channel)
+                self.set_vertical_scale(trigger_channel, self._scale_for(abs(self.trigger_level_v) * 4 + 1e-3))
+        source = (self.profile.trigger_sources["ext"] if self.trigger_source == "ext"
+                  else render(self.profile.trigger_sources["channel"], ch=int(self.trigger_source[2:])))
+        self._command("trigger", source=source, value=self.trigger_level_v)
+        if "waveform_setup" in self.profile.commands:
+            self._command("waveform_setup")
+
+    def _command(self, role: str, **values) -> None:
+        text = render(self.profile.commands[role], **values)
+        for part in (p for p in text.split(";") if p.strip()):
+            self.link.write(part.strip())
+        self.check_errors(text)
+
+    def _scale_for(self, peak_v: float) -> float:
+        """The smallest V/div whose screen (``divisions`` x V/div, centred) holds ``peak_v`` with room."""
+        need = 2.0 * peak_v / (0.8 * self.profile.divisions)
+        return next((s for s in self.profile.vertical_scales_v if s >= need), self.profile.vertical_scales_v[-1])
+
+    def set_vertical_scale(self, channel: int, scale_v: float) -> None:
+        self._command("vertical_scale", ch=channel, value=scale_v)
+        if "vertical_scale_query" in self.profile.commands:
+            got = self.query_parsed(render(self.profile.commands["vertical_scale_query"], ch=channel), parse_number, f"channel {channel} scale")
+            if not math.isclose(got, scale_v, rel_tol=1e-3):
+                raise DeviceRejectedError("instrument", f"{self.where}: channel {channel} set to {scale_v:g} V/div, reads back {got:g}")
+        self.scales_v[channel] = scale_v
+
+    def range_up(self, channel: int) -> bool:
+        """The next larger V/div for ``channel``; False at the largest."""
+        larger = [s for s in self.profile.vertical_scales_v if s > self.scales_v[channel] * (1 + 1e-9)]
+        if not larger:
+            return False
+        self.set_vertical_scale(channel, larger[0])
+        return True
+
+    def range_for(self, channel: int, peak_v: float) -> None:
+        """The smallest V/div that holds ``peak_v`` (auto-ranging from a record's peak)."""
+        scale = self._scale_for(peak_v)
+        if not math.isclose(scale, self.scales_v[channel]):
+            self.set_vertical_scale(channel, scale)
+
+    def full_scale_v(self, channel: int) -> float:
+        return self.profile.divisions * self.scales_v[channel]
+
+    def set_record_length(self, duration_s: float) -> float:
+        """The shortest time scale whose record covers ``duration_s``; returns the record's length."""
+        need = duration_s / self.profile.time_divisions
+        scale = next((s for s in self.profile.time_scales_s if s >= need * (1 - 1e-12)), None)
+        if scale is None:
+            raise DeviceRejectedError("range", f"{self.where}: a {duration_s:.4g} s record is longer than the {self.profile.model}'s "
+                                               f"{self.profile.time_scales_s[-1] * self.profile.time_divisions:g} s")
+        if scale != self.time_scale_s:
+            self._command("time_scale", value=scale, offset=scale * self.profile.time_divisions / 2.0)
+            if "record_points" in self.profile.commands:
+                n_on = len(set(self.channels) | ({int(self.trigger_source[2:])} if self.trigger_source.startswith("ch") else set()))
+                self._command("record_points", value=self.profile.record_points[n_on])
+            self.time_scale_s = scale
+        return scale * self.profile.time_divisions
+
+    # -- one record -----------------------------------------------------------------------------
+    def record(self, duration_s: float) -> ScopeRecord:
+        """Arm, wait for the trigger and the record, read every channel (module docstring)."""
+        length = self.set_record_length(duration_s)
+        self._command("arm")
+        self._wait_done(length)
+        volts, t, dt = {}, None, 0.0
+        for ch in self.channels:
+            pre, codes = self._read_channel(ch)
+            clipped = int(np.isin(codes, self.profile.clip_codes).sum())
+            if clipped:
+                raise ClippedChannel(self.where, ch, clipped, self.scales_v[ch])
+            volts[ch] = volts_from_codes(codes, pre, self.profile.y_origin)
+            if t is None:
+                t = (np.arange(pre.points) - pre.xreference) * pre.xincrement + pre.xorigin
+                dt = pre.xincrement
+        return ScopeRecord(t, volts, dict(self.scales_v), dt)
+
+    def _wait_done(self, length_s: float) -> None:
+        """Poll the done query until the record is complete; no trigger within the wait (the
+        record's length, ten trigger periods of 1 s at most, and 2 s of room) is an error."""
+        timeout = 1.5 * length_s + 2.0
+        poll = max(1e-3, timeout / self.DONE_POLLS)
+        start = self.clock.now()
+        while True:
+            reply = self.link.query(self.profile.commands["done_query"])
+            if self._is_done(reply):
+                return
+            if self.clock.now() - start > timeout:
+                source = "its EXT input" if self.trigger_source == "ext" else f"channel {self.trigger_source[2:]}"
+                raise DeviceRejectedError("no trigger", f"{self.where}: no trigger on {source} within {timeout:.3g} s "
+                                                        f"({self.profile.commands['done_query']!r} answered {reply!r}): is the "
+                                                        "generator's sync output wired to it and switched on?")
+            self.clock.sleep(poll)
+
+    def _is_done(self, reply: str) -> bool:
+        if self.profile.done_expect:
+            return re.search(self.profile.done_expect, reply.strip()) is not None
+        try:
+            return (int(parse_number(reply)) & self.profile.done_clear_mask) == 0
+        except ValueError:
+            return False
+
+    def _read_channel(self, channel: int) -> tuple[Preamble, np.ndarray]:
+        self._command("waveform_source", ch=channel)
+        pre = self.query_parsed(self.profile.commands["preamble"], Preamble.parse, f"channel {channel} preamble")
+        word = self.profile.data_format == "word"
+        pieces = []
+        step = self.profile.max_transfer_points if "waveform_range" in self.profile.commands else pre.points
+        for start in range(1, pre.points + 1, step):
+            if "waveform_range" in self.profile.commands:
+                self._command("waveform_range", start=start, stop=min(pre.points, start + step - 1))
+            pieces.append(self.link.query_block(self.profile.commands["data"], "H" if word else "B", self.profile.word_msb_first))
+        codes = np.concatenate(pieces) if pieces else np.zeros(0)
+        if codes.size != pre.points:
+            raise DeviceRejectedError("short record", f"{self.where}: channel {channel}: {codes.size} samples read, the preamble "
+                                                      f"announced {pre.points}: the record is refused")
+        return pre, codes
+
+    def close(self) -> None:
+        self.link.close()
