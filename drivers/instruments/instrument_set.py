@@ -33,11 +33,10 @@ from setmem_hil.drivers.instruments.visa_link import VisaLink
 from setmem_hil.errors import DeviceError, ProcedureError
 from setmem_hil.io.procedure import InstrumentSettings, Procedure
 
-__all__ = ["ROLES", "check_instruments", "instrument_warnings", "open_instrument", "probe_instruments", "ProbeResult", "open_instrument_experiment"]
+__all__ = ["check_instruments", "instrument_warnings", "open_instrument", "probe_instruments", "ProbeResult", "open_instrument_experiment"]
 
 log = logging.getLogger(__name__)
 
-ROLES = ("exciter", "force", "response")
 _ROLE_KINDS = {"exciter": ("scpi-generator", "modbus", "dbc"), "force": ("scpi-lockin", "nidaqmx"), "response": ("scpi-lockin", "nidaqmx")}
 
 

@@ -137,7 +137,7 @@ class PhasorDwellExperiment:
     identities: dict = field(default_factory=dict)  # instrument name -> identity answer (journaled)
     other_responses: tuple = ()  # more response lock-ins (issue 25): every dwell reads them all
     other_sensors: tuple = ()  # their sensors, in the same order
-    output_models: tuple = ()  # every output's interval model, control first (None: self.model for all)
+    output_models: tuple = ()  # every output's interval model, control first (empty: self.model for all)
 
     @property
     def exciter(self) -> str:
