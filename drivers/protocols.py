@@ -115,3 +115,18 @@ class ReconnectableRig(Protocol):
 
     def reconnect(self) -> None:
         ...
+
+
+@runtime_checkable
+class InstrumentTermsSensor(Protocol):
+    """A sampled sensor whose instruments add terms no averaging removes (gain accuracy,
+    quantization, calibration: an oscilloscope, issue 26), and whose sensors may measure velocity
+    or acceleration: it adds them to a measurement of its last record and converts the point to
+    receptance. ``last_acquire_s`` is the clock time its last ``wait`` or ``acquire`` cost;
+    ``last_sample_rate_hz`` the rate its last block was sampled at (the instrument's choice)."""
+
+    last_acquire_s: float
+    last_sample_rate_hz: float
+
+    def corrected(self, measurement, force_amplitude: float):
+        ...

@@ -60,6 +60,7 @@ from typing import Callable
 
 
 from setmem_hil.drivers.protocols import (
+    InstrumentTermsSensor,
     MeasurementIndexedRig,
     MultisineExciter,
     RateConfigurableSensor,
@@ -229,6 +230,9 @@ class SineDwellExperiment:
             self._learn(results[0].response_fit)
         self.rig_s += self._device_s
         share = self._device_s / len(results)
+        sensor = self.rig.sensor
+        if isinstance(sensor, InstrumentTermsSensor):
+            return [dataclasses.replace(sensor.corrected(r.measurement, abs(r.force_fit.phasor)), rig_s=share) for r in results]
         return [dataclasses.replace(r.measurement, rig_s=share) for r in results]
 
     def _attempts(self, label: str, plan, start, estimate):
@@ -303,9 +307,12 @@ class SineDwellExperiment:
                 sensor.wait(plan.skip_s)
             else:
                 sensor.acquire(plan.skip_s)
-            self._device_s += plan.skip_s + plan.window_s
+            timed = isinstance(sensor, InstrumentTermsSensor)  # it knows what its waits and records cost
+            self._device_s += sensor.last_acquire_s if timed else plan.skip_s + plan.window_s
             block = sensor.acquire(plan.window_s)
-            check_block(block, rig.metadata.force_range_n, rig.metadata.response_range, plan.sample_rate_hz)
+            self._device_s += sensor.last_acquire_s if timed else 0.0
+            rate = sensor.last_sample_rate_hz if timed else plan.sample_rate_hz
+            check_block(block, rig.metadata.force_range_n, rig.metadata.response_range, rate)
             dwell_s = plan.skip_s + plan.window_s
             extensions = 0
             while True:
@@ -318,9 +325,9 @@ class SineDwellExperiment:
                         "(the halves of the window disagree beyond their uncertainty)"
                     )
                 # consecutive windows: the next estimate uses the newest window only
-                self._device_s += plan.window_s
                 block = sensor.acquire(plan.window_s)
-                check_block(block, rig.metadata.force_range_n, rig.metadata.response_range, plan.sample_rate_hz)
+                self._device_s += sensor.last_acquire_s if timed else plan.window_s
+                check_block(block, rig.metadata.force_range_n, rig.metadata.response_range, rate)
                 dwell_s += plan.window_s
                 extensions += 1
 

@@ -51,10 +51,11 @@ class ScopeEmulator(_Emulator):
     adc_span_div = 10.24  # the 8-bit ADC's span in divisions
     max_rate_hz = 1e9
 
-    def __init__(self, bench: EmulatedBench, wiring: dict[int, str], volt_per_unit: dict[str, float], noise_div: float = 0.02):
+    def __init__(self, bench: EmulatedBench, wiring: dict[int, str], volt_per_unit: dict[str, float], noise_div: float = 0.02,
+                 seed: int = 7, gain_error: float = 0.015):
         super().__init__(bench)
         self.wiring, self.volt_per_unit, self.noise_div = dict(wiring), dict(volt_per_unit), float(noise_div)
-        self.channel = {c: {"DISP": c == 1, "SCAL": 1.0, "OFFS": 0.0, "COUP": "DC", "PROB": 1.0} for c in range(1, self.n_channels + 1)}
+        self.channel = {c: {"DISP": c == 1, "SCAL": 1.0, "OFFS": 0.0, "COUP": "DC", "PROB": 1.0, "VERN": False} for c in range(1, self.n_channels + 1)}
         self.time_scale = 1e-3
         self.time_offset = 0.0
         self.trigger_source = "CHAN1"
@@ -66,7 +67,9 @@ class ScopeEmulator(_Emulator):
         self.record_dt = 1e-6
         self.wave_source = 1
         self.running = True
-        self.rng = np.random.default_rng(7)
+        self.rng = np.random.default_rng(seed)
+        # each input's vertical gain is off by a fixed fraction (within the datasheets' figures)
+        self.gain_errors = {c: float(e) for c, e in zip(self.channel, self.rng.uniform(-gain_error, gain_error, self.n_channels))}
         self.short_by = 0  # tests: the next data transfer loses this many points
         self.bad_header = False  # tests: the next data transfer has a malformed block header
 
@@ -142,7 +145,7 @@ class ScopeEmulator(_Emulator):
     def _volts(self, channel: int, signals: dict[str, np.ndarray]) -> np.ndarray:
         name = self.wiring.get(channel)
         n = next(iter(signals.values())).size
-        clean = np.zeros(n) if name is None else signals[name] * (1.0 if name == "sync" else self.volt_per_unit[name])
+        clean = np.zeros(n) if name is None else signals[name] * (1.0 if name == "sync" else self.volt_per_unit[name] * (1 + self.gain_errors[channel]))
         return clean + self.noise_div * self.channel[channel]["SCAL"] * self.rng.standard_normal(n)
 
     def _adc(self, channel: int, volts: np.ndarray) -> np.ndarray:
@@ -188,25 +191,28 @@ class ScopeEmulator(_Emulator):
         return None
 
     def _channel_command(self, ch: int, node: str, args: str, query: bool) -> str | None:
-        keys = {"DISP": "DISP", "SCAL": "SCAL", "OFFS": "OFFS", "COUP": "COUP", "PROB": "PROB"}
+        keys = {"DISP": "DISP", "SCAL": "SCAL", "OFFS": "OFFS", "COUP": "COUP", "PROB": "PROB", **({"VERN": "VERN"} if self.has_vernier else {})}
         if node not in keys:
             return self._undefined(query)
         state = self.channel[ch]
         if query:
             v = state[node]
-            return ("1" if v else "0") if node == "DISP" else (v if isinstance(v, str) else f"{v:.6e}")
-        if node == "DISP":
-            state["DISP"] = args.upper() in ("1", "ON")
+            return ("1" if v else "0") if node in ("DISP", "VERN") else (v if isinstance(v, str) else f"{v:.6e}")
+        if node in ("DISP", "VERN"):
+            state[node] = args.upper() in ("1", "ON")
         elif node == "COUP":
             state["COUP"] = args.upper()
         else:
             v = _number(args)
             if node == "SCAL" and not self.scale_min <= v <= self.scale_max:
                 raise ValueError(args)
+            if node == "SCAL" and self.has_vernier and not state["VERN"]:
+                v = _coarse_step(v)  # coarse adjustment: the 1-2-5 step at or above (DS1000Z guide, :CHANnel<n>:SCALe)
             state[node] = v
         return None
 
     scale_min, scale_max = 1e-3, 10.0
+    has_vernier = False  # :CHANnel<n>:VERNier (Rigol): fine scales only when on; the others take any scale
 
     def _block(self, payload: bytes, digits: int) -> bytes:
         if self.bad_header:
@@ -215,8 +221,15 @@ class ScopeEmulator(_Emulator):
         return f"#{digits}{len(payload):0{digits}d}".encode("ascii") + payload
 
 
+def _coarse_step(v: float) -> float:
+    decade = 10.0 ** math.floor(math.log10(v) + 1e-9)
+    return next(m * decade for m in (1.0, 2.0, 5.0, 10.0) if m * decade >= v * (1 - 1e-9))
+
+
 class RigolScopeEmulator(ScopeEmulator):
     """A Rigol DS1104Z (module docstring)."""
+
+    has_vernier = True
 
     idn = "RIGOL TECHNOLOGIES,DS1104Z,DS1ZA123456789,00.04.04.SP4"
     no_error = '0,"No error"'
@@ -226,8 +239,8 @@ class RigolScopeEmulator(ScopeEmulator):
               3: (3000, 30000, 300000, 3000000, 6000000), 4: (3000, 30000, 300000, 3000000, 6000000)}
     MAX_BYTES = 250000
 
-    def __init__(self, bench, wiring, volt_per_unit, noise_div: float = 0.02):
-        super().__init__(bench, wiring, volt_per_unit, noise_div)
+    def __init__(self, bench, wiring, volt_per_unit, noise_div: float = 0.02, **options):
+        super().__init__(bench, wiring, volt_per_unit, noise_div, **options)
         self.mdep = 12000
         self.wave = {"MODE": "NORM", "FORM": "BYTE", "STAR": 1, "STOP": 1200}
 
@@ -325,8 +338,8 @@ class KeysightScopeEmulator(ScopeEmulator):
     adc_span_div = 10.0
     scale_max = 5.0
 
-    def __init__(self, bench, wiring, volt_per_unit, noise_div: float = 0.02, ext_sync: bool = True):
-        super().__init__(bench, wiring, volt_per_unit, noise_div)
+    def __init__(self, bench, wiring, volt_per_unit, noise_div: float = 0.02, ext_sync: bool = True, **options):
+        super().__init__(bench, wiring, volt_per_unit, noise_div, **options)
         self.has_ext_sync = ext_sync
         self.reference = "CENT"
         self.wave = {"POIN": 1000, "MODE": "NORM", "FORM": "BYTE", "BYT": "MSBF", "UNS": True}

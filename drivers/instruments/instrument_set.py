@@ -27,7 +27,8 @@ from setmem_hil.drivers.clock import Clock, WallClock
 from setmem_hil.drivers.instruments.lockin import LockIn
 from setmem_hil.drivers.instruments.modbus_generator import ModbusGenerator, parse_modbus_resource
 from setmem_hil.drivers.instruments.phasor_dwell import DriveChannel, PhasorDwellExperiment, PhasorDwellSettings, SensorChannel
-from setmem_hil.drivers.instruments.profile import DaqProfile, DbcProfile, LockInProfile, ModbusProfile, Profile, ScpiGeneratorProfile, load_profile, profile_warnings
+from setmem_hil.drivers.instruments.profile import (DaqProfile, DbcProfile, LockInProfile, ModbusProfile, Profile, ScopeProfile, ScpiGeneratorProfile,
+                                                    load_profile, profile_warnings)
 from setmem_hil.drivers.instruments.scpi_generator import ScpiGenerator
 from setmem_hil.drivers.instruments.visa_link import VisaLink
 from setmem_hil.errors import DeviceError, ProcedureError
@@ -37,7 +38,9 @@ __all__ = ["check_instruments", "instrument_warnings", "open_instrument", "probe
 
 log = logging.getLogger(__name__)
 
-_ROLE_KINDS = {"exciter": ("scpi-generator", "modbus", "dbc"), "force": ("scpi-lockin", "nidaqmx"), "response": ("scpi-lockin", "nidaqmx")}
+_ROLE_KINDS = {"exciter": ("scpi-generator", "modbus", "dbc"), "force": ("scpi-lockin", "nidaqmx", "scpi-scope"),
+               "response": ("scpi-lockin", "nidaqmx", "scpi-scope")}
+SYNC_TRIGGER_LEVEL_V = 1.0  # the generator's sync output: a logic level (3.3 or 5 V, half into 50 ohm)
 
 
 def _one_of(kinds: tuple[str, ...]) -> str:
@@ -75,6 +78,10 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
                 (parse_modbus_resource if isinstance(profile, ModbusProfile) else parse_can_resource)(settings.resource)
             except ValueError as exc:
                 raise ProcedureError(_source(procedure), f"[instruments.{name}] key 'resource'", str(exc)) from None
+        if isinstance(profile, ScopeProfile):
+            _check_scope(procedure, settings, profile)
+        if name in found:  # one oscilloscope in the force and the response roles
+            role = f"{found[name][2]}+{role}"
         found[name] = (settings, profile, role)
     kinds = {found[name][1].kind for name in (backend.force, *backend.response_instruments())}
     if len(kinds) > 1:
@@ -83,6 +90,18 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
     if procedure.dwell_signal == "multisine":
         raise ProcedureError(_source(procedure), "[dwell] key 'signal'", _multisine_refusal(procedure, found))
     return found
+
+
+def _check_scope(procedure: Procedure, settings: InstrumentSettings, profile: ScopeProfile) -> None:
+    """The oscilloscope's channels exist on its model; the procedure parser checked the rest."""
+    if not settings.channel_roles:
+        raise ProcedureError(_source(procedure), f"[instruments.{settings.name}] key 'channels'", "an oscilloscope needs "
+                             "channels = { force = N, response = [N, ...] }")
+    used = [*settings.channel_roles["force"], *settings.channel_roles["response"], *([settings.trigger_channel] if settings.trigger_channel else [])]
+    missing = [c for c in used if c not in profile.channels]
+    if missing:
+        raise ProcedureError(_source(procedure), f"[instruments.{settings.name}] key 'channels'",
+                             f"channel {missing[0]} does not exist on a {profile.model} (channels {list(profile.channels)})")
 
 
 def _multisine_refusal(procedure: Procedure, found: dict) -> str:
@@ -103,7 +122,7 @@ def instrument_warnings(procedure: Procedure) -> list[str]:
 
 
 def open_instrument(settings: InstrumentSettings, profile: Profile):
-    """Open one instrument (no command sent yet): a ScpiGenerator, ModbusGenerator or LockIn."""
+    """Open one instrument (no command sent yet): a ScpiGenerator, ModbusGenerator, LockIn or ScpiScope."""
     if isinstance(profile, ModbusProfile):
         return ModbusGenerator(settings.name, profile, settings.resource)
     if isinstance(profile, DbcProfile):
@@ -115,6 +134,11 @@ def open_instrument(settings: InstrumentSettings, profile: Profile):
     try:
         if isinstance(profile, ScpiGeneratorProfile):
             return ScpiGenerator(settings.name, profile, link, channel=settings.channel, load_ohms=settings.load_ohms)
+        if isinstance(profile, ScopeProfile):
+            from setmem_hil.drivers.instruments.scpi_scope import ScpiScope
+
+            channels = (*settings.channel_roles["force"], *settings.channel_roles["response"])
+            return ScpiScope(settings.name, profile, link, channels, *scope_trigger(settings, profile), WallClock())
         assert isinstance(profile, LockInProfile)
         return LockIn(settings.name, profile, link)
     except BaseException:
@@ -194,6 +218,8 @@ def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = No
     checked = check_instruments(procedure)
     if isinstance(checked[procedure.backend.force][1], DaqProfile):
         return open_daq_experiment(procedure, checked, extra_bound=extra_bound)
+    if isinstance(checked[procedure.backend.force][1], ScopeProfile):
+        return open_scope_experiment(procedure, checked, clock=clock or WallClock(), extra_bound=extra_bound, owned=owned)
     opened = {}  # instrument name -> opened driver, in the order checked: exciter, force, responses
     try:
         for name, (settings, profile, role) in checked.items():
@@ -231,3 +257,55 @@ def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = No
         other_responses=tuple(opened[r.name] for r in responses[1:]),
         other_sensors=tuple(channels[1:]),
     )
+
+
+def scope_trigger(settings: InstrumentSettings, profile: ScopeProfile) -> tuple[str, float]:
+    """Where the oscilloscope triggers: ``trigger_channel`` (the generator's sync), else its EXT
+    input where it has one (the sync wired there), else the force channel's rising zero crossing."""
+    if settings.trigger_channel is not None:
+        return f"ch{settings.trigger_channel}", SYNC_TRIGGER_LEVEL_V
+    if profile.has_ext_trigger:
+        return "ext", SYNC_TRIGGER_LEVEL_V
+    return f"ch{settings.channel_roles['force'][0]}", 0.0
+
+
+def open_scope_experiment(procedure: Procedure, checked: dict, *, clock: Clock, extra_bound=None, owned: tuple = ()):
+    """Generator + oscilloscope: the sine dwell on one scope's channels (:mod:`.scope_rig`); both
+    identities are checked before either instrument is initialised (the generator's output off first)."""
+    from setmem_hil.drivers.instruments.scope_rig import ScopeChannel, ScopeDwellExperiment, ScopeRig
+    from setmem_hil.drivers.instruments.scpi_scope import ScpiScope
+    from setmem_hil.drivers.sine_dwell import DwellSettings
+
+    backend = procedure.backend
+    exciter, scope_settings = procedure.instruments[backend.exciter], procedure.instruments[backend.force]
+    profile: ScopeProfile = checked[scope_settings.name][1]
+
+    def channel(number: int, default_quantity: str) -> ScopeChannel:
+        sensor = scope_settings.channel_sensors[number]
+        return ScopeChannel(number, sensor.volt_per_unit, sensor.calibration_uncertainty, sensor.quantity or default_quantity)
+
+    force = channel(scope_settings.channel_roles["force"][0], "force")
+    responses = tuple(channel(c, "displacement") for c in scope_settings.response_channels(backend.control_output))
+    source_, level = scope_trigger(scope_settings, profile)
+    opened = []
+    try:
+        source = open_instrument(exciter, checked[exciter.name][1])
+        opened.append(source)
+        link = VisaLink(scope_settings.name, scope_settings.resource, visa_library=scope_settings.visa_library,
+                        termination=profile.termination, timeout_s=profile.timeout_s)
+        scope = ScpiScope(scope_settings.name, profile, link, tuple(c.number for c in (force, *responses)), source_, level, clock)
+        opened.append(scope)
+        identities = {inst.name: inst.check_identity() for inst in opened}
+        for inst in opened:  # the generator first: its output is forced off before anything else
+            inst.initialise()
+    except BaseException:
+        for inst in opened:
+            inst.close()
+        for thing in owned:
+            thing.close()
+        raise
+    rig = ScopeRig(source, scope, force, responses, exciter.newton_per_volt, exciter.max_drive_v or math.inf,
+                   procedure.safety.max_amplitude_n, clock, owned=owned)
+    settings = DwellSettings(amplitude_n=min(1.0, procedure.safety.max_amplitude_n))
+    return ScopeDwellExperiment(rig, procedure.safety, settings, model=procedure.prior.initial_bounds(), extra_bound=extra_bound,
+                                identities=identities)

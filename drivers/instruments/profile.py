@@ -231,9 +231,9 @@ class ScopeProfile:
     adc_bits: int
     divisions: float  # vertical divisions of the screen (full scale = divisions x V/div)
     time_divisions: float  # horizontal divisions (record length = time_divisions x s/div)
-    vertical_scales_v: tuple[float, ...]  # V/div the scope offers, ascending
+    vertical_scales_v: tuple[float, ...]  # V/div the scope offers, ascending (with vertical_fine: the range's ends and coarse steps)
     time_scales_s: tuple[float, ...]  # s/div, ascending
-    record_points: Mapping[int, int]  # points asked for per channel, by the number of channels switched on
+    record_points: Mapping[int, tuple[int, ...]]  # memory depths offered (points per channel, ascending), by the number of channels on
     max_transfer_points: int  # points per :WAV:DATA? transfer; longer records are read in pieces
     gain_accuracy: float  # DC vertical gain accuracy, fraction of full scale (datasheet)
     timebase_ppm: float  # sample-clock accuracy
@@ -249,6 +249,7 @@ class ScopeProfile:
     timeout_s: float = 5.0
     kind: str = "scpi-scope"
     done_clear_mask: int = 0  # or: done when these bits of the done query's integer answer are clear
+    vertical_fine: bool = False  # any V/div between the smallest and largest (fine adjustment): the signal fills the screen
 
 
 # the scope command roles a profile gives in [commands]; the driver sends them in this sense
@@ -280,7 +281,7 @@ PROFILE_KEYS: dict[str, set[str]] = {
     "modbus": _COMMON | {"device_id", "identity", "frequency_hz", "amplitude_v", "output", "watchdog_s", "watchdog_timeout_s", "limits", "timeout_s"},
     "dbc": _COMMON | {"dbc", "command", "status", "identity", "canopen_identity", "limits"},
     "nidaqmx": _COMMON | {"range_v", "terminal", "max_sample_rate_hz"},
-    "scpi-scope": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "channels", "ext_trigger", "adc_bits",
+    "scpi-scope": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "channels", "ext_trigger", "vertical_fine", "adc_bits",
                              "divisions", "time_divisions", "vertical_scales_v", "time_scales_s", "record_points",
                              "max_transfer_points", "gain_accuracy", "timebase_ppm", "trigger_jitter_s", "commands", "done",
                              "waveform", "trigger_sources"},
@@ -635,15 +636,23 @@ def _ascending(top: _Reader, key: str) -> tuple[float, ...]:
     return tuple(float(v) for v in values)
 
 
-def _record_points(top: _Reader, n_channels: int) -> dict[int, int]:
-    """``record_points``: one number, or a table by the number of channels on (``{ "1" = 12000,
-    "2" = 6000, "4" = 3000 }``: a count not listed uses the next larger one listed)."""
+def _record_points(top: _Reader, n_channels: int) -> dict[int, tuple[int, ...]]:
+    """``record_points``: the memory depths (points per channel) the scope offers, one number or
+    an ascending array, or a table of those by the number of channels on (``{ "1" = [12000,
+    120000], "4" = [3000, 30000] }``: a count not listed uses the next larger one listed)."""
     v = top.mapping.get("record_points", 10000)
-    table = {str(n): v for n in range(1, n_channels + 1)} if isinstance(v, int) and not isinstance(v, bool) else v
-    if not isinstance(table, Mapping) or not table or any(not str(k).isdigit() or isinstance(p, bool) or not isinstance(p, int) or p < 100
-                                                          for k, p in table.items()):
-        raise top.error(f"record_points: expected a number of points (>= 100) or a table by channel count, found {v!r}")
-    listed = sorted((int(k), int(p)) for k, p in table.items())
+    table = v if isinstance(v, Mapping) else {str(n): v for n in range(1, n_channels + 1)}
+
+    def depths(p) -> tuple[int, ...] | None:
+        items = p if isinstance(p, list) else [p]
+        if not items or any(isinstance(x, bool) or not isinstance(x, int) or x < 100 for x in items) or items != sorted(set(items)):
+            return None
+        return tuple(int(x) for x in items)
+
+    if not table or any(not str(k).isdigit() or depths(p) is None for k, p in table.items()):
+        raise top.error(f"record_points: expected points (>= 100, one number or an ascending array) or a table of those by "
+                        f"channel count, found {v!r}")
+    listed = sorted((int(k), depths(p)) for k, p in table.items())
     out = {}
     for n in range(1, n_channels + 1):
         larger = [p for k, p in listed if k >= n]
@@ -678,13 +687,16 @@ def _scope(name: str, source: str, top: _Reader) -> ScopeProfile:
         raise done.error("give exactly one of expect (a regular expression) and clear_mask (bits clear when done)")
     n_channels = top.integer("channels", 4, 1, 16)
     ext = bool(top.mapping.get("ext_trigger", False))
+    fine = top.mapping.get("vertical_fine", False)
+    if not isinstance(fine, bool):
+        raise top.error(f"vertical_fine: expected true or false, found {fine!r}")
     sources = top.sub("trigger_sources", "scope-trigger-sources") if "trigger_sources" in top.mapping else None
     trigger_sources = {"channel": sources.string("channel", "CHAN{ch}") if sources else "CHAN{ch}",
                        "ext": sources.string("ext", "EXT") if sources else "EXT"}
     return ScopeProfile(
         name=name, source=source, model=top.string("model", name),
         identity_query=identity_query, identity_expect=identity_expect, error_query=error_query, no_error=no_error,
-        init=top.strings("init"), channels=tuple(range(1, n_channels + 1)), has_ext_trigger=ext,
+        init=top.strings("init"), channels=tuple(range(1, n_channels + 1)), has_ext_trigger=ext, vertical_fine=fine,
         adc_bits=top.integer("adc_bits", 8, 4, 16), divisions=top.number("divisions", 8.0, positive=True),
         time_divisions=top.number("time_divisions", 10.0, positive=True),
         vertical_scales_v=_ascending(top, "vertical_scales_v"), time_scales_s=_ascending(top, "time_scales_s"),

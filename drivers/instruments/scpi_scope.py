@@ -110,6 +110,7 @@ class ScpiScope(ScpiInstrument):
         self.channels, self.trigger_source, self.trigger_level_v, self.clock = tuple(channels), trigger_source, trigger_level_v, clock
         self.scales_v = {c: profile.vertical_scales_v[-1] for c in channels}  # every record starts on the largest scale
         self.time_scale_s = 0.0
+        self.points = 0
 
     # -- set-up ---------------------------------------------------------------------------------
     def initialise(self) -> None:
@@ -134,10 +135,17 @@ class ScpiScope(ScpiInstrument):
             self.link.write(part.strip())
         self.check_errors(text)
 
+    SCREEN_FILL = 0.8  # a ranged signal's peak fills this much of the half screen
+
     def _scale_for(self, peak_v: float) -> float:
-        """The smallest V/div whose screen (``divisions`` x V/div, centred) holds ``peak_v`` with room."""
-        need = 2.0 * peak_v / (0.8 * self.profile.divisions)
-        return next((s for s in self.profile.vertical_scales_v if s >= need), self.profile.vertical_scales_v[-1])
+        """The smallest V/div whose screen (``divisions`` x V/div, centred) holds ``peak_v`` with
+        room: a listed step, or with ``vertical_fine`` the need itself rounded up to 3 digits."""
+        scales = self.profile.vertical_scales_v
+        need = 2.0 * peak_v / (self.SCREEN_FILL * self.profile.divisions)
+        if self.profile.vertical_fine and scales[0] < need < scales[-1]:
+            digits = 10.0 ** (math.floor(math.log10(need)) - 2)
+            return math.ceil(need / digits * (1 - 1e-12)) * digits
+        return next((s for s in scales if s >= need), scales[-1])
 
     def set_vertical_scale(self, channel: int, scale_v: float) -> None:
         self._command("vertical_scale", ch=channel, value=scale_v)
@@ -148,11 +156,15 @@ class ScpiScope(ScpiInstrument):
         self.scales_v[channel] = scale_v
 
     def range_up(self, channel: int) -> bool:
-        """The next larger V/div for ``channel``; False at the largest."""
-        larger = [s for s in self.profile.vertical_scales_v if s > self.scales_v[channel] * (1 + 1e-9)]
-        if not larger:
+        """A larger V/div for ``channel`` (the next step; with fine scales 3 times: a lightly damped
+        response may still be growing); False at the largest."""
+        scales = self.profile.vertical_scales_v
+        if self.scales_v[channel] >= scales[-1] * (1 - 1e-9):
             return False
-        self.set_vertical_scale(channel, larger[0])
+        if self.profile.vertical_fine:
+            self.set_vertical_scale(channel, min(scales[-1], self._scale_for(3.0 * self.scales_v[channel] * self.SCREEN_FILL * self.profile.divisions / 2)))
+            return True
+        self.set_vertical_scale(channel, next(s for s in scales if s > self.scales_v[channel] * (1 + 1e-9)))
         return True
 
     def range_for(self, channel: int, peak_v: float) -> None:
@@ -164,25 +176,30 @@ class ScpiScope(ScpiInstrument):
     def full_scale_v(self, channel: int) -> float:
         return self.profile.divisions * self.scales_v[channel]
 
-    def set_record_length(self, duration_s: float) -> float:
-        """The shortest time scale whose record covers ``duration_s``; returns the record's length."""
+    def set_record_length(self, duration_s: float, min_rate_hz: float = 0.0) -> float:
+        """The shortest time scale whose record covers ``duration_s``, and the smallest memory
+        depth sampling it at ``min_rate_hz`` or faster (else the deepest); returns the record's length."""
         need = duration_s / self.profile.time_divisions
         scale = next((s for s in self.profile.time_scales_s if s >= need * (1 - 1e-12)), None)
         if scale is None:
             raise DeviceRejectedError("range", f"{self.where}: a {duration_s:.4g} s record is longer than the {self.profile.model}'s "
                                                f"{self.profile.time_scales_s[-1] * self.profile.time_divisions:g} s")
+        length = scale * self.profile.time_divisions
+        n_on = len(set(self.channels) | ({int(self.trigger_source[2:])} if self.trigger_source.startswith("ch") else set()))
+        offered = self.profile.record_points[n_on]
+        points = next((p for p in offered if p >= min_rate_hz * length), offered[-1])
         if scale != self.time_scale_s:
-            self._command("time_scale", value=scale, offset=scale * self.profile.time_divisions / 2.0)
-            if "record_points" in self.profile.commands:
-                n_on = len(set(self.channels) | ({int(self.trigger_source[2:])} if self.trigger_source.startswith("ch") else set()))
-                self._command("record_points", value=self.profile.record_points[n_on])
+            self._command("time_scale", value=scale, offset=length / 2.0)
             self.time_scale_s = scale
-        return scale * self.profile.time_divisions
+        if points != self.points and "record_points" in self.profile.commands:
+            self._command("record_points", value=points)
+        self.points = points
+        return length
 
     # -- one record -----------------------------------------------------------------------------
-    def record(self, duration_s: float) -> ScopeRecord:
+    def record(self, duration_s: float, min_rate_hz: float = 0.0) -> ScopeRecord:
         """Arm, wait for the trigger and the record, read every channel (module docstring)."""
-        length = self.set_record_length(duration_s)
+        length = self.set_record_length(duration_s, min_rate_hz)
         self._command("arm")
         self._wait_done(length)
         volts, t, dt = {}, None, 0.0

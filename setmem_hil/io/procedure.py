@@ -79,6 +79,28 @@ class InstrumentSettings:
     calibration_uncertainty: float = 0.0
     quantity: str | None = None  # sensors: None -> force for the force role, displacement for the response role
     visa_library: str = "@py"
+    # an oscilloscope (issue 26): {"force": (1,), "response": (2, 3)} as the file lists them;
+    # each channel's sensor in channel_sensors
+    channel_roles: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
+    trigger_channel: int | None = None
+    channel_sensors: Mapping[int, "ChannelSensor"] = field(default_factory=dict)
+
+    def response_channels(self, control_output: int = 1) -> tuple[int, ...]:
+        """An oscilloscope's response channels in measurement order: the control output first."""
+        channels = tuple(self.channel_roles.get("response", ()))
+        if len(channels) < 2:
+            return channels
+        c = control_output - 1
+        return (channels[c],) + tuple(ch for i, ch in enumerate(channels) if i != c)
+
+
+@dataclass(frozen=True)
+class ChannelSensor:
+    """One ``[instruments.<name>.channel.N]`` table: the sensor wired to an oscilloscope channel."""
+
+    volt_per_unit: float
+    calibration_uncertainty: float = 0.0
+    quantity: str | None = None
 
 
 @dataclass(frozen=True)
@@ -104,7 +126,8 @@ class BackendSettings:
     response: str = ""  # the control output's response instrument
     emulation: EmulationSettings | None = None
     responses: tuple[str, ...] = ()  # several response instruments (issue 25), as the file lists them
-    control_output: int = 1  # index from 1 into responses
+    control_output: int = 1  # index from 1 into responses (or into one oscilloscope's response channels)
+    channel_outputs: tuple[str, ...] = ()  # one oscilloscope's response channels as outputs ("scope.ch2", ...), control first
 
     def response_instruments(self) -> tuple[str, ...]:
         """Every response instrument as a measurement carries them: the control output, then the
@@ -118,6 +141,8 @@ class BackendSettings:
     def output_order(self) -> tuple[str, ...]:
         """The outputs' names in measurement order: response instruments (kind = "instruments"),
         else the simulated sensors (``x=<position>``)."""
+        if self.kind == "instruments" and len(self.channel_outputs) > 1:
+            return self.channel_outputs
         if self.kind == "instruments" and len(self.responses) > 1:
             return self.response_instruments()
         return self.simulation.output_order()

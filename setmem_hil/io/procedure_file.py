@@ -50,6 +50,7 @@ from setmem_hil.io.procedure import (
     MULTISINE_BACKENDS,
     SENSOR_QUANTITIES,
     UNMODELLED_BOUNDS,
+    ChannelSensor,
     EmulationSettings,
     InstrumentSettings,
     NOISE_PROFILES,
@@ -158,7 +159,12 @@ SCHEMA: tuple[KeySpec, ...] = (
     # [instruments.<name>]
     KeySpec("instrument", "profile", "string", "", _REQUIRED, "Instrument profile: a shipped name (keysight-33500b, rigol-dg800, srs-sr830, srs-sr860, modbus-shaker-controller) or the path of a profile file, relative to the procedure."),
     KeySpec("instrument", "resource", "string", "", _REQUIRED, "Where it is: a PyVISA resource string (TCPIP::HOST::5025::SOCKET, USB0::...::INSTR, ASRL/dev/ttyUSB0::INSTR); Modbus: tcp://HOST:PORT or rtu:///dev/ttyUSB0?baudrate=19200&parity=E."),
-    KeySpec("instrument", "channel", "integer", "", 1, "Output channel of a generator.", ge=1, le=16),
+    KeySpec("instrument", "channel", "integer", "", 1, "Output channel of a generator; on an oscilloscope, [instruments.<name>.channel.N] tables instead: each channel's sensor (volt_per_unit, calibration_uncertainty, quantity).", ge=1, le=16),
+    KeySpec("instrument", "channels", "scope-channels", "", "required for an oscilloscope", "An oscilloscope's roles: channels = { force = 1, response = [2, 3] } (one force channel, one or more response channels; the same scope is then both [backend] force and response; several response channels are several outputs, control_output indexing them)."),
+    KeySpec("instrument", "trigger_channel", "integer", "", "EXT where the profile has it, else the force channel", "The oscilloscope channel wired to the generator's sync output (the record's trigger).", ge=1, le=16),
+    KeySpec("instrument.channel", "volt_per_unit", "number", "V/unit", _REQUIRED, "This channel's sensor sensitivity: volts per newton (force) or per response unit.", gt=0.0),
+    KeySpec("instrument.channel", "calibration_uncertainty", "number", "", 0.0, "Relative uncertainty of this channel's volt_per_unit; part of every point's bound.", ge=0.0, le=0.5),
+    KeySpec("instrument.channel", "quantity", "choice", "", "force (the force channel) / displacement", "What this channel's sensor measures.", choices=SENSOR_QUANTITIES),
     KeySpec("instrument", "newton_per_volt", "number", "N/V", "required for the exciter", "Nominal force amplitude per volt of drive amplitude (peak); for planning only: the measured force sets the level.", gt=0.0),
     KeySpec("instrument", "max_drive_v", "number", "V", "the instrument's limit", "Never command more than this peak drive voltage.", gt=0.0),
     KeySpec("instrument", "load_ohms", "number", "ohm", "high impedance", "Generator output load setting (the amplifier's input impedance).", gt=0.0),
@@ -392,9 +398,9 @@ def _backend(top: _Table) -> BackendSettings:
         if control not in responses:
             raise t.error(f"control_output {control!r} is not one of the response instruments {list(responses)}")
         control = responses.index(control) + 1
-    if responses and control > len(responses):
+    if len(responses) > 1 and control > len(responses):  # one instrument: an oscilloscope's channels may count (_instruments)
         raise t.error(f"control_output: {control} but only {len(responses)} response instrument(s)")
-    roles["response"] = responses[control - 1] if responses else ""
+    roles["response"] = (responses[control - 1] if len(responses) > 1 else responses[0]) if responses else ""
     roles["responses"] = responses if len(responses) > 1 else ()
     roles["control_output"] = control
     emulation = None
@@ -402,7 +408,8 @@ def _backend(top: _Table) -> BackendSettings:
         e = t.sub("emulation")
         n_responses = max(1, len(responses))
         sensors = tuple(float(x) for x in e.get("sensors", [1.0] * (1 if n_responses == 1 else 0)))
-        if len(sensors) != n_responses:
+        # one oscilloscope's several response channels: counted in _instruments
+        if len(sensors) != n_responses and n_responses > 1:
             raise e.error(f"sensors: one position per response instrument ({n_responses}: {list(responses)}), found {list(sensors)}")
         emulation = EmulationSettings(drive_gain_ratio=e.get("drive_gain_ratio", 1.0), noise_v_per_rthz=e.get("noise_v_per_rthz", 2e-6),
                                       damping=e.get("damping", None), relock_s=e.get("relock_s", 0.0),
@@ -424,14 +431,26 @@ def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentS
     found: dict[str, InstrumentSettings] = {}
     for name, table in raw.items():
         t = _Table(top.source, "instrument", table, location=f"[instruments.{name}]")
+        channel_tables = t.mapping.get("channel") if isinstance(t.mapping.get("channel"), Mapping) else None
         found[name] = InstrumentSettings(
-            name=str(name), profile=t.get("profile"), resource=t.get("resource"), channel=t.get("channel", 1),
+            name=str(name), profile=t.get("profile"), resource=t.get("resource"),
+            channel=1 if channel_tables is not None else t.get("channel", 1),
             newton_per_volt=t.get("newton_per_volt"), max_drive_v=t.get("max_drive_v"), load_ohms=t.get("load_ohms"),
             volt_per_unit=t.get("volt_per_unit"), calibration_uncertainty=t.get("calibration_uncertainty", 0.0),
             quantity=t.get("quantity"), visa_library=t.get("visa_library", "@py"),
+            channel_roles=_scope_channel_roles(t, backend) if t.has("channels") else {},
+            trigger_channel=t.get("trigger_channel"),
+            channel_sensors=_channel_sensors(top.source, str(name), channel_tables or {}),
         )
     if backend.kind != "instruments":
         return found
+    scope = found.get(backend.force)
+    if scope is not None and scope.channel_roles:
+        return _check_scope_roles(top, backend, found, scope)
+    if backend.control_output > max(1, len(backend.responses)):
+        raise ProcedureError(top.source, "[backend] key 'control_output'", f"{backend.control_output} but only one response instrument")
+    if backend.emulation is not None and len(backend.emulation.sensors) != len(backend.response_instruments()):
+        raise ProcedureError(top.source, "[backend.emulation] key 'sensors'", f"one position per response instrument, found {list(backend.emulation.sensors)}")
     roles = [("exciter", backend.exciter, "newton_per_volt"), ("force", backend.force, "volt_per_unit")]
     roles += [("response", name, "volt_per_unit") for name in backend.response_instruments() or ("",)]
     for role, name, needs in roles:
@@ -452,6 +471,68 @@ def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentS
             raise ProcedureError(top.source, f"[instruments.{response.name}] key 'quantity'", "the response role's sensor must measure displacement, velocity or acceleration")
         if backend.force == response.name:
             raise ProcedureError(top.source, "[backend] key 'response'", f"force and response name the same instrument {backend.force!r}; a lock-in reads one signal")
+    return found
+
+
+def _scope_channel_roles(t: _Table, backend: BackendSettings) -> dict[str, tuple[int, ...]]:
+    """``channels = { force = 1, response = [2, 3] }``: one force channel, response channels as
+    the file lists them, each channel once."""
+    raw = t.mapping["channels"]
+    if not isinstance(raw, Mapping) or set(raw) - {"force", "response"} or "force" not in raw or "response" not in raw:
+        raise t.error(f"channels: expected {{ force = N, response = N or [N, ...] }}, found {_fmt(raw)}")
+    force, response = raw["force"], raw["response"]
+    response = [response] if isinstance(response, int) and not isinstance(response, bool) else response
+    every = [force, *response] if isinstance(response, list) else None
+    if every is None or not response or not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 16 for c in every):
+        raise t.error(f"channels: channel numbers are integers from 1, found {_fmt(raw)}")
+    if len(set(every)) != len(every):
+        raise t.error(f"channels: each channel in one role, found {_fmt(raw)}")
+    control = backend.control_output if isinstance(backend.control_output, int) else 1
+    if control > len(response):
+        raise ProcedureError(t.source, "[backend] key 'control_output'", f"{control} but the oscilloscope has {len(response)} response channel(s)")
+    return {"force": (int(force),), "response": tuple(int(c) for c in response)}
+
+
+def _channel_sensors(source: str, name: str, tables: Mapping) -> dict[int, ChannelSensor]:
+    """``[instruments.<name>.channel.N]`` tables (an oscilloscope's sensors)."""
+    sensors = {}
+    for key, table in tables.items():
+        if not str(key).isdigit():
+            raise ProcedureError(source, f"[instruments.{name}.channel]", f"expected tables [instruments.{name}.channel.N] with N a channel number, found key {key!r}")
+        c = _Table(source, "instrument.channel", table, location=f"[instruments.{name}.channel.{key}]")
+        sensors[int(key)] = ChannelSensor(c.get("volt_per_unit"), c.get("calibration_uncertainty", 0.0), c.get("quantity"))
+    return sensors
+
+
+def _check_scope_roles(top: _Table, backend: BackendSettings, found: dict, scope: InstrumentSettings) -> dict[str, InstrumentSettings]:
+    """One oscilloscope as both the force and the response (issue 26): every channel it uses has
+    its sensor table, the roles name it, the emulation places one sensor per response channel."""
+    where = f"[instruments.{scope.name}]"
+    if backend.response_instruments() != (scope.name,):
+        raise ProcedureError(top.source, "[backend] key 'response'", f"with an oscilloscope as the force, response names the same "
+                             f"oscilloscope {scope.name!r} (one record samples force and responses together); its channels "
+                             "table says which channel is which")
+    for role in ("force", "response"):
+        for ch in scope.channel_roles[role]:
+            sensor = scope.channel_sensors.get(ch)
+            if sensor is None:
+                raise ProcedureError(top.source, f"[instruments.{scope.name}.channel.{ch}]", f"missing: channel {ch} is a {role} channel; "
+                                     "give its volt_per_unit (and calibration_uncertainty, quantity)")
+            quantity = sensor.quantity or ("force" if role == "force" else "displacement")
+            if (quantity == "force") != (role == "force"):
+                raise ProcedureError(top.source, f"[instruments.{scope.name}.channel.{ch}] key 'quantity'",
+                                     f"channel {ch} is a {role} channel; its sensor measures {quantity}")
+    if scope.trigger_channel is not None and scope.trigger_channel in scope.channel_roles["response"]:
+        raise ProcedureError(top.source, f"{where} key 'trigger_channel'", f"channel {scope.trigger_channel} is a response channel; "
+                             "trigger on the generator's sync (a spare channel or EXT) or on the force channel")
+    if backend.exciter not in found:
+        raise ProcedureError(top.source, "[backend] key 'exciter'", f"no [instruments.{backend.exciter}] table")
+    if found[backend.exciter].newton_per_volt is None:
+        raise ProcedureError(top.source, f"[instruments.{backend.exciter}]", "missing key 'newton_per_volt' (the exciter needs it)")
+    n_outputs = len(scope.channel_roles["response"])
+    if backend.emulation is not None and len(backend.emulation.sensors) != n_outputs:
+        raise ProcedureError(top.source, "[backend.emulation] key 'sensors'", f"one position per response channel of "
+                             f"{scope.name!r} ({n_outputs}), found {list(backend.emulation.sensors)}")
     return found
 
 
@@ -643,6 +724,7 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
     weights = _weights(top)
     discrepancy = top.sub("discrepancy").get("check_each_iteration", False)
     instruments = _instruments(top, backend)
+    backend = _with_channel_outputs(backend, instruments)
     unmodelled_bound = top.sub("identification").get("unmodelled_bound")
     dwell_signal = top.sub("dwell").get("signal", "sine")
     # instruments: check_instruments decides, from the profiles (lock-ins or sampled sensors)
@@ -666,6 +748,14 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
         description=description,
         source_text=text,
     )
+
+
+def _with_channel_outputs(backend: BackendSettings, instruments: dict[str, InstrumentSettings]) -> BackendSettings:
+    """An oscilloscope's several response channels name the outputs (``scope.ch2``, control first)."""
+    scope = instruments.get(backend.force) if backend.kind == "instruments" else None
+    if scope is None or len(scope.channel_roles.get("response", ())) < 2:
+        return backend
+    return replace(backend, channel_outputs=tuple(f"{scope.name}.ch{c}" for c in scope.response_channels(backend.control_output)))
 
 
 def parse_procedure_text(text: str, source: str = "<procedure>") -> Procedure:

@@ -62,6 +62,8 @@ def format_procedure(procedure: Procedure) -> str:
     roles = [f"{role} = {_toml_value(getattr(b, role))}" for role in ("exciter", "force", "response") if getattr(b, role)]
     if b.responses:  # several response instruments (issue 25): the list as given, and the control output
         roles[-1:] = [f"response = {_toml_value(list(b.responses))}", f"control_output = {b.control_output}"]
+    elif b.channel_outputs:  # one oscilloscope's several response channels
+        roles.append(f"control_output = {b.control_output}")
     out += ["[backend]", f"kind = {_toml_value(b.kind)}", *roles, "", "[backend.simulation]",
             f"noise_profile = {_toml_value(s.noise_profile)}", f"noise_scale = {_toml_value(float(s.noise_scale))}",
             f"unmodelled_dynamics = {_toml_value(bool(s.unmodelled_dynamics))}",
@@ -86,9 +88,18 @@ def format_procedure(procedure: Procedure) -> str:
         for key in ("profile", "resource", "channel", "newton_per_volt", "max_drive_v", "load_ohms", "volt_per_unit",
                     "calibration_uncertainty", "quantity", "visa_library"):
             value = getattr(inst, key)
-            if value is not None:
+            if value is not None and not (key == "channel" and inst.channel_sensors):
                 out.append(f"{key} = {_toml_value(value)}")
+        if inst.channel_roles:  # an oscilloscope (issue 26)
+            roles = inst.channel_roles
+            out.append(f"channels = {{ force = {roles['force'][0]}, response = {_toml_value(list(roles['response']))} }}")
+        if inst.trigger_channel is not None:
+            out.append(f"trigger_channel = {inst.trigger_channel}")
         out.append("")
+        for ch, sensor in inst.channel_sensors.items():
+            out += [f"[instruments.{_toml_key(name)}.channel.{ch}]", f"volt_per_unit = {_toml_value(sensor.volt_per_unit)}",
+                    f"calibration_uncertainty = {_toml_value(sensor.calibration_uncertainty)}",
+                    *([f"quantity = {_toml_value(sensor.quantity)}"] if sensor.quantity else []), ""]
     sf = p.safety
     out += ["[safety]"] + [f"{k} = {_toml_value(float(getattr(sf, k)))}" for k in ("max_amplitude_n", "omega_min_rad_s", "omega_max_rad_s", "max_dwell_s")]
     out += [f"max_response = {_toml_value(float(sf.max_response))}"] if sf.max_response is not None else []

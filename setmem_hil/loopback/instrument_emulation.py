@@ -18,7 +18,7 @@ import re
 
 from setmem_hil.drivers.instruments.instrument_set import check_instruments, open_instrument_experiment
 from setmem_hil.drivers.instruments.phasor_dwell import PhasorDwellExperiment
-from setmem_hil.drivers.instruments.profile import LockInProfile, ModbusProfile, ScpiGeneratorProfile
+from setmem_hil.drivers.instruments.profile import LockInProfile, ModbusProfile, ScopeProfile, ScpiGeneratorProfile
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import Procedure
 from setmem_hil.model.modal_model import ModalParameters
@@ -26,6 +26,7 @@ from setmem_hil.sim_backends.beam import BEAM_DAMPING_RATIO, BEAM_RESIDUE, beam_
 from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBench
 from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer, LockInEmulator, SiglentGeneratorEmulator
 from setmem_hil.sim_backends.modbus_controller_emulator import ModbusControllerEmulator
+from setmem_hil.sim_backends.scope_emulators import KeysightScopeEmulator, RigolScopeEmulator
 
 __all__ = ["open_emulated_instruments", "start_emulators", "emulator_model", "with_damping"]
 
@@ -38,7 +39,8 @@ def emulator_model(profile) -> str | None:
     if isinstance(profile, ModbusProfile):
         return "modbus"
     for pattern, model in ((r"335\d\d|33500|336\d\d", "33500B"), (r"DG8", "DG800"), (r"SR830", "SR830"), (r"SR860", "SR860"),
-                           (r"SR865A", "SR865A"), (r"SDG2\d*0*X", "SDG2000X"), (r"SDG1\d*0*X", "SDG1000X")):
+                           (r"SR865A", "SR865A"), (r"SDG2\d*0*X", "SDG2000X"), (r"SDG1\d*0*X", "SDG1000X"),
+                           (r"DS1\d*Z", "DS1000Z"), (r"InfiniiVision", "InfiniiVision")):
         if re.search(pattern, profile.model, re.IGNORECASE):
             return model
     return None
@@ -53,15 +55,16 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
     backend = procedure.backend
     exciter, force = procedure.instruments[backend.exciter], procedure.instruments[backend.force]
     responses = [procedure.instruments[name] for name in backend.response_instruments()]  # control output first
-    for response in responses:
-        if (response.quantity or "displacement") != "displacement":
-            raise ProcedureError(source, f"[instruments.{response.name}] key 'quantity'", "the emulated response sensor measures displacement")
+    sensors = _sensor_channels(procedure)
+    for where, quantity, _ in sensors[1:]:
+        if quantity != "displacement":
+            raise ProcedureError(source, f"{where} key 'quantity'", "the emulated response sensor measures displacement")
     outputs = _emulated_outputs(procedure)
     bench = EmulatedBench(outputs[0], BenchSettings(
         newton_per_volt=exciter.newton_per_volt, drive_gain_ratio=emulation.drive_gain_ratio,
-        force_volt_per_unit=force.volt_per_unit, response_volt_per_unit=responses[0].volt_per_unit,
+        force_volt_per_unit=sensors[0][2], response_volt_per_unit=sensors[1][2],
         noise_v_per_rthz=(emulation.noise_v_per_rthz, emulation.noise_v_per_rthz), seed=seed,
-        relock_s=emulation.relock_s, other_response_volt_per_unit=tuple(r.volt_per_unit for r in responses[1:]),
+        relock_s=emulation.relock_s, other_response_volt_per_unit=tuple(s[2] for s in sensors[2:]),
     ), other_outputs=tuple(outputs[1:]))
     lockin_of = dict(zip((r.name for r in responses), EmulatedBench.response_names(len(responses))))
     servers = []
@@ -71,7 +74,8 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
             model = emulator_model(profile)
             if model is None:
                 raise ProcedureError(source, f"[instruments.{name}] key 'profile'", f"no emulator for a {profile.model}; "
-                                     "emulation knows the 33500B, DG800, Siglent SDG1000X/2000X, SR830, SR860, SR865A and Modbus register maps")
+                                     "emulation knows the 33500B, DG800, Siglent SDG1000X/2000X, SR830, SR860, SR865A, Rigol DS1000Z, Keysight "
+                                     "InfiniiVision and Modbus register maps")
             if isinstance(profile, ModbusProfile):
                 m = _MODBUS_TCP.match(settings.resource)
                 if not m:
@@ -82,7 +86,9 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
                 m = _SOCKET.match(settings.resource)
                 if not m:
                     raise ProcedureError(source, f"[instruments.{name}] key 'resource'", f"emulation listens on TCPIP::127.0.0.1::PORT::SOCKET, found {settings.resource!r}")
-                if isinstance(profile, ScpiGeneratorProfile) and model.startswith("SDG"):
+                if isinstance(profile, ScopeProfile):
+                    emulator = _scope_emulator(bench, settings, model, seed, backend.control_output)
+                elif isinstance(profile, ScpiGeneratorProfile) and model.startswith("SDG"):
                     emulator = SiglentGeneratorEmulator(bench, model, channel=settings.channel)
                 elif isinstance(profile, ScpiGeneratorProfile):
                     emulator = GeneratorEmulator(bench, model, channel=settings.channel)
@@ -100,17 +106,55 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
     return dataclasses.replace(procedure, instruments=instruments), bench, servers
 
 
+def _sensor_channels(procedure: Procedure) -> list[tuple[str, str, float]]:
+    """``(where, quantity, volt_per_unit)`` of the force sensor, then every response sensor in
+    measurement order (control output first): instruments, or one oscilloscope's channels."""
+    backend = procedure.backend
+    scope = procedure.instruments[backend.force]
+    if scope.channel_roles:
+        def one(ch: int, default: str) -> tuple[str, str, float]:
+            sensor = scope.channel_sensors[ch]
+            return f"[instruments.{scope.name}.channel.{ch}]", sensor.quantity or default, sensor.volt_per_unit
+
+        return [one(scope.channel_roles["force"][0], "force")] + [one(c, "displacement") for c in scope.response_channels(backend.control_output)]
+    every = [scope] + [procedure.instruments[name] for name in backend.response_instruments()]
+    return [(f"[instruments.{i.name}]", i.quantity or ("force" if k == 0 else "displacement"), i.volt_per_unit) for k, i in enumerate(every)]
+
+
+def _sensor_positions(procedure: Procedure) -> list[float]:
+    """``[backend.emulation] sensors`` (file order) in measurement order (control output first)."""
+    backend, emulation = procedure.backend, procedure.backend.emulation
+    scope = procedure.instruments[backend.force]
+    if scope.channel_roles:
+        where = dict(zip(scope.channel_roles["response"], emulation.sensors))
+        return [where[c] for c in scope.response_channels(backend.control_output)]
+    where = dict(zip(backend.responses or (backend.response,), emulation.sensors))
+    return [where[name] for name in backend.response_instruments()]
+
+
+def _scope_emulator(bench: EmulatedBench, settings, model: str, seed: int, control_output: int):
+    """The scope's channels wired as the procedure says: force, the responses (the bench's
+    ``response``, ``response2``... in measurement order), the generator's sync on trigger_channel."""
+    roles = settings.channel_roles
+    names = EmulatedBench.response_names(len(roles["response"]))
+    wiring = {roles["force"][0]: "force", **dict(zip(settings.response_channels(control_output), names))}
+    volt_per_unit = {"force": settings.channel_sensors[roles["force"][0]].volt_per_unit}
+    volt_per_unit.update({name: settings.channel_sensors[c].volt_per_unit for c, name in wiring.items() if name != "force"})
+    if settings.trigger_channel is not None:
+        wiring[settings.trigger_channel] = "sync"
+    if model == "DS1000Z":
+        return RigolScopeEmulator(bench, wiring, volt_per_unit, seed=seed)
+    return KeysightScopeEmulator(bench, wiring, volt_per_unit, ext_sync=settings.trigger_channel is None, seed=seed)
+
+
 def _emulated_outputs(procedure: Procedure) -> list[ModalParameters]:
-    """The emulated beam as each response instrument sees it, control output first: every mode
+    """The emulated beam as each response sensor sees it, control output first: every mode
     at the emulation's damping, residues ``phi_i(actuator) phi_i(sensor)`` (issue 25; the
     thesis's ``b0 = 4`` for a sensor at the tip with the force at the tip)."""
-    backend, emulation = procedure.backend, procedure.backend.emulation
+    emulation = procedure.backend.emulation
     damping = emulation.damping if emulation.damping is not None else BEAM_DAMPING_RATIO
-    file_order = backend.responses or (backend.response,)
-    where = dict(zip(file_order, emulation.sensors))
     outputs = []
-    for name in backend.response_instruments():
-        x = where[name]
+    for x in _sensor_positions(procedure):
         if x == 1.0 and emulation.actuator == 1.0:  # the thesis's beam exactly (b0 = 4 for every mode)
             residues = BEAM_RESIDUE
         else:

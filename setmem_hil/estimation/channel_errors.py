@@ -1,0 +1,72 @@
+"""What a sampled instrument's channel may be off by, and what that does to a ratio (issue 26).
+
+A sampled force or response channel's fitted phasor ``X_hat`` differs from the sensor's true
+``X`` by instrument errors that no amount of averaging removes (pure numerics, no I/O):
+
+    X_hat = X (1 + eps) + alpha,   |eps| <= relative,   |alpha| <= absolute
+
+* ``relative``: the sensor's calibration (``calibration_uncertainty``); the vertical gain
+  accuracy, which datasheets state as a fraction of *full scale* (``divisions x V/div``): a gain
+  error that keeps every level on the screen (at most half of full scale from the centre) within
+  ``gain_accuracy x full scale`` is at most ``2 x gain_accuracy`` of the signal, whatever else
+  the record holds (an earlier mode still ringing, the range it forced); and the phase error of
+  the timing (``omega x trigger_jitter_s``, a stand-in for the channels' skew, which no datasheet
+  states: the jitter itself moves every channel alike and cancels in the ratio);
+* ``absolute`` (in the channel's units, amplitude): the quantization and the ADC's
+  nonlinearity: with every sample within half a code of the truth, a sine fit's amplitude moves
+  by at most ``(4 / pi) q / 2``; the term takes ``q`` of an ADC spanning 1.5 screens
+  (``1.5 x full scale / 2^bits``; the DS1000Z's spans 1.28, the InfiniiVision's 1.25), room
+  for the fit's transient regressors. This is the term the vertical ranging keeps small.
+
+The sample clock's accuracy scales every channel's time axis alike: the fitted phasors of force
+and response are attenuated and turned by the same factor, so their ratio does not move to first
+order, and the term is not added (the driver instead refuses a record whose clock error could
+turn the phasors by more than :data:`MAX_CLOCK_PHASE_RAD`).
+
+:func:`ratio_error_bound` is the worst case of ``|g_hat - g|`` for ``g = Y / F`` over every
+error within these discs (exact up to the product term, checked by brute force in the tests).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["ChannelError", "ratio_error_bound", "scope_channel_error", "MAX_CLOCK_PHASE_RAD"]
+
+MAX_CLOCK_PHASE_RAD = 0.5  # omega x clock error x record length above this: the record is refused (the sinc attenuation, common to every channel, would pass 1 %)
+
+
+@dataclass(frozen=True)
+class ChannelError:
+    """One channel's instrument error discs (module docstring): ``absolute`` in the channel's
+    units (amplitude), ``relative`` a fraction of the signal."""
+
+    absolute: float = 0.0
+    relative: float = 0.0
+
+
+def scope_channel_error(*, gain_accuracy: float, full_scale_v: float, adc_bits: int, volt_per_unit: float, calibration: float,
+                        omega_rad_s: float, trigger_jitter_s: float) -> ChannelError:
+    """A scope channel's discs from its datasheet figures and the vertical scale it recorded at."""
+    absolute_v = 1.5 * full_scale_v / 2.0 ** adc_bits
+    return ChannelError(absolute_v / volt_per_unit, calibration + 2.0 * gain_accuracy + omega_rad_s * trigger_jitter_s)
+
+
+def ratio_error_bound(g_hat: complex, force_amplitude: float, force: ChannelError, response: ChannelError) -> float:
+    """The largest ``|g_hat - g|`` (``g = Y / F`` the truth) with both channels' errors within
+    their discs; ``force_amplitude`` is ``|F_hat|`` (the same units as ``force.absolute``).
+
+    ``g = g_hat u1 u2`` with ``u1 = (1 - alpha_Y / Y_hat) / (1 - alpha_F / F_hat)`` and
+    ``u2 = (1 + eps_F) / (1 + eps_Y)``; ``|u1 - 1| <= (rho_Y + rho_F) / (1 - rho_F)``,
+    ``|u2 - 1| <= (c_F + c_Y) / (1 - c_Y)`` and ``|u1 u2 - 1| <= d1 + d2 + d1 d2``. Infinite
+    when the force is not larger than its own error (``rho_F >= 1``) or ``c_Y >= 1``.
+    """
+    if force_amplitude <= force.absolute or response.relative >= 1.0:
+        return math.inf
+    rho_f = force.absolute / force_amplitude
+    # |g_hat| rho_Y = A_Y / |F_hat|: finite even where the response is near zero
+    g_d1 = (response.absolute / force_amplitude + abs(g_hat) * rho_f) / (1.0 - rho_f)
+    d1 = (response.absolute / force_amplitude / max(abs(g_hat), 1e-300) + rho_f) / (1.0 - rho_f)
+    d2 = (force.relative + response.relative) / (1.0 - response.relative)
+    return float(g_d1 + abs(g_hat) * d2 + min(g_d1 * d2, abs(g_hat) * d1 * d2))
