@@ -82,6 +82,15 @@ class MultisineExciter(Protocol):
 
 
 @runtime_checkable
+class RecordedMultisineExciter(Protocol):
+    """An exciter that plays a whole multisine record as one waveform (a generator's arbitrary
+    waveform, issue 26): it needs the record's longest duration before anything is sent."""
+
+    def set_multisine_record(self, multisine, duration_s: float) -> None:
+        ...
+
+
+@runtime_checkable
 class RateConfigurableSensor(Protocol):
     """A sensor whose sample rate may be set per acquisition (coherent stepped-sine sampling)."""
 

@@ -15,7 +15,7 @@ import logging
 import math
 from typing import Iterator
 
-from setmem_hil.drivers.protocols import Exciter
+from setmem_hil.drivers.protocols import Exciter, RecordedMultisineExciter
 from setmem_hil.errors import SafetyLimitError
 from setmem_hil.io.procedure import SafetyLimits
 
@@ -110,6 +110,9 @@ class SafeExciter:
                 f"multisine command: peak force {peak:.4g} N over {duration_s:.4g} s above the procedure's safety limit "
                 f"{self.limits.max_amplitude_n:g} N; nothing was sent"
             )
+        if isinstance(self.inner, RecordedMultisineExciter):  # the whole record as one waveform
+            self.inner.set_multisine_record(multisine, duration_s)
+            return
         self.inner.set_multisine(multisine.omegas_rad_s, multisine.amplitudes_n, multisine.phases_rad)
 
     def stop(self) -> None:

@@ -65,6 +65,7 @@ from setmem_hil.drivers.protocols import (
     MultisineExciter,
     RateConfigurableSensor,
     ReconnectableRig,
+    RecordedMultisineExciter,
     Rig,
     WaitingSensor,
 )
@@ -201,7 +202,7 @@ class SineDwellExperiment:
             return [self.measure(lines[0])]
         if self._closed:
             raise DeviceError("sine dwell: measure_multisine() after close()")
-        if not isinstance(self.rig.exciter, MultisineExciter):
+        if not isinstance(self.rig.exciter, (MultisineExciter, RecordedMultisineExciter)):
             raise DeviceError(f"multisine record: the exciter of {self.rig.metadata.name!r} plays single sines only "
                               "(use [dwell] signal = \"sine\")")
         for w in lines:

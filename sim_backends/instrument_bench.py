@@ -41,6 +41,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from setmem_hil.model.modal_model import ModalParameters
+from setmem_hil.sim_backends.held_waveform import HeldWaveform
 from setmem_hil.numerics.blas_threads import blas_one_thread
 
 __all__ = ["VirtualClock", "LockInState", "EmulatedBench", "BenchSettings"]
@@ -140,6 +141,10 @@ class EmulatedBench:
         self.rng = np.random.default_rng(settings.seed)
         self.lock = threading.RLock()
         self.peak_force_n = 0.0  # the largest force amplitude ever applied (tests check the 5 % rule)
+        self.arb_points: np.ndarray | None = None  # an arbitrary waveform playing (issue 26): points in [-1, 1]
+        self.arb_rate_hz = 0.0
+        self.arb_start = 0.0
+        self._arb: HeldWaveform | None = None
         self._cache: dict[tuple, np.ndarray] = {}
 
     # -- what the instruments command ------------------------------------------------------------
@@ -149,7 +154,30 @@ class EmulatedBench:
 
     @property
     def force_amplitude_n(self) -> float:
-        return self.true_gain * self.amplitude_v if self.output_on else 0.0
+        """The force's peak: the sine's amplitude, or the arbitrary waveform's largest point."""
+        if not self.output_on:
+            return 0.0
+        scale = float(np.max(np.abs(self.arb_points))) if self.arb_points is not None else 1.0
+        return self.true_gain * self.amplitude_v * scale
+
+    def set_arbitrary(self, points: np.ndarray | None, rate_hz: float = 0.0) -> None:
+        """Play ``points`` (in [-1, 1], each held ``1 / rate_hz``, repeated) scaled by the
+        amplitude, from now; None: back to the sine."""
+        with self.lock:
+            self.advance()
+            self.arb_points = None if points is None else np.asarray(points, dtype=float).copy()
+            self.arb_rate_hz, self.arb_start = float(rate_hz), self.clock.now()
+            self._arb = None
+            self.peak_force_n = max(self.peak_force_n, self.force_amplitude_n)
+
+    def _held(self) -> HeldWaveform | None:
+        """The arbitrary waveform's physics while it drives the structure (None otherwise)."""
+        if self.arb_points is None or not self.output_on:
+            return None
+        force = self.true_gain * self.amplitude_v * self.arb_points
+        if self._arb is None or not np.array_equal(self._arb.force_n, force):
+            self._arb = HeldWaveform(self._A, self._B, force, self.arb_rate_hz, self.arb_start)
+        return self._arb
 
     def set_generator(self, *, frequency_hz: float | None = None, amplitude_v: float | None = None, output_on: bool | None = None) -> None:
         with self.lock:
@@ -190,9 +218,33 @@ class EmulatedBench:
             self.advance()
             if not self.output_on:
                 return None
+            held = self._held()
+            if held is not None:  # the sync marks the start of each cycle of the waveform
+                k = math.ceil((t - held.t_start) / held.period_s)
+                return held.t_start + (k + (held.t_start + k * held.period_s < t)) * held.period_s
             omega = 2 * math.pi * self.frequency_hz
             phase_at_t = (self.phase + omega * (t - self.t)) % (2 * math.pi)
             return t + ((2 * math.pi - phase_at_t) % (2 * math.pi)) / omega
+
+    def force_rising_after(self, t: float, level_n: float) -> float | None:
+        """The first time at or after ``t`` the force rises through ``level_n`` (a scope
+        triggering on the force channel): on a sine its rising zero crossing (the sync edge, for
+        a level inside the swing), on an arbitrary waveform the first held point that steps from
+        at or below the level to above it. None while nothing crosses."""
+        with self.lock:
+            self.advance()
+            held = self._held()
+            if held is None:
+                return self.sync_edge_after(t) if abs(level_n) < self.force_amplitude_n else None
+            f = held.force_n
+            rising = np.flatnonzero((np.roll(f, 1) <= level_n) & (f > level_n))
+            if rising.size == 0:
+                return None
+            k0 = math.ceil((t - held.t_start) * held.rate_hz)
+            cycle, offset = divmod(k0, f.size)
+            later = rising[rising >= offset]
+            k = cycle * f.size + (later[0] if later.size else f.size + rising[0])
+            return held.t_start + k / held.rate_hz
 
     def record(self, t0: float, dt: float, n: int) -> tuple[np.ndarray, np.ndarray]:
         """The force (N) and every output's displacement at ``t0 + k dt``, ``k < n``, exactly
@@ -205,9 +257,14 @@ class EmulatedBench:
                 raise ValueError(f"record from {t0} s asked at {self.t} s: the bench cannot go back")
             if t0 > self.t:
                 self._advance_to(t0)
+            rows = np.array([self._C[name] for name in self.response_names(len(self.outputs))])
+            held = self._held()
+            if held is not None:
+                force, ys = held.samples(self.x, self.t, t0 + dt * np.arange(n), rows)
+                self._advance_to(t0 + dt * (n - 1))
+                return force, ys
             omega = 2 * math.pi * self.frequency_hz
             force = np.empty(n)
-            rows = np.array([self._C[name] for name in self.response_names(len(self.outputs))])
             ys = np.empty((len(self.outputs), n))
             step = self._structure_step(omega, dt)
             xh = self.x * np.exp(-1j * self.phase)
@@ -227,7 +284,7 @@ class EmulatedBench:
     def _advance_to(self, t: float) -> None:
         dt = t - self.t
         if dt > 0:
-            self._advance_signal(dt)
+            self._advance_state(dt)
             for li in self.lockins.values():
                 self._advance_noise(li, dt)
             self.t = t
@@ -259,10 +316,19 @@ class EmulatedBench:
         dt = now - self.t
         if dt <= 0:
             return
-        self._advance_signal(dt)
+        self._advance_state(dt)
         for li in self.lockins.values():
             self._advance_noise(li, dt)
         self.t = now
+
+    def _advance_state(self, dt: float) -> None:
+        """The structure (and the lock-ins' filters, on a sine) over ``dt``. Under an arbitrary
+        waveform the lock-ins' filters are not simulated: nothing reads a lock-in then."""
+        held = self._held()
+        if held is None:
+            self._advance_signal(dt)
+            return
+        self.x = held.advance(self.x, self.t, self.t + dt)
 
     def _system(self, omega: float, dt: float) -> np.ndarray:
         """The transition matrix over ``dt``: structure (demodulated), drive and every lock-in's

@@ -30,6 +30,8 @@ import socketserver
 import threading
 from typing import Callable
 
+import numpy as np
+
 from setmem_hil.drivers.instruments.scpi_commands import canonical_header
 from setmem_hil.sim_backends.instrument_bench import EmulatedBench
 
@@ -106,8 +108,10 @@ class GeneratorEmulator(_Emulator):
         self.model, self.channel = model, channel
         self.idn = ("Keysight Technologies,33522B,MY57800001,5.02-1.19-2.00-58-00" if model == "33500B"
                     else "Rigol Technologies,DG812,DG8A224201234,00.01.14")
-        self.settings = {ch: {"FUNC": "SIN", "FREQ": 1000.0, "VOLT": 0.1, "OFFS": 0.0, "OUTP": False, "LOAD": math.inf, "UNIT": "VPP"}
-                         for ch in (1, 2)}
+        self.settings = {ch: {"FUNC": "SIN", "FREQ": 1000.0, "VOLT": 0.1, "OFFS": 0.0, "OUTP": False, "LOAD": math.inf, "UNIT": "VPP",
+                              "ARB": "", "SRAT": 40e3, "FILT": "STEP"} for ch in (1, 2)}
+        self.volatile: dict[int, dict[str, np.ndarray]] = {1: {}, 2: {}}  # arbitrary waveforms downloaded (33500B)
+        self.playing: tuple | None = None  # what the bench plays: (points id, rate)
 
     def handle(self, command: str) -> str | None:
         head, args = _split(command)
@@ -121,9 +125,12 @@ class GeneratorEmulator(_Emulator):
         ch = int(m.group(2) or 1)
         if ch not in (1, 2):
             return self._undefined(query)
+        if self.model == "33500B" and m.group(1) == "SOUR" and nodes[1:2] == ("DATA",):
+            return self._data(ch, nodes[2:], args, query)
         key = self._key(m.group(1), nodes[1:])
         if key is None:
             return self._undefined(query)
+        self._addressed = ch
         s = self.settings[ch]
         if query:
             return self._format(key, s[key])
@@ -137,8 +144,29 @@ class GeneratorEmulator(_Emulator):
             ("SOUR", ("FREQ",)): "FREQ", ("SOUR", ("VOLT",)): "VOLT", ("SOUR", ("VOLT", "OFFS")): "OFFS",
             ("SOUR", ("VOLT", "UNIT")): "UNIT", ("SOUR", ("FUNC",)): "FUNC", ("OUTP", ()): "OUTP",
             ("OUTP", ("LOAD",)): "LOAD", ("OUTP", ("IMP",)): "LOAD",
+            ("SOUR", ("FUNC", "ARB")): "ARB", ("SOUR", ("FUNC", "ARB", "SRAT")): "SRAT", ("SOUR", ("FUNC", "ARB", "FILT")): "FILT",
         }
         return table.get((root, rest))
+
+    MAX_ARB_POINTS = 1_000_000  # the standard 1 MSa a channel
+
+    def _data(self, ch: int, rest: tuple[str, ...], args: str, query: bool) -> None:
+        """``SOURce:DATA:VOLatile:CLEar`` and ``SOURce:DATA:ARBitrary <name>, <value>, ...`` (the
+        33500B guide: 8 to 1 M values (the standard memory) from -1 to +1; the name up to 12 characters)."""
+        if query:
+            return self._undefined(query)
+        if rest == ("VOL", "CLE"):
+            self.volatile[ch].clear()
+            return None
+        if rest == ("ARB",):
+            name, _, values = args.partition(",")
+            points = np.array([_number(v) for v in values.split(",")]) if values.strip() else np.zeros(0)
+            if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,11}", name.strip()) or not 8 <= points.size <= self.MAX_ARB_POINTS \
+                    or np.max(np.abs(points)) > 1.0:
+                raise ValueError(args[:40])
+            self.volatile[ch][name.strip().upper()] = points
+            return None
+        return self._undefined(query)
 
     def _parse(self, key: str, args: str):
         a = args.upper()
@@ -156,15 +184,24 @@ class GeneratorEmulator(_Emulator):
                 raise ValueError(args)
             return value
         if key == "FUNC":
-            if a not in ("SIN", "SINUSOID", "SQU", "RAMP", "DC", "NOIS"):
+            if a not in ("SIN", "SINUSOID", "SQU", "RAMP", "DC", "NOIS") + (("ARB",) if self.model == "33500B" else ()):
                 raise ValueError(args)
             return a[:3]
+        if key == "ARB":
+            name = args.strip().strip('"').upper()
+            if name not in self.volatile[self._addressed]:  # "Specified arb waveform does not exist"
+                raise ValueError(args)
+            return name
+        if key == "FILT":
+            if a not in ("OFF", "STEP", "NORM", "NORMAL"):
+                raise ValueError(args)
+            return a[:4]
         if key == "UNIT":
             if a not in ("VPP", "VRMS"):
                 raise ValueError(args)
             return a
         value = _number(args)
-        limits = {"FREQ": (1e-6, 20e6), "VOLT": (1e-3, 10.0), "OFFS": (-5.0, 5.0)}[key]
+        limits = {"FREQ": (1e-6, 20e6), "VOLT": (1e-3, 10.0), "OFFS": (-5.0, 5.0), "SRAT": (1e-6, 160e6)}[key]
         if not limits[0] <= value <= limits[1]:
             raise ValueError(args)
         return value
@@ -173,17 +210,26 @@ class GeneratorEmulator(_Emulator):
     def _format(key: str, value) -> str:
         if key == "OUTP":
             return "1" if value else "0"
-        if key in ("FUNC", "UNIT"):
+        if key in ("FUNC", "UNIT", "FILT"):
             return str(value)
+        if key == "ARB":
+            return f'"{value}"'
         if key == "LOAD" and math.isinf(value):
             return "+9.9E+37"
         return f"{value:+.15E}"
 
     def _drive(self) -> None:
         s = self.settings[self.channel]
-        on = s["OUTP"] and s["FUNC"] == "SIN" and s["OFFS"] == 0.0
+        arb = s["FUNC"] == "ARB" and s["ARB"] in self.volatile[self.channel]
+        on = s["OUTP"] and (s["FUNC"] == "SIN" or arb) and s["OFFS"] == 0.0
         volt = s["VOLT"]
         peak = volt / 2.0 if s["UNIT"] == "VPP" else volt * math.sqrt(2.0)
+        # an arbitrary waveform's points are held one sample period each with the filter off
+        # (STEP and NORMal interpolate; emulated as held too: the drivers switch the filter off)
+        playing = (id(self.volatile[self.channel][s["ARB"]]), s["SRAT"]) if arb else None
+        if playing != self.playing:
+            self.bench.set_arbitrary(self.volatile[self.channel][s["ARB"]] if arb else None, s["SRAT"])
+            self.playing = playing
         self.bench.set_generator(frequency_hz=s["FREQ"], amplitude_v=peak, output_on=on)
 
     def _common(self, nodes: tuple[str, ...], query: bool) -> str | None:

@@ -115,7 +115,11 @@ class ScopeEmulator(_Emulator):
         n = self.record_points()
         length = self.time_divisions * self.time_scale
         dt = length / n
-        edge = self.bench.sync_edge_after(now + self.pretrigger_s())
+        if self._trigger_source_signal() == "force":
+            edge = self.bench.force_rising_after(now + self.pretrigger_s(),
+                                                 self.trigger_level / (self.volt_per_unit["force"] * (1 + self.gain_errors[self._trigger_channel()])))
+        else:
+            edge = self.bench.sync_edge_after(now + self.pretrigger_s())
         if edge is None:
             return
         t0 = edge - self.pretrigger_s()
@@ -128,12 +132,19 @@ class ScopeEmulator(_Emulator):
         self.codes = {c: self._adc(c, self._volts(c, signals)) for c in self.channels_on()}
         self.ready_at = t0 + length
 
-    def _trigger_can_fire(self) -> bool:
+    def _trigger_channel(self) -> int | None:
+        m = re.fullmatch(r"CHAN(\d)", self.trigger_source)
+        return int(m.group(1)) if m else None
+
+    def _trigger_source_signal(self) -> str | None:
+        """What the trigger source is wired to: "sync", "force", a response, or None."""
         if self.trigger_source == "EXT":
-            source = "sync" if self.has_ext_sync else None
-        else:
-            m = re.fullmatch(r"CHAN(\d)", self.trigger_source)
-            source = self.wiring.get(int(m.group(1))) if m else None
+            return "sync" if self.has_ext_sync else None
+        ch = self._trigger_channel()
+        return self.wiring.get(ch) if ch is not None else None
+
+    def _trigger_can_fire(self) -> bool:
+        source = self._trigger_source_signal()
         if source == "sync":
             return 0.0 < self.trigger_level < SYNC_HIGH_V
         if source == "force":  # a zero crossing of the force: a level inside its swing

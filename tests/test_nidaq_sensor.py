@@ -7,6 +7,7 @@ from __future__ import annotations
 import inspect
 import math
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -264,3 +265,58 @@ def test_a_channel_at_its_rails_is_refused_naming_it():
     sensor.set_sample_rate(7.0 * 32)
     with pytest.raises(DataQualityError, match=r"NI-DAQ Dev1/ai1: \d+ samples at the \+-0.25 V input range"):
         sensor.acquire(1.0)
+
+
+def _clocked_daq(bench):
+    """A nidaqmx stand-in that takes each finite acquisition from the bench's exact record on
+    its virtual clock (force on ai0, the tip's displacement at 0.004 V/m on ai1): what a DAQ sees
+    while the generator plays, arbitrary waveforms included."""
+    rng = np.random.default_rng(5)
+
+    class Task:
+        def __init__(self):
+            self.names = []
+            self.ai_channels = types.SimpleNamespace(add_ai_voltage_chan=lambda name, **k: self.names.append(name))
+            self.timing = types.SimpleNamespace(cfg_samp_clk_timing=self._timing)
+
+        def _timing(self, rate, **k):
+            self.rate, self.n = rate, k["samps_per_chan"]
+
+        def read(self, **k):
+            force, ys = bench.record(bench.clock.now(), 1.0 / self.rate, self.n)
+            bench.clock.sleep(self.n / self.rate)
+            noise = 20e-6 * rng.standard_normal((2, self.n))  # 20 uV rms at each input
+            return [(0.0225 * force + noise[0]).tolist(), (0.004 * ys[0] + noise[1]).tolist()]
+
+        def close(self):
+            pass
+
+    return types.SimpleNamespace(Task=Task, constants=nidaqmx.constants, errors=nidaqmx.errors)
+
+
+def test_a_multisine_record_plays_as_the_generators_arbitrary_waveform_on_a_daq_rig():
+    """Issue 26: multisine with a DAQ and a generator that plays arbitrary waveforms is accepted;
+    the 33500B emulator holds the uploaded points, the bench answers with the exact response."""
+    import dataclasses
+
+    from setmem_hil.drivers.instruments.instrument_set import check_instruments, open_daq_experiment
+    from setmem_hil.sim_backends.beam import beam_parameters
+    from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBench
+    from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer
+
+    bench = EmulatedBench(beam_parameters(), BenchSettings())
+    server = InstrumentServer(GeneratorEmulator(bench, "33500B"))
+    try:
+        # the beam's first three modes in the prior, as the campaign's: their ringing is fitted
+        from setmem_hil.io.procedure_file import load_procedure
+
+        modes = load_procedure(Path(__file__).resolve().parents[1] / "procedures" / "instruments_emulated.toml").prior
+        procedure = dataclasses.replace(_daq_procedure(server.resource), dwell_signal="multisine", prior=modes)
+        with open_daq_experiment(procedure, check_instruments(procedure), nidaqmx_module=_clocked_daq(bench)) as exp:
+            measurements = exp.measure_multisine([3.0, 4.5, 9.0])
+            assert bench.arb_points is not None and bench.peak_force_n <= 1.0 + 1e-9
+            for m in measurements:
+                assert abs(m.response - bench.true_response(m.omega_rad_s)) <= m.bound, m.omega_rad_s
+        assert not bench.output_on
+    finally:
+        server.close()

@@ -84,11 +84,11 @@ def test_every_channel_holds_its_sensors_truth(dwells):
 
 
 def test_the_bound_carries_the_scopes_gain_accuracy(dwells):
-    # 3 % of full scale on each of the two channels of a ratio: 6 % of each signal (module
-    # channel_errors), so at least 12 % of the ratio
+    # 3 % of full scale on each of the two channels of a ratio: a 4 % gain error each (module
+    # channel_errors), so at least 8 % of the ratio
     measurements, _, _ = dwells
     for m in measurements:
-        assert m.bound >= 0.12 * abs(m.response)
+        assert m.bound >= 0.08 * abs(m.response)
 
 
 def test_closed_loop_level_keeps_the_force_within_the_limit_and_the_output_off_after(dwells):
@@ -129,3 +129,35 @@ def test_a_keysight_triggers_on_its_ext_input():
         m = exp.measure(17.5)
         for x, (g, bound) in zip(POSITIONS, [(m.response, m.bound), *m.others]):
             assert abs(g - _truth(x, 17.5)) <= bound
+
+
+MULTISINE_TEXT = SCOPE_PROCEDURE.read_text().replace("[safety]", '[dwell]\nsignal = "multisine"\n\n[safety]', 1)
+
+
+def test_a_multisine_record_through_the_arbitrary_waveform_holds_every_lines_truth():
+    """The 33500B plays the record as an arbitrary waveform (held points), the DS1104Z samples
+    force and three responses; every line of every output holds its truth; the level is closed
+    on the force (drive gain 10 % high); a sine after it is the generator's own again."""
+    with open_experiment(_procedure(MULTISINE_TEXT), 3) as exp:
+        lines = [5.0, 6.0, 17.0, 18.5]
+        measurements = exp.measure_multisine(lines)
+        assert [m.omega_rad_s for m in measurements] == lines
+        for m in measurements:
+            for x, (g, bound) in zip(POSITIONS, [(m.response, m.bound), *m.others]):
+                assert abs(g - _truth(x, m.omega_rad_s)) <= bound, (x, m.omega_rad_s)
+        assert exp.bench.peak_force_n <= 1.0  # the waveform's peak, levelled with room for the channel's error
+        assert exp.bench.peak_force_n >= 0.85
+        assert not exp.bench.output_on
+        m = exp.measure(6.2)
+        assert exp.bench.arb_points is None  # FUNC SIN again
+        assert abs(m.response - _truth(1.0, 6.2)) <= m.bound
+    assert not exp.bench.output_on
+
+
+def test_multisine_without_an_arbitrary_waveform_generator_names_the_exciter():
+    text = MULTISINE_TEXT.replace('profile = "keysight-33500b"', 'profile = "rigol-dg800"')
+    from setmem_hil.drivers.instruments.instrument_set import check_instruments
+
+    with pytest.raises(ProcedureError, match=r"\[dwell\] key 'signal'.*\[instruments.fgen\].*\[arbitrary\]"):
+        check_instruments(_procedure(text))
+    check_instruments(_procedure(MULTISINE_TEXT))  # the 33500B has one: accepted

@@ -87,8 +87,9 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
     if len(kinds) > 1:
         raise ProcedureError(_source(procedure), "[backend] key 'response'", "force and response must both be lock-ins or both "
                              f"DAQ channels, found {' and '.join(sorted(kinds))}")
-    if procedure.dwell_signal == "multisine":
-        raise ProcedureError(_source(procedure), "[dwell] key 'signal'", _multisine_refusal(procedure, found))
+    refusal = _multisine_refusal(procedure, found) if procedure.dwell_signal == "multisine" else None
+    if refusal:
+        raise ProcedureError(_source(procedure), "[dwell] key 'signal'", refusal)
     return found
 
 
@@ -104,15 +105,20 @@ def _check_scope(procedure: Procedure, settings: InstrumentSettings, profile: Sc
                              f"channel {missing[0]} does not exist on a {profile.model} (channels {list(profile.channels)})")
 
 
-def _multisine_refusal(procedure: Procedure, found: dict) -> str:
-    """Why this instrument rig cannot play multisine records, naming the instrument (issue 26)."""
+def _multisine_refusal(procedure: Procedure, found: dict) -> str | None:
+    """Why this instrument rig cannot play multisine records, naming the instrument (issue 26);
+    None when it can: sampled sensors (an oscilloscope or a DAQ) and a generator profile with an
+    ``[arbitrary]`` table."""
     backend = procedure.backend
     settings, profile, _ = found[backend.force]
     if profile.kind == "scpi-lockin":
-        return (f"multisine needs sampled sensors (a DAQ) and an arbitrary-waveform generator; [instruments.{settings.name}] "
-                f"is a lock-in ({profile.model}), which demodulates one frequency")
-    return (f"multisine needs an exciter that plays a sum of sines; [instruments.{backend.exciter}] is driven as a single-sine "
-            "generator (arbitrary waveforms are not supported yet)")
+        return (f"multisine needs sampled sensors (an oscilloscope or a DAQ) and an arbitrary-waveform generator; "
+                f"[instruments.{settings.name}] is a lock-in ({profile.model}), which demodulates one frequency")
+    exciter = found[backend.exciter][1]
+    if not isinstance(exciter, ScpiGeneratorProfile) or exciter.arbitrary is None:
+        return (f"multisine needs an exciter that plays arbitrary waveforms; [instruments.{backend.exciter}] ({exciter.model}) "
+                "has no [arbitrary] table in its profile (the 33500B's has one)")
+    return None
 
 
 def instrument_warnings(procedure: Procedure) -> list[str]:

@@ -95,6 +95,28 @@ class ScpiGeneratorProfile:
     kind: str = "scpi-generator"
     dead_man: str = ""
     high_z: str = "INF"  # what the instrument calls a high-impedance load ({load} without load_ohms)
+    arbitrary: ArbitraryWaveform | None = None  # plays arbitrary waveforms (multisine records)
+
+
+@dataclass(frozen=True)
+class ArbitraryWaveform:
+    """A generator's ``[arbitrary]`` table (issue 26): how to upload a waveform and play it.
+
+    Templates take ``{ch}``, ``{name}``, ``{values}`` (comma-separated floats in [-1, 1]) and
+    ``{value}`` (a number). ``select`` may hold several commands separated by ``;``. The played
+    waveform holds each point for one sample period (``filter`` switches the interpolation off):
+    its peak is exactly the largest point, which the safety check needs."""
+
+    clear: str  # free the volatile memory
+    upload: str  # {name}, {values}
+    select: str  # play waveform {name} ({name}; the filter, the function)
+    sample_rate: Setting  # {value} Sa/s, read back
+    function_query: str  # what the function query answers once the arbitrary waveform plays
+    function_expect: str
+    sine: str  # back to the generator's own sine
+    max_points: int
+    sample_rate_limits: tuple[float, float]
+    name: str = "SETMEM"
 
 
 @dataclass(frozen=True)
@@ -276,7 +298,8 @@ Profile = ScpiGeneratorProfile | LockInProfile | ModbusProfile | DbcProfile | Da
 
 _COMMON = {"kind", "model", "description", "extends"}
 PROFILE_KEYS: dict[str, set[str]] = {
-    "scpi-generator": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "commands", "limits", "dead_man", "high_z"},
+    "scpi-generator": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "commands", "limits", "dead_man", "high_z",
+                                 "arbitrary"},
     "scpi-lockin": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "reference", "time_constant", "read", "status", "filter_slope_db_per_octave", "full_scale_v", "sensitivity"},
     "modbus": _COMMON | {"device_id", "identity", "frequency_hz", "amplitude_v", "output", "watchdog_s", "watchdog_timeout_s", "limits", "timeout_s"},
     "dbc": _COMMON | {"dbc", "command", "status", "identity", "canopen_identity", "limits"},
@@ -306,6 +329,8 @@ _TABLE_KEYS = {
     "scope-done": {"expect", "clear_mask"},
     "scope-waveform": {"format", "byte_order", "y_origin", "clip_codes"},
     "scope-trigger-sources": {"ext", "channel"},
+    "arbitrary": {"clear", "upload", "select", "sample_rate", "function_query", "function_expect", "sine", "max_points",
+                  "sample_rate_limits", "name"},
 }
 
 
@@ -458,7 +483,19 @@ def _generator(name: str, source: str, top: _Reader) -> ScpiGeneratorProfile:
         timeout_s=top.number("timeout_s", 2.0, positive=True),
         dead_man=top.string("dead_man", ""),
         high_z=_high_z(top),
+        arbitrary=_arbitrary(top) if "arbitrary" in top.mapping else None,
     )
+
+
+def _arbitrary(top: _Reader) -> ArbitraryWaveform:
+    a = top.sub("arbitrary", "arbitrary")
+    fields = {"ch", "name", "values", "value"}
+    rate = a.pair("sample_rate_limits", (0.0, math.inf))
+    return ArbitraryWaveform(
+        clear=a.template("clear", fields), upload=a.template("upload", fields), select=a.template("select", fields),
+        sample_rate=_setting(a, "sample_rate", fields), function_query=a.template("function_query", fields),
+        function_expect=a.regex("function_expect"), sine=a.template("sine", fields),
+        max_points=a.integer("max_points", None, 8, 2**31), sample_rate_limits=rate, name=a.string("name", "SETMEM"))
 
 
 def _high_z(top: _Reader) -> str:

@@ -25,6 +25,12 @@ from setmem_hil.errors import SafetyLimitError
 __all__ = ["SourceExciter", "ForceLimitedSensor", "SampledInstrumentRig"]
 
 RAMP_FRACTIONS = (0.1, 0.3, 0.6, 1.0)
+# Points per period of a multisine's highest line in the generator's arbitrary waveform. Held
+# points add images at m f_arb +- f of relative size about f / (m f_arb); a sampling sensor whose
+# rate divides some m f_arb aliases one of them exactly onto its line (the force's phasor, not the
+# response's: the structure filters it). Many points, at a rate no sensor rate divides
+# (an irrational factor), keep that leak far below the bound.
+POINTS_PER_PERIOD = 32 * 1.0618
 
 
 class SourceExciter:
@@ -32,7 +38,14 @@ class SourceExciter:
         self.source, self.newton_per_volt, self.max_drive_v = source, float(newton_per_volt), float(max_drive_v)
         self.on = False
 
+    arbitrary = False  # an arbitrary waveform was last played (the next sine switches back first)
+
     def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
+        if self.arbitrary:
+            if self.on:
+                self.stop()
+            self.source.play_sine()
+            self.arbitrary = False
         frequency_hz = omega_rad_s / (2 * math.pi)
         volts = amplitude_n / self.newton_per_volt
         lo, hi = self.source.frequency_limits_hz
@@ -45,6 +58,26 @@ class SourceExciter:
             self.source.set_amplitude_v(max(RAMP_FRACTIONS[0] * volts, self.source.amplitude_limits_v[0]))
             self.source.set_output(True)
             self.on = True
+        for fraction in RAMP_FRACTIONS[1:]:
+            self.source.set_amplitude_v(max(fraction * volts, self.source.amplitude_limits_v[0]))
+
+    def set_multisine_record(self, multisine, duration_s: float) -> None:
+        """The whole record as the generator's arbitrary waveform (points held one sample
+        period, 8 a period of the highest line), at the nominal gain, ramped like a sine."""
+        rate = POINTS_PER_PERIOD * max(multisine.omegas_rad_s) / (2 * math.pi)
+        force = multisine.force(np.arange(int(math.ceil(duration_s * rate))) / rate)
+        peak = float(np.max(np.abs(force)))
+        volts = peak / self.newton_per_volt
+        if volts > self.max_drive_v or volts > self.source.amplitude_limits_v[1]:
+            raise SafetyLimitError(f"{self.source.name}: a multisine of {peak:g} N peak needs {volts:.4g} V (max_drive_v "
+                                   f"{self.max_drive_v:g} V, instrument {self.source.amplitude_limits_v[1]:g} V); nothing was sent")
+        if self.on:
+            self.stop()
+        self.source.play_arbitrary(force / peak, rate)
+        self.arbitrary = True
+        self.source.set_amplitude_v(max(RAMP_FRACTIONS[0] * volts, self.source.amplitude_limits_v[0]))
+        self.source.set_output(True)
+        self.on = True
         for fraction in RAMP_FRACTIONS[1:]:
             self.source.set_amplitude_v(max(fraction * volts, self.source.amplitude_limits_v[0]))
 

@@ -37,11 +37,12 @@ import numpy as np
 
 from setmem_hil.drivers.clock import Clock
 from setmem_hil.drivers.instruments.phasor_dwell import to_receptance
+from setmem_hil.drivers.instruments.sampled_rig import POINTS_PER_PERIOD
 from setmem_hil.drivers.instruments.scpi_scope import ClippedChannel, ScopeRecord, ScpiScope
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.drivers.sine_dwell import SineDwellExperiment
-from setmem_hil.errors import DataQualityError, SafetyLimitError
+from setmem_hil.errors import DataQualityError, DeviceRejectedError, SafetyLimitError
 from setmem_hil.estimation.channel_errors import MAX_CLOCK_PHASE_RAD, ChannelError, ratio_error_bound, scope_channel_error
 from setmem_hil.estimation.sine_fit import fit_sine
 from setmem_hil.model.experiment import Measurement
@@ -58,6 +59,41 @@ MAX_LEVEL_STEPS = 6
 MAX_STEP_UP = 3.0  # the most one levelling step multiplies the drive by
 MAX_RANGE_STEPS = 6
 RANGE_HEADROOM = 1.15  # a channel is ranged for this much more than the peak it showed (the response still grows)
+
+
+def level_record_s(omega_rad_s: float) -> float:
+    """A levelling record: ``LEVEL_PERIODS`` periods of the (lowest) drive frequency."""
+    return max(LEVEL_PERIODS * 2 * math.pi / omega_rad_s, MIN_LEVEL_RECORD_S)
+
+
+def levelling_allowance_s(lowest_rad_s: float) -> float:
+    """How long an arbitrary waveform plays before its record: the levelling records (each may
+    come out 2.5 times longer on a 1-2-5 time base) and the trigger waits."""
+    return MAX_LEVEL_STEPS * 2.5 * level_record_s(lowest_rad_s) * 1.2 + 10.0
+
+
+def held_waveform_gain(t_s: np.ndarray, force_n: np.ndarray, points: np.ndarray, rate_hz: float) -> float:
+    """Force per unit point of a played arbitrary waveform, from a record of the force that
+    starts anywhere in it: the record on the waveform's sample grid, aligned by circular
+    cross-correlation, then the least-squares scale."""
+    grid = np.arange(t_s[0], t_s[-1], 1.0 / rate_hz)
+    r = np.interp(grid, t_s, force_n)
+    n = points.size
+    if r.size < 8 or r.size > n:
+        raise DataQualityError(f"a levelling record of {r.size} points on a waveform of {n}: cannot align them")
+    corr = np.fft.irfft(np.conj(np.fft.rfft(r, n)) * np.fft.rfft(points, n), n)
+    # normalised by each window's energy: the least-squares fit's quality at every alignment
+    energy = np.convolve(np.concatenate([points, points[: r.size - 1]]) ** 2, np.ones(r.size), "valid")
+    shift = int(np.argmax(corr * np.abs(corr) / np.maximum(energy, 1e-300)))
+    # refine within a hold on the record's own samples: the played value at each sample time
+    best = (-math.inf, 0.0)
+    for offset in np.linspace(-1.0, 1.0, 41):
+        k = np.floor((t_s - t_s[0]) * rate_hz + shift + offset).astype(np.int64) % n
+        held = points[k]
+        gain = float(np.dot(force_n, held) / np.dot(held, held))
+        fit = gain * float(np.dot(force_n, held))
+        best = max(best, (fit, gain))
+    return best[1]
 
 
 @dataclass(frozen=True)
@@ -87,17 +123,63 @@ class LevelledExciter:
         self.omega_rad_s = 0.0
         self.target_n = 0.0
         self.needs_level = False
+        self.arbitrary: tuple[np.ndarray, float] | None = None  # the multisine record playing: (points, Sa/s)
+        self.lowest_rad_s = 0.0
 
     def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
         frequency_hz = omega_rad_s / (2 * math.pi)
+        self._check_drive(amplitude_n, frequency_hz)
+        if self.arbitrary is not None:  # back to the generator's own sine, the output off meanwhile
+            if self.on:
+                self.stop()
+            self.source.play_sine()
+            self.arbitrary = None
+        self.omega_rad_s, self.target_n = float(omega_rad_s), float(amplitude_n)
+        self.source.set_frequency_hz(frequency_hz)
+        self._start(amplitude_n)
+
+    # -- multisine records through the generator's arbitrary waveform (issue 26) ---------------
+    POINTS_PER_PERIOD = POINTS_PER_PERIOD  # of the highest line; held points: the line's amplitude is 2.6 % low, measured anyway
+    MIN_POINTS_PER_PERIOD = 5
+
+    @property
+    def plays_multisine(self) -> bool:
+        return bool(getattr(self.source, "plays_arbitrary", False))
+
+    def set_multisine_record(self, multisine, duration_s: float) -> None:
+        """Upload the record (and room for the levelling) as one arbitrary waveform and play it
+        at a quarter (then half) of the target level; the levelling finishes it. Its peak is
+        checked against the generator's limits before anything is sent."""
+        arb = self.source.profile.arbitrary
+        top_hz = max(multisine.omegas_rad_s) / (2 * math.pi)
+        # the scope's records may come out longer than asked (1-2-5 time base): room for that too
+        length = 1.5 * duration_s + levelling_allowance_s(min(multisine.omegas_rad_s))
+        rate = self.POINTS_PER_PERIOD * top_hz
+        if length * rate > arb.max_points:
+            rate = arb.max_points / length
+            if rate < self.MIN_POINTS_PER_PERIOD * top_hz:
+                raise DeviceRejectedError("range", f"{self.source.name}: a {length:.0f} s multisine record with lines up to "
+                                                   f"{top_hz:.4g} Hz needs {self.MIN_POINTS_PER_PERIOD * top_hz * length:.0f} points; "
+                                                   f"the {self.source.model} profile holds {arb.max_points}; nothing was sent")
+        force = multisine.force(np.arange(int(math.ceil(length * rate))) / rate)
+        peak_n = float(np.max(np.abs(force)))
+        self._check_drive(peak_n, top_hz)
+        if self.on:
+            self.stop()
+        self.source.play_arbitrary(force / peak_n, rate)
+        self.arbitrary = (force / peak_n, rate)
+        self.omega_rad_s, self.target_n, self.lowest_rad_s = 0.0, peak_n, min(multisine.omegas_rad_s)
+        self._start(peak_n)
+
+    def _check_drive(self, amplitude_n: float, frequency_hz: float) -> None:
         lo, hi = self.source.frequency_limits_hz
         nominal_v = amplitude_n / self.newton_per_volt
         if nominal_v > self.max_drive_v or nominal_v > self.source.amplitude_limits_v[1] or not lo <= frequency_hz <= hi:
             raise SafetyLimitError(f"{self.source.name}: {amplitude_n:g} N at {frequency_hz:.6g} Hz needs {nominal_v:.4g} V at the "
                                    f"nominal {self.newton_per_volt:g} N/V (max_drive_v {self.max_drive_v:g} V, instrument "
                                    f"{self.source.amplitude_limits_v[1]:g} V, {lo:g}-{hi:g} Hz); nothing was sent")
-        self.omega_rad_s, self.target_n = float(omega_rad_s), float(amplitude_n)
-        self.source.set_frequency_hz(frequency_hz)
+
+    def _start(self, amplitude_n: float) -> None:
         fraction = self.NEXT_FRACTION if self.measured else self.FIRST_FRACTION
         self.set_volts(fraction * amplitude_n / self.gain_estimate)
         if not self.on:
@@ -129,6 +211,7 @@ class ScopeSensor:
         self.last_scales_v: dict[int, float] = {}
         self.last_length_s = 0.0
         self.counters = {"range_up": 0, "level_steps": 0}
+        self.waveform_started = 0.0  # clock time the playing arbitrary waveform started
 
     @property
     def channels(self) -> tuple[ScopeChannel, ...]:
@@ -140,6 +223,8 @@ class ScopeSensor:
     # -- the dwell's settling: level the drive, range the channels, let the rest pass --------------
     def wait(self, duration_s: float) -> None:
         start = self.clock.now()
+        if self.exciter.arbitrary is not None and self.exciter.needs_level:
+            self.waveform_started = start - 1.0  # the output came on just before (a second's room)
         if self.exciter.needs_level:
             self._level()
         left = duration_s - (self.clock.now() - start)
@@ -156,14 +241,15 @@ class ScopeSensor:
 
     def _level(self) -> None:
         """Short records: measure the force, correct the drive, range every channel (module docs)."""
-        omega = self.exciter.omega_rad_s
+        omega = self.exciter.omega_rad_s or self.exciter.lowest_rad_s
         target = self.force_target_n()
-        length = max(LEVEL_PERIODS * 2 * math.pi / omega, MIN_LEVEL_RECORD_S)
+        length = level_record_s(omega)
         if not self.exciter.measured:  # the force channel starts where the largest allowed force fits
             self.scope.range_for(self.force.number, FORCE_TRIP * self.max_force_n * self.force.volt_per_unit)
         for step in range(MAX_LEVEL_STEPS):
-            record = self._record(length, 20 * omega / (2 * math.pi))
-            force_n = self._force_amplitude(record, omega)
+            rate = 20 * omega / (2 * math.pi) if self.exciter.arbitrary is None else 4 * self.exciter.arbitrary[1]
+            record = self._record(length, rate)
+            force_n = self._force_peak(record)
             scale_was = record.scales_v[self.force.number]
             self._range_from(record, target / max(force_n, 1e-12))
             self.counters["level_steps"] += 1
@@ -183,10 +269,15 @@ class ScopeSensor:
                         target, MAX_LEVEL_STEPS)
         self.exciter.needs_level = False
 
-    def _force_amplitude(self, record: ScopeRecord, omega: float) -> float:
-        """The force's fitted amplitude (N); above the trip level the output goes off first."""
+    def _force_peak(self, record: ScopeRecord) -> float:
+        """The force's peak (N) as the drive sets it: a sine's fitted amplitude, or the played
+        waveform's scale (times its largest point, 1); above the trip level the output goes off first."""
         force = record.volts[self.force.number] / self.force.volt_per_unit
-        amplitude = abs(fit_sine(record.t_s, force, np.array([omega]), t_ref_s=float(record.t_s[0])).line(0).phasor)
+        if self.exciter.arbitrary is None:
+            amplitude = abs(fit_sine(record.t_s, force, np.array([self.exciter.omega_rad_s]), t_ref_s=float(record.t_s[0])).line(0).phasor)
+        else:
+            points, rate = self.exciter.arbitrary
+            amplitude = max(held_waveform_gain(record.t_s, force, points, rate), float(np.max(np.abs(force))))
         if amplitude > FORCE_TRIP * self.max_force_n:
             self.exciter.stop()
             raise SafetyLimitError(f"{self.scope.where}: measured force {amplitude:.4g} N exceeds max_amplitude_n "
@@ -221,8 +312,13 @@ class ScopeSensor:
         self.last_sample_rate_hz = 1.0 / record.sample_interval_s
         self.last_length_s = float(record.t_s[-1] - record.t_s[0] + record.sample_interval_s)
         units = [record.volts[ch.number] / ch.volt_per_unit for ch in self.channels]
-        if self.exciter.omega_rad_s:
-            self._force_amplitude(record, self.exciter.omega_rad_s)  # the trip
+        if self.exciter.arbitrary is not None:
+            points, rate = self.exciter.arbitrary
+            if self.clock.now() > self.waveform_started + points.size / rate:
+                raise DataQualityError(f"{self.scope.where}: the record ran past the end of the generator's waveform "
+                                       f"({points.size / rate:.0f} s); the record is taken again")
+        if self.exciter.omega_rad_s or self.exciter.arbitrary is not None:
+            self._force_peak(record)  # the trip
             drift = self.exciter.omega_rad_s * self.scope.profile.timebase_ppm * 1e-6 * self.last_length_s
             if drift > MAX_CLOCK_PHASE_RAD:
                 raise DataQualityError(f"{self.scope.where}: a {self.last_length_s:.4g} s record at {self.exciter.omega_rad_s:g} rad/s: the "

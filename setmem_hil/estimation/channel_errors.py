@@ -6,12 +6,15 @@ A sampled force or response channel's fitted phasor ``X_hat`` differs from the s
     X_hat = X (1 + eps) + alpha,   |eps| <= relative,   |alpha| <= absolute
 
 * ``relative``: the sensor's calibration (``calibration_uncertainty``); the vertical gain
-  accuracy, which datasheets state as a fraction of *full scale* (``divisions x V/div``): a gain
-  error that keeps every level on the screen (at most half of full scale from the centre) within
-  ``gain_accuracy x full scale`` is at most ``2 x gain_accuracy`` of the signal, whatever else
-  the record holds (an earlier mode still ringing, the range it forced); and the phase error of
-  the timing (``omega x trigger_jitter_s``, a stand-in for the channels' skew, which no datasheet
-  states: the jitter itself moves every channel alike and cancels in the ratio);
+  accuracy, which datasheets state as a fraction of *full scale* (``divisions x V/div``) and
+  performance-verification procedures measure as a *slope*: the gain between DC levels about
+  three divisions either side of the centre, the slope's error times the 75 % of full scale
+  that span covers (Agilent/Keysight: ``DCGainError = (dV_scope / dV_in - 1) x 75``; Siglent
+  and Tektronix state the slope's error directly). The channel's gain is therefore within
+  ``gain_accuracy / 0.75`` of nominal, which scales the signal's phasor whatever else the record
+  holds (an earlier mode still ringing, the range it forced). And the phase error of the timing
+  (``omega x trigger_jitter_s``, a stand-in for the channels' skew, which no datasheet states:
+  the jitter itself moves every channel alike and cancels in the ratio);
 * ``absolute`` (in the channel's units, amplitude): the quantization and the ADC's
   nonlinearity: with every sample within half a code of the truth, a sine fit's amplitude moves
   by at most ``(4 / pi) q / 2``; the term takes ``q`` of an ADC spanning 1.5 screens
@@ -32,8 +35,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["ChannelError", "ratio_error_bound", "scope_channel_error", "MAX_CLOCK_PHASE_RAD"]
+__all__ = ["ChannelError", "ratio_error_bound", "scope_channel_error", "MAX_CLOCK_PHASE_RAD", "GAIN_TEST_SPAN"]
 
+GAIN_TEST_SPAN = 0.75  # of full scale: the span over which the gain accuracy is verified (module docstring)
 MAX_CLOCK_PHASE_RAD = 0.5  # omega x clock error x record length above this: the record is refused (the sinc attenuation, common to every channel, would pass 1 %)
 
 
@@ -50,7 +54,7 @@ def scope_channel_error(*, gain_accuracy: float, full_scale_v: float, adc_bits: 
                         omega_rad_s: float, trigger_jitter_s: float) -> ChannelError:
     """A scope channel's discs from its datasheet figures and the vertical scale it recorded at."""
     absolute_v = 1.5 * full_scale_v / 2.0 ** adc_bits
-    return ChannelError(absolute_v / volt_per_unit, calibration + 2.0 * gain_accuracy + omega_rad_s * trigger_jitter_s)
+    return ChannelError(absolute_v / volt_per_unit, calibration + gain_accuracy / GAIN_TEST_SPAN + omega_rad_s * trigger_jitter_s)
 
 
 def ratio_error_bound(g_hat: complex, force_amplitude: float, force: ChannelError, response: ChannelError) -> float:
