@@ -135,10 +135,12 @@ def _daq_from_bench(bench):
     return _three_channel_daq(bench, {"Dev1/ai1": (bench.params, 0.004)})
 
 
-@pytest.mark.parametrize("gain_ratio", [1.0, 1.2])
-def test_generator_plus_daq_runs_the_sine_dwell_and_bounds_the_force(gain_ratio):
+@pytest.mark.parametrize("gain_ratio", [1.0, 1.1, 1.2])
+def test_generator_plus_daq_levels_the_force_on_the_sampled_force(gain_ratio):
+    """Issue 26: the drive level is closed on the DAQ's force as on the lock-ins: with the real
+    drive gain 10 or 20 % above the nominal one the force never passes 1.05 x max_amplitude_n
+    (on target within the 3 % levelling tolerance)."""
     from setmem_hil.drivers.instruments.instrument_set import check_instruments, open_daq_experiment
-    from setmem_hil.errors import SafetyLimitError
     from setmem_hil.sim_backends.beam import beam_parameters
     from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBench
     from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer
@@ -149,12 +151,9 @@ def test_generator_plus_daq_runs_the_sine_dwell_and_bounds_the_force(gain_ratio)
         procedure = _daq_procedure(server.resource)
         exp = open_daq_experiment(procedure, check_instruments(procedure), nidaqmx_module=_daq_from_bench(bench))
         with exp:
-            if gain_ratio > 1.05:  # the nominal gain under-states the real one by 20 %: the sampled force stops it
-                with pytest.raises(SafetyLimitError, match="exceeds max_amplitude_n 1 N by more than 5 %"):
-                    exp.measure(3.0)
-            else:
-                m = exp.measure(3.0)
-                assert abs(m.response - bench.true_response(3.0)) <= m.bound
+            m = exp.measure(3.0)
+            assert abs(m.response - bench.true_response(3.0)) <= m.bound
+            assert 0.9 <= bench.peak_force_n <= 1.03  # on target within the levelling tolerance
         assert not bench.output_on
     finally:
         server.close()

@@ -161,3 +161,51 @@ def test_multisine_without_an_arbitrary_waveform_generator_names_the_exciter():
     with pytest.raises(ProcedureError, match=r"\[dwell\] key 'signal'.*\[instruments.fgen\].*\[arbitrary\]"):
         check_instruments(_procedure(text))
     check_instruments(_procedure(MULTISINE_TEXT))  # the 33500B has one: accepted
+
+
+def _faulty_run(tmp_path, monkeypatch, capsys, fault):
+    """`setmem-hil run` on the shipped scope procedure with ``fault`` applied to every scope
+    emulator; returns the exit code, stderr's lines and the bench."""
+    from setmem_hil.cli.main import main
+    from setmem_hil.loopback import instrument_emulation
+    from setmem_hil.sim_backends.scope_emulators import RigolScopeEmulator
+
+    benches = []
+    start = instrument_emulation.start_emulators
+
+    def capturing(procedure, seed):
+        wired, bench, servers = start(procedure, seed)
+        benches.append(bench)
+        return wired, bench, servers
+
+    monkeypatch.setattr(instrument_emulation, "start_emulators", capturing)
+    fault(RigolScopeEmulator, monkeypatch)
+    code = main(["run", str(SCOPE_PROCEDURE), "--out", str(tmp_path / "run"), "--quiet"])
+    return code, capsys.readouterr().err.strip().splitlines(), benches[0]
+
+
+def _clipped(cls, mp):  # the tip's channel at the ADC's top rail at every range
+    original = cls._adc
+    mp.setattr(cls, "_adc", lambda self, ch, v: np.full(v.size, 255) if ch == 2 else original(self, ch, v))
+
+
+def _no_trigger(cls, mp):
+    mp.setattr(cls, "_trigger_can_fire", lambda self: False)
+
+
+def _bad_header(cls, mp):
+    mp.setattr(cls, "_block", lambda self, payload, digits: b"#X" + payload)
+
+
+def _short(cls, mp):  # every data transfer loses its last 5 points (the emulator's hook, made permanent)
+    original = cls._data
+    mp.setattr(cls, "_data", lambda self: (setattr(self, "short_by", 5), original(self))[1])
+
+
+@pytest.mark.parametrize("fault, words", [(_clipped, "channel 2"), (_no_trigger, "no trigger"), (_bad_header, "scope"),
+                                          (_short, "the preamble announced")])
+def test_a_scope_fault_is_exit_4_one_line_naming_the_scope_with_the_output_off(tmp_path, monkeypatch, capsys, fault, words):
+    code, err, bench = _faulty_run(tmp_path, monkeypatch, capsys, fault)
+    assert code == 4
+    assert len(err) == 1 and "scope" in err[0] and words in err[0], err
+    assert not bench.output_on

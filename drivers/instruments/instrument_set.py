@@ -191,7 +191,7 @@ def probe_instruments(procedure: Procedure) -> list[ProbeResult]:
 def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None, nidaqmx_module=None):
     """Source + NI-DAQ: the sine dwell on a sampled rig (:mod:`.sampled_rig`)."""
     from setmem_hil.drivers.instruments.nidaq_sensor import NidaqSensor
-    from setmem_hil.drivers.instruments.sampled_rig import SampledInstrumentRig
+    from setmem_hil.drivers.instruments.sampled_rig import DaqChannel, SampledInstrumentRig
     from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
 
     backend = procedure.backend
@@ -210,7 +210,8 @@ def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None
         response_range = max(daq.range_v / r.volt_per_unit for r in responses)
         rig = SampledInstrumentRig(source, sensor, exciter.newton_per_volt, exciter.max_drive_v or math.inf, limits.max_amplitude_n,
                                    force_range_n=daq.range_v / force.volt_per_unit, response_range=response_range,
-                                   sample_rate_hz=1000.0)
+                                   sample_rate_hz=1000.0, force=DaqChannel(force.calibration_uncertainty, "force"),
+                                   responses=tuple(DaqChannel(r.calibration_uncertainty, r.quantity or "displacement") for r in responses))
     except BaseException:
         source.close()
         raise

@@ -2,116 +2,105 @@
 
 With a DAQ instead of lock-ins (``[backend] force`` and ``response`` name ``nidaqmx`` instruments),
 the measurement is the sine dwell of :mod:`setmem_hil.drivers.sine_dwell` (transient-aware sine
-fit of the sampled force and response). :class:`SourceExciter` makes any
-:class:`~setmem_hil.drivers.instruments.source.SignalSource` an
-:class:`~setmem_hil.drivers.protocols.Exciter`: newtons to volts through the nominal
-``newton_per_volt`` (checked against ``max_drive_v`` and the instrument's limits before anything
-is sent), amplitude ramped up from a tenth, output off on ``stop``. :class:`ForceLimitedSensor`
-switches the output off and stops the run when a sampled force peak exceeds
-``1.05 x max_amplitude_n`` (the level is open loop on this path: the nominal gain sets it, the
-measured force bounds it).
+fit of the sampled force and response). The drive level is closed on the sampled force
+(:mod:`setmem_hil.drivers.instruments.drive_level`, issue 26): :class:`LevelledDaqSensor` runs
+the levelling records at the start of each dwell's settling, and any acquisition whose force
+exceeds ``1.05 x max_amplitude_n`` switches the output off and stops the run. Multisine records
+play as the generator's arbitrary waveform where its profile has an ``[arbitrary]`` table.
+
+The points' bounds gain each sensor's calibration uncertainty, and a velocity or acceleration
+sensor's ratio is converted to receptance (:meth:`LevelledDaqSensor.corrected`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
-import numpy as np
-
+from setmem_hil.drivers.instruments.drive_level import ForceLeveller, LevelledExciter
+from setmem_hil.drivers.instruments.phasor_dwell import to_receptance
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
-from setmem_hil.errors import SafetyLimitError
+from setmem_hil.errors import DataQualityError
+from setmem_hil.estimation.channel_errors import ChannelError, ratio_error_bound
+from setmem_hil.model.experiment import Measurement
 
-__all__ = ["SourceExciter", "ForceLimitedSensor", "SampledInstrumentRig"]
-
-RAMP_FRACTIONS = (0.1, 0.3, 0.6, 1.0)
-# Points per period of a multisine's highest line in the generator's arbitrary waveform. Held
-# points add images at m f_arb +- f of relative size about f / (m f_arb); a sampling sensor whose
-# rate divides some m f_arb aliases one of them exactly onto its line (the force's phasor, not the
-# response's: the structure filters it). Many points, at a rate no sensor rate divides
-# (an irrational factor), keep that leak far below the bound.
-POINTS_PER_PERIOD = 32 * 1.0618
+__all__ = ["LevelledDaqSensor", "SampledInstrumentRig", "DaqChannel"]
 
 
-class SourceExciter:
-    def __init__(self, source: SignalSource, newton_per_volt: float, max_drive_v: float = math.inf):
-        self.source, self.newton_per_volt, self.max_drive_v = source, float(newton_per_volt), float(max_drive_v)
-        self.on = False
+@dataclasses.dataclass(frozen=True)
+class DaqChannel:
+    """What a DAQ input's sensor adds to a point: its calibration and its quantity."""
 
-    arbitrary = False  # an arbitrary waveform was last played (the next sine switches back first)
-
-    def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
-        if self.arbitrary:
-            if self.on:
-                self.stop()
-            self.source.play_sine()
-            self.arbitrary = False
-        frequency_hz = omega_rad_s / (2 * math.pi)
-        volts = amplitude_n / self.newton_per_volt
-        lo, hi = self.source.frequency_limits_hz
-        if volts > self.max_drive_v or volts > self.source.amplitude_limits_v[1] or not lo <= frequency_hz <= hi:
-            raise SafetyLimitError(f"{self.source.name}: {amplitude_n:g} N at {frequency_hz:.6g} Hz needs {volts:.4g} V "
-                                   f"(max_drive_v {self.max_drive_v:g} V, instrument {self.source.amplitude_limits_v[1]:g} V, "
-                                   f"{lo:g}-{hi:g} Hz); nothing was sent")
-        self.source.set_frequency_hz(frequency_hz)
-        if not self.on:
-            self.source.set_amplitude_v(max(RAMP_FRACTIONS[0] * volts, self.source.amplitude_limits_v[0]))
-            self.source.set_output(True)
-            self.on = True
-        for fraction in RAMP_FRACTIONS[1:]:
-            self.source.set_amplitude_v(max(fraction * volts, self.source.amplitude_limits_v[0]))
-
-    def set_multisine_record(self, multisine, duration_s: float) -> None:
-        """The whole record as the generator's arbitrary waveform (points held one sample
-        period, 8 a period of the highest line), at the nominal gain, ramped like a sine."""
-        rate = POINTS_PER_PERIOD * max(multisine.omegas_rad_s) / (2 * math.pi)
-        force = multisine.force(np.arange(int(math.ceil(duration_s * rate))) / rate)
-        peak = float(np.max(np.abs(force)))
-        volts = peak / self.newton_per_volt
-        if volts > self.max_drive_v or volts > self.source.amplitude_limits_v[1]:
-            raise SafetyLimitError(f"{self.source.name}: a multisine of {peak:g} N peak needs {volts:.4g} V (max_drive_v "
-                                   f"{self.max_drive_v:g} V, instrument {self.source.amplitude_limits_v[1]:g} V); nothing was sent")
-        if self.on:
-            self.stop()
-        self.source.play_arbitrary(force / peak, rate)
-        self.arbitrary = True
-        self.source.set_amplitude_v(max(RAMP_FRACTIONS[0] * volts, self.source.amplitude_limits_v[0]))
-        self.source.set_output(True)
-        self.on = True
-        for fraction in RAMP_FRACTIONS[1:]:
-            self.source.set_amplitude_v(max(fraction * volts, self.source.amplitude_limits_v[0]))
-
-    def stop(self) -> None:
-        self.on = False
-        self.source.set_output(False)
+    calibration_uncertainty: float = 0.0
+    quantity: str = "displacement"
 
 
-class ForceLimitedSensor:
-    """Wraps a sampling sensor: a force peak above the limit switches the output off and raises."""
+class LevelledDaqSensor:
+    """Wraps a DAQ sensor: levels the drive on its force during the settling, trips on too much force."""
 
-    def __init__(self, sensor, exciter: SourceExciter, max_force_n: float):
-        self.inner, self.exciter, self.max_force_n = sensor, exciter, float(max_force_n)
+    def __init__(self, sensor, exciter: LevelledExciter, max_force_n: float, force: DaqChannel, responses: tuple[DaqChannel, ...]):
+        self.inner, self.exciter = sensor, exciter
+        self.force, self.responses = force, tuple(responses)
+        self.leveller = ForceLeveller(exciter, max_force_n, lambda: force.calibration_uncertainty, getattr(sensor, "where", "DAQ"))
+        self.last_acquire_s = 0.0
+        self.last_sample_rate_hz = 0.0
 
     def set_sample_rate(self, rate_hz: float) -> None:
         self.inner.set_sample_rate(rate_hz)
 
+    def wait(self, duration_s: float) -> None:
+        """The settling: the levelling acquisitions (the rate the dwell asked for is restored
+        after), then the rest of it acquired and dropped (a DAQ has no other clock)."""
+        spent = 0.0
+        if self.exciter.needs_level:
+            rate = self.inner.sample_rate_hz
+
+            def take(length_s: float, min_rate_hz: float):
+                nonlocal spent
+                self.inner.set_sample_rate(max(rate, min_rate_hz))
+                block = self.inner.acquire(length_s)
+                spent += length_s
+                return block.t_s, block.force
+
+            try:
+                self.leveller.level(take)
+            finally:
+                self.inner.set_sample_rate(rate)
+        if duration_s > spent:
+            self.inner.acquire(duration_s - spent)
+        self.last_acquire_s = max(duration_s, spent)
+
     def acquire(self, duration_s: float) -> SampleBlock:
         block = self.inner.acquire(duration_s)
-        peak = float(np.max(np.abs(block.force))) if block.force.size else 0.0
-        if peak > 1.05 * self.max_force_n:
-            self.exciter.stop()
-            raise SafetyLimitError(f"measured force peak {peak:.4g} N exceeds max_amplitude_n {self.max_force_n:g} N by more than 5 %; "
-                                   "output switched off")
+        self.last_acquire_s, self.last_sample_rate_hz = duration_s, self.inner.sample_rate_hz
+        if block.force.size and (self.exciter.omega_rad_s or self.exciter.arbitrary is not None):
+            self.leveller.force_peak(block.t_s, block.force)  # the trip
         return block
+
+    def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
+        """``m`` with each sensor's calibration in its bound, converted to receptance."""
+        force = ChannelError(0.0, self.force.calibration_uncertainty)
+
+        def one(g: complex, bound: float, channel: DaqChannel) -> tuple[complex, float]:
+            total = bound + ratio_error_bound(g, force_amplitude_n, force, ChannelError(0.0, channel.calibration_uncertainty))
+            if not math.isfinite(total):
+                raise DataQualityError(f"{self.leveller.where}: no usable force at {m.omega_rad_s:g} rad/s")
+            return to_receptance(g, m.omega_rad_s, channel.quantity), total * abs(to_receptance(1.0, m.omega_rad_s, channel.quantity))
+
+        response, bound = one(m.response, m.bound, self.responses[0])
+        others = tuple(one(g, b, ch) for (g, b), ch in zip(m.others, self.responses[1:]))
+        return dataclasses.replace(m, response=response, bound=bound, others=others)
 
 
 class SampledInstrumentRig:
     """The Rig protocol over a source and a DAQ (closed with the instruments)."""
 
     def __init__(self, source: SignalSource, sensor, newton_per_volt: float, max_drive_v: float, max_force_n: float,
-                 force_range_n: float, response_range: float, sample_rate_hz: float):
-        self.exciter = SourceExciter(source, newton_per_volt, max_drive_v)
-        self.sensor = ForceLimitedSensor(sensor, self.exciter, max_force_n)
+                 force_range_n: float, response_range: float, sample_rate_hz: float,
+                 force: DaqChannel = DaqChannel(quantity="force"), responses: tuple[DaqChannel, ...] = (DaqChannel(),)):
+        self.exciter = LevelledExciter(source, newton_per_volt, max_drive_v)
+        self.sensor = LevelledDaqSensor(sensor, self.exciter, max_force_n, force, responses)
         self.source = source
         self.metadata = RigMetadata(sample_rate_hz, force_range_n, response_range, name=source.name)
 

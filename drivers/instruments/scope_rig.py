@@ -5,17 +5,15 @@ One oscilloscope holds the force and the response roles (``channels = { force = 
 measurement is the sine dwell of :mod:`setmem_hil.drivers.sine_dwell` (the transient-aware sine
 fit), with three things the scope adds:
 
-* **closed-loop drive level** (:class:`LevelledExciter`, :class:`ScopeSensor.wait`): the output
-  comes on at a quarter of the nominal level (the first dwell; later ones at half, with the gain
-  measured before); short records of the force (``LEVEL_PERIODS`` periods) re-estimate the drive
-  gain and set the level, until the force is within ``LEVEL_TOLERANCE`` of its target. The
-  target leaves room for what the force channel may be off by (its calibration, the scope's gain
-  accuracy at the force's range), so the true force stays below ``max_amplitude_n`` even with the
-  drive gain wrong by tens of percent; a record whose fitted force exceeds ``1.05 x
-  max_amplitude_n`` switches the output off and stops the run;
+* **closed-loop drive level** (:mod:`setmem_hil.drivers.instruments.drive_level`, run by
+  :meth:`ScopeSensor.wait`): short records of the force set the generator's level, with room
+  for what the force channel may be off by (its calibration, the scope's gain accuracy at the
+  force's range), so the true force stays below ``max_amplitude_n`` even with the drive gain
+  wrong by tens of percent; a record whose force exceeds ``1.05 x max_amplitude_n`` switches
+  the output off and stops the run;
 * **vertical ranging**: every channel starts on the largest V/div; the levelling records set
-  each channel to the smallest scale holding its peak with room (the gain accuracy is a fraction
-  of *full scale*); a clipped record moves that channel up one scale and is taken again;
+  each channel to the smallest scale holding its peak with room; a clipped record moves that
+  channel up and is taken again;
 * **instrument terms in the bound** (:meth:`ScopeSensor.corrected`,
   :mod:`setmem_hil.estimation.channel_errors`): gain accuracy, quantization, calibration and
   timing for every channel used, then the ratio converted to receptance (velocity and
@@ -36,64 +34,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from setmem_hil.drivers.clock import Clock
+from setmem_hil.drivers.instruments.drive_level import FORCE_TRIP, LEVEL_TOLERANCE, MAX_STEP_UP, ForceLeveller, LevelledExciter
 from setmem_hil.drivers.instruments.phasor_dwell import to_receptance
-from setmem_hil.drivers.instruments.sampled_rig import POINTS_PER_PERIOD
 from setmem_hil.drivers.instruments.scpi_scope import ClippedChannel, ScopeRecord, ScpiScope
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.drivers.sine_dwell import SineDwellExperiment
-from setmem_hil.errors import DataQualityError, DeviceRejectedError, SafetyLimitError
+from setmem_hil.errors import DataQualityError
 from setmem_hil.estimation.channel_errors import MAX_CLOCK_PHASE_RAD, ChannelError, ratio_error_bound, scope_channel_error
-from setmem_hil.estimation.sine_fit import fit_sine
 from setmem_hil.model.experiment import Measurement
 
-__all__ = ["ScopeChannel", "LevelledExciter", "ScopeSensor", "ScopeRig", "ScopeDwellExperiment", "FORCE_TRIP"]
+__all__ = ["ScopeChannel", "ScopeSensor", "ScopeRig", "ScopeDwellExperiment"]
 
 log = logging.getLogger(__name__)
 
-FORCE_TRIP = 1.05  # x max_amplitude_n: a fitted force above it switches the output off
-LEVEL_TOLERANCE = 0.03
-LEVEL_PERIODS = 1.5  # periods of the drive in a levelling record
-MIN_LEVEL_RECORD_S = 0.02
-MAX_LEVEL_STEPS = 6
-MAX_STEP_UP = 3.0  # the most one levelling step multiplies the drive by
 MAX_RANGE_STEPS = 6
 RANGE_HEADROOM = 1.15  # a channel is ranged for this much more than the peak it showed (the response still grows)
-
-
-def level_record_s(omega_rad_s: float) -> float:
-    """A levelling record: ``LEVEL_PERIODS`` periods of the (lowest) drive frequency."""
-    return max(LEVEL_PERIODS * 2 * math.pi / omega_rad_s, MIN_LEVEL_RECORD_S)
-
-
-def levelling_allowance_s(lowest_rad_s: float) -> float:
-    """How long an arbitrary waveform plays before its record: the levelling records (each may
-    come out 2.5 times longer on a 1-2-5 time base) and the trigger waits."""
-    return MAX_LEVEL_STEPS * 2.5 * level_record_s(lowest_rad_s) * 1.2 + 10.0
-
-
-def held_waveform_gain(t_s: np.ndarray, force_n: np.ndarray, points: np.ndarray, rate_hz: float) -> float:
-    """Force per unit point of a played arbitrary waveform, from a record of the force that
-    starts anywhere in it: the record on the waveform's sample grid, aligned by circular
-    cross-correlation, then the least-squares scale."""
-    grid = np.arange(t_s[0], t_s[-1], 1.0 / rate_hz)
-    r = np.interp(grid, t_s, force_n)
-    n = points.size
-    if r.size < 8 or r.size > n:
-        raise DataQualityError(f"a levelling record of {r.size} points on a waveform of {n}: cannot align them")
-    corr = np.fft.irfft(np.conj(np.fft.rfft(r, n)) * np.fft.rfft(points, n), n)
-    # normalised by each window's energy: the least-squares fit's quality at every alignment
-    energy = np.convolve(np.concatenate([points, points[: r.size - 1]]) ** 2, np.ones(r.size), "valid")
-    shift = int(np.argmax(corr * np.abs(corr) / np.maximum(energy, 1e-300)))
-    # refine within a hold on the record's own samples: the played value at each sample time
-    best = (-math.inf, 0.0)
-    for offset in np.linspace(-1.0, 1.0, 41):
-        k = np.floor((t_s - t_s[0]) * rate_hz + shift + offset).astype(np.int64) % n
-        held = points[k]
-        gain = float(np.dot(force_n, held) / np.dot(held, held))
-        fit = gain * float(np.dot(force_n, held))
-        best = max(best, (fit, gain))
-    return best[1]
 
 
 @dataclass(frozen=True)
@@ -104,98 +60,6 @@ class ScopeChannel:
     volt_per_unit: float
     calibration_uncertainty: float = 0.0
     quantity: str = "displacement"
-
-
-class LevelledExciter:
-    """The :class:`~setmem_hil.drivers.protocols.Exciter` of a generator whose level the force
-    channel closes (:meth:`ScopeSensor.wait` finishes each :meth:`set_sine`)."""
-
-    FIRST_FRACTION = 0.25  # of the target, with the nominal gain (the first dwell)
-    NEXT_FRACTION = 0.5  # with the gain measured at the last frequency
-
-    def __init__(self, source: SignalSource, newton_per_volt: float, max_drive_v: float = math.inf):
-        self.source, self.max_drive_v = source, float(max_drive_v)
-        self.newton_per_volt = float(newton_per_volt)
-        self.gain_estimate = float(newton_per_volt)  # N/V, measured from the force once the output is on
-        self.measured = False
-        self.on = False
-        self.volts = 0.0
-        self.omega_rad_s = 0.0
-        self.target_n = 0.0
-        self.needs_level = False
-        self.arbitrary: tuple[np.ndarray, float] | None = None  # the multisine record playing: (points, Sa/s)
-        self.lowest_rad_s = 0.0
-
-    def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
-        frequency_hz = omega_rad_s / (2 * math.pi)
-        self._check_drive(amplitude_n, frequency_hz)
-        if self.arbitrary is not None:  # back to the generator's own sine, the output off meanwhile
-            if self.on:
-                self.stop()
-            self.source.play_sine()
-            self.arbitrary = None
-        self.omega_rad_s, self.target_n = float(omega_rad_s), float(amplitude_n)
-        self.source.set_frequency_hz(frequency_hz)
-        self._start(amplitude_n)
-
-    # -- multisine records through the generator's arbitrary waveform (issue 26) ---------------
-    POINTS_PER_PERIOD = POINTS_PER_PERIOD  # of the highest line; held points: the line's amplitude is 2.6 % low, measured anyway
-    MIN_POINTS_PER_PERIOD = 5
-
-    @property
-    def plays_multisine(self) -> bool:
-        return bool(getattr(self.source, "plays_arbitrary", False))
-
-    def set_multisine_record(self, multisine, duration_s: float) -> None:
-        """Upload the record (and room for the levelling) as one arbitrary waveform and play it
-        at a quarter (then half) of the target level; the levelling finishes it. Its peak is
-        checked against the generator's limits before anything is sent."""
-        arb = self.source.profile.arbitrary
-        top_hz = max(multisine.omegas_rad_s) / (2 * math.pi)
-        # the scope's records may come out longer than asked (1-2-5 time base): room for that too
-        length = 1.5 * duration_s + levelling_allowance_s(min(multisine.omegas_rad_s))
-        rate = self.POINTS_PER_PERIOD * top_hz
-        if length * rate > arb.max_points:
-            rate = arb.max_points / length
-            if rate < self.MIN_POINTS_PER_PERIOD * top_hz:
-                raise DeviceRejectedError("range", f"{self.source.name}: a {length:.0f} s multisine record with lines up to "
-                                                   f"{top_hz:.4g} Hz needs {self.MIN_POINTS_PER_PERIOD * top_hz * length:.0f} points; "
-                                                   f"the {self.source.model} profile holds {arb.max_points}; nothing was sent")
-        force = multisine.force(np.arange(int(math.ceil(length * rate))) / rate)
-        peak_n = float(np.max(np.abs(force)))
-        self._check_drive(peak_n, top_hz)
-        if self.on:
-            self.stop()
-        self.source.play_arbitrary(force / peak_n, rate)
-        self.arbitrary = (force / peak_n, rate)
-        self.omega_rad_s, self.target_n, self.lowest_rad_s = 0.0, peak_n, min(multisine.omegas_rad_s)
-        self._start(peak_n)
-
-    def _check_drive(self, amplitude_n: float, frequency_hz: float) -> None:
-        lo, hi = self.source.frequency_limits_hz
-        nominal_v = amplitude_n / self.newton_per_volt
-        if nominal_v > self.max_drive_v or nominal_v > self.source.amplitude_limits_v[1] or not lo <= frequency_hz <= hi:
-            raise SafetyLimitError(f"{self.source.name}: {amplitude_n:g} N at {frequency_hz:.6g} Hz needs {nominal_v:.4g} V at the "
-                                   f"nominal {self.newton_per_volt:g} N/V (max_drive_v {self.max_drive_v:g} V, instrument "
-                                   f"{self.source.amplitude_limits_v[1]:g} V, {lo:g}-{hi:g} Hz); nothing was sent")
-
-    def _start(self, amplitude_n: float) -> None:
-        fraction = self.NEXT_FRACTION if self.measured else self.FIRST_FRACTION
-        self.set_volts(fraction * amplitude_n / self.gain_estimate)
-        if not self.on:
-            self.source.set_output(True)
-            self.on = True
-        self.needs_level = True
-
-    def set_volts(self, volts: float) -> None:
-        vlo, vhi = self.source.amplitude_limits_v
-        self.volts = float(min(max(volts, vlo), vhi, self.max_drive_v))
-        self.source.set_amplitude_v(self.volts)
-
-    def stop(self) -> None:
-        self.on = False
-        self.needs_level = False
-        self.source.set_output(False)
 
 
 class ScopeSensor:
@@ -212,6 +76,7 @@ class ScopeSensor:
         self.last_length_s = 0.0
         self.counters = {"range_up": 0, "level_steps": 0}
         self.waveform_started = 0.0  # clock time the playing arbitrary waveform started
+        self.leveller = ForceLeveller(exciter, max_force_n, self.force_room, scope.where)
 
     @property
     def channels(self) -> tuple[ScopeChannel, ...]:
@@ -232,57 +97,34 @@ class ScopeSensor:
             self.clock.sleep(left)
         self.last_acquire_s = self.clock.now() - start
 
-    def force_target_n(self) -> float:
-        """The measured force the level aims at: the asked amplitude less what the force channel
-        may be off by (calibration, and the scope's gain accuracy at a tightly ranged scale)."""
+    def force_room(self) -> float:
+        """What the force channel may be off by, relative, at a tightly ranged scale (its
+        calibration and the scope's gain accuracy): the level's target leaves this much room."""
         p = self.scope.profile
-        room = self.force.calibration_uncertainty + p.gain_accuracy * p.divisions / (0.8 * p.divisions / 2.0) / RANGE_HEADROOM
-        return self.exciter.target_n / (1.0 + room)
+        return self.force.calibration_uncertainty + p.gain_accuracy * p.divisions / (0.8 * p.divisions / 2.0) / RANGE_HEADROOM
+
+    def _force_of(self, record: ScopeRecord) -> tuple[np.ndarray, np.ndarray]:
+        return record.t_s, record.volts[self.force.number] / self.force.volt_per_unit
 
     def _level(self) -> None:
         """Short records: measure the force, correct the drive, range every channel (module docs)."""
-        omega = self.exciter.omega_rad_s or self.exciter.lowest_rad_s
-        target = self.force_target_n()
-        length = level_record_s(omega)
         if not self.exciter.measured:  # the force channel starts where the largest allowed force fits
             self.scope.range_for(self.force.number, FORCE_TRIP * self.max_force_n * self.force.volt_per_unit)
-        for step in range(MAX_LEVEL_STEPS):
-            rate = 20 * omega / (2 * math.pi) if self.exciter.arbitrary is None else 4 * self.exciter.arbitrary[1]
-            record = self._record(length, rate)
-            force_n = self._force_peak(record)
-            scale_was = record.scales_v[self.force.number]
-            self._range_from(record, target / max(force_n, 1e-12))
-            self.counters["level_steps"] += 1
-            if self.scope.scales_v[self.force.number] < scale_was / 2.5:
-                continue  # the force was a small part of its screen: measure it again before trusting the gain
-            if force_n <= 0:
-                raise DataQualityError(f"{self.scope.where}: no force on channel {self.force.number} with {self.exciter.volts:.4g} V "
-                                       "of drive: is the amplifier on and the force sensor connected?")
-            # never more than MAX_STEP_UP times the drive per step, whatever a measurement says
-            self.exciter.gain_estimate = max(force_n / self.exciter.volts, self.exciter.gain_estimate / MAX_STEP_UP)
-            self.exciter.measured = True
-            if abs(force_n / target - 1.0) <= LEVEL_TOLERANCE:
-                break
-            self.exciter.set_volts(target / self.exciter.gain_estimate)
-        else:
-            log.warning("%s: force level not within %.0f %% of %.3g N after %d steps", self.scope.where, 100 * LEVEL_TOLERANCE,
-                        target, MAX_LEVEL_STEPS)
-        self.exciter.needs_level = False
+        last: list[ScopeRecord] = []
 
-    def _force_peak(self, record: ScopeRecord) -> float:
-        """The force's peak (N) as the drive sets it: a sine's fitted amplitude, or the played
-        waveform's scale (times its largest point, 1); above the trip level the output goes off first."""
-        force = record.volts[self.force.number] / self.force.volt_per_unit
-        if self.exciter.arbitrary is None:
-            amplitude = abs(fit_sine(record.t_s, force, np.array([self.exciter.omega_rad_s]), t_ref_s=float(record.t_s[0])).line(0).phasor)
-        else:
-            points, rate = self.exciter.arbitrary
-            amplitude = max(held_waveform_gain(record.t_s, force, points, rate), float(np.max(np.abs(force))))
-        if amplitude > FORCE_TRIP * self.max_force_n:
-            self.exciter.stop()
-            raise SafetyLimitError(f"{self.scope.where}: measured force {amplitude:.4g} N exceeds max_amplitude_n "
-                                   f"{self.max_force_n:g} N by more than 5 %; output switched off")
-        return amplitude
+        def take(length_s: float, rate_hz: float):
+            last[:] = [self._record(length_s, rate_hz)]
+            return self._force_of(last[0])
+
+        def after(level_ratio: float) -> bool:
+            scale_was = last[0].scales_v[self.force.number]
+            self._range_from(last[0], level_ratio)
+            # the force was a small part of its screen: measure it again before trusting the gain
+            return self.scope.scales_v[self.force.number] < scale_was / 2.5
+
+        steps = self.leveller.steps
+        self.leveller.level(take, after)
+        self.counters["level_steps"] += self.leveller.steps - steps
 
     def _range_from(self, record: ScopeRecord, level_ratio: float) -> None:
         """Every channel ranged for what it will show once the force is on target (the record's
@@ -318,7 +160,7 @@ class ScopeSensor:
                 raise DataQualityError(f"{self.scope.where}: the record ran past the end of the generator's waveform "
                                        f"({points.size / rate:.0f} s); the record is taken again")
         if self.exciter.omega_rad_s or self.exciter.arbitrary is not None:
-            self._force_peak(record)  # the trip
+            self.leveller.force_peak(*self._force_of(record))  # the trip
             drift = self.exciter.omega_rad_s * self.scope.profile.timebase_ppm * 1e-6 * self.last_length_s
             if drift > MAX_CLOCK_PHASE_RAD:
                 raise DataQualityError(f"{self.scope.where}: a {self.last_length_s:.4g} s record at {self.exciter.omega_rad_s:g} rad/s: the "
