@@ -90,6 +90,10 @@ class ScopeEmulator(_Emulator):
         if nodes == ("SING",):
             self.arm()
             return None
+        if nodes in (("TFOR",), ("TRIG", "FORC")):  # Rigol :TFORce, Keysight :TRIGger:FORCe
+            if self.armed and self.ready_at == math.inf:
+                self._take(self.bench.clock.now() + self.pretrigger_s())
+            return None
         return self._model_command(nodes, args, query)
 
     def _model_command(self, nodes: tuple[str, ...], args: str, query: bool) -> str | bytes | None:  # pragma: no cover - per model
@@ -112,9 +116,6 @@ class ScopeEmulator(_Emulator):
         self.ready_at = math.inf
         if not self._trigger_can_fire():
             return
-        n = self.record_points()
-        length = self.time_divisions * self.time_scale
-        dt = length / n
         if self._trigger_source_signal() == "force":
             edge = self.bench.force_rising_after(now + self.pretrigger_s(),
                                                  self.trigger_level / (self.volt_per_unit["force"] * (1 + self.gain_errors[self._trigger_channel()])))
@@ -122,6 +123,13 @@ class ScopeEmulator(_Emulator):
             edge = self.bench.sync_edge_after(now + self.pretrigger_s())
         if edge is None:
             return
+        self._take(edge)
+
+    def _take(self, edge: float) -> None:
+        """The record around trigger instant ``edge``, from the bench, at once."""
+        n = self.record_points()
+        length = self.time_divisions * self.time_scale
+        dt = length / n
         t0 = edge - self.pretrigger_s()
         force, outputs = self.bench.record(t0, dt, n)
         self.record_t0, self.record_dt = t0 - edge, dt

@@ -50,3 +50,31 @@ def test_a_ds1000z_channel_carries_three_percent_of_full_scale():
     # a gain 4 % off over the verification span (+-3 of the 8 divisions) errs by 3 % of full scale
     span = 0.75 * 4.0
     assert 0.04 * span == pytest.approx(0.03 * 4.0)
+
+
+def test_noise_dithers_the_quantization_bias_away_as_a_simulation_shows():
+    """The dithered bound against brute force: a small sine under Gaussian noise of q/2 rms,
+    quantized and fitted many times; the mean fitted amplitude's shift stays within the bound,
+    and without noise the bound falls back to a whole code."""
+    from setmem_hil.estimation.channel_errors import quantization_bias
+
+    q = 1.0
+    assert quantization_bias(q, 0.0) == q
+    bound = quantization_bias(q, 0.5 * q)
+    assert bound < 0.01 * q
+    rng = np.random.default_rng(2)
+    t = np.arange(4000) * 0.37
+    basis = np.column_stack([np.sin(t), np.cos(t), np.ones_like(t)])
+    shifts = []
+    for offset in np.linspace(0.0, 0.9, 10):  # the signal anywhere between two codes
+        fits = []
+        for _ in range(40):
+            y = np.round(0.8 * q * np.sin(t) + offset + 0.5 * q * rng.standard_normal(t.size))
+            fits.append(np.linalg.lstsq(basis, y, rcond=None)[0][0])
+        shifts.append(abs(np.mean(fits) - 0.8 * q))
+    # the mean over 40 fits still carries noise of about 0.5 q / sqrt(2000 x 40): well below the bound
+    assert max(shifts) <= bound + 4 * 0.5 * q / np.sqrt(t.size / 2 * 40)
+    # and the bound is not vacuous: without the noise the same signals shift far more
+    bare = [abs(np.linalg.lstsq(basis, np.round(0.8 * q * np.sin(t) + offset), rcond=None)[0][0] - 0.8 * q)
+            for offset in np.linspace(0.0, 0.9, 10)]
+    assert max(bare) > 3 * (bound + 4 * 0.5 * q / np.sqrt(t.size / 2 * 40))

@@ -172,11 +172,9 @@ def _several_response_procedure(generator_resource: str, control: str = "daq_tip
     return parse_procedure_text(text + tables, "daq3.toml")
 
 
-def _three_channel_daq(bench, wiring):
-    """A nidaqmx stand-in sampling the bench's force on ai0 and the steady state of sensors on the
-    same beam on the other inputs (``wiring``: physical channel -> (truth, volts per metre);
-    residues from the cantilever's mode shapes: an independent truth per channel), returning the
-    rows in the order the task's channels were added, as NI-DAQmx does."""
+def _daq_module(read_rows):
+    """A nidaqmx stand-in whose tasks answer ``read_rows(names, rate, n)``: the rows in the order
+    the task's channels were added, as NI-DAQmx returns them."""
 
     class Task:
         def __init__(self):
@@ -188,23 +186,34 @@ def _three_channel_daq(bench, wiring):
             self.rate, self.n = rate, k["samps_per_chan"]
 
         def read(self, **k):
-            t = np.arange(self.n) / self.rate
-            w = 2 * math.pi * bench.frequency_hz
-            a = bench.force_amplitude_n
-            rows = []
-            for name in self.names:
-                if name == "Dev1/ai0":
-                    rows.append(0.0225 * a * np.sin(w * t))
-                    continue
-                truth, scale = wiring[name]
-                g = truth.frequency_response(np.array([w]))[0]
-                rows.append(scale * a * abs(g) * np.sin(w * t + np.angle(g)))
-            return [r.tolist() for r in rows]
+            return [np.asarray(r).tolist() for r in read_rows(self.names, self.rate, self.n)]
 
         def close(self):
             pass
 
     return types.SimpleNamespace(Task=Task, constants=nidaqmx.constants, errors=nidaqmx.errors)
+
+
+def _three_channel_daq(bench, wiring):
+    """A nidaqmx stand-in sampling the bench's force on ai0 and the steady state of sensors on the
+    same beam on the other inputs (``wiring``: physical channel -> (truth, volts per metre);
+    residues from the cantilever's mode shapes: an independent truth per channel)."""
+
+    def rows(names, rate, n):
+        t = np.arange(n) / rate
+        w = 2 * math.pi * bench.frequency_hz
+        a = bench.force_amplitude_n
+        out = []
+        for name in names:
+            if name == "Dev1/ai0":
+                out.append(0.0225 * a * np.sin(w * t))
+                continue
+            truth, scale = wiring[name]
+            g = truth.frequency_response(np.array([w]))[0]
+            out.append(scale * a * abs(g) * np.sin(w * t + np.angle(g)))
+        return out
+
+    return _daq_module(rows)
 
 
 @pytest.mark.parametrize("control", ["daq_tip", "daq_mid"])
@@ -272,25 +281,13 @@ def _clocked_daq(bench):
     while the generator plays, arbitrary waveforms included."""
     rng = np.random.default_rng(5)
 
-    class Task:
-        def __init__(self):
-            self.names = []
-            self.ai_channels = types.SimpleNamespace(add_ai_voltage_chan=lambda name, **k: self.names.append(name))
-            self.timing = types.SimpleNamespace(cfg_samp_clk_timing=self._timing)
+    def rows(names, rate, n):
+        force, ys = bench.record(bench.clock.now(), 1.0 / rate, n)
+        bench.clock.sleep(n / rate)
+        noise = 20e-6 * rng.standard_normal((2, n))  # 20 uV rms at each input
+        return [0.0225 * force + noise[0], 0.004 * ys[0] + noise[1]]
 
-        def _timing(self, rate, **k):
-            self.rate, self.n = rate, k["samps_per_chan"]
-
-        def read(self, **k):
-            force, ys = bench.record(bench.clock.now(), 1.0 / self.rate, self.n)
-            bench.clock.sleep(self.n / self.rate)
-            noise = 20e-6 * rng.standard_normal((2, self.n))  # 20 uV rms at each input
-            return [(0.0225 * force + noise[0]).tolist(), (0.004 * ys[0] + noise[1]).tolist()]
-
-        def close(self):
-            pass
-
-    return types.SimpleNamespace(Task=Task, constants=nidaqmx.constants, errors=nidaqmx.errors)
+    return _daq_module(rows)
 
 
 def test_a_multisine_record_plays_as_the_generators_arbitrary_waveform_on_a_daq_rig():

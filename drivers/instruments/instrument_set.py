@@ -313,6 +313,11 @@ def open_scope_experiment(procedure: Procedure, checked: dict, *, clock: Clock, 
         raise
     rig = ScopeRig(source, scope, force, responses, exciter.newton_per_volt, exciter.max_drive_v or math.inf,
                    procedure.safety.max_amplitude_n, clock, owned=owned)
+    try:
+        rig.sensor.measure_noise()  # the output is off: the sensors at rest
+    except BaseException:
+        rig.close()
+        raise
     settings = DwellSettings(amplitude_n=min(1.0, procedure.safety.max_amplitude_n))
     return ScopeDwellExperiment(rig, procedure.safety, settings, model=procedure.prior.initial_bounds(), extra_bound=extra_bound,
                                 identities=identities)

@@ -290,6 +290,7 @@ SCOPE_COMMANDS = {
     "waveform_range": "the points {start}..{stop} of the next transfer (absent: the whole record at once)",
     "preamble": "the preamble query (format,type,points,count,xincrement,xorigin,xreference,yincrement,yorigin,yreference)",
     "data": "the data query (an IEEE 488.2 definite-length block)",
+    "force_trigger": "complete an armed acquisition without a trigger (the noise records, output off)",
 }
 _SCOPE_REQUIRED = ("channel_on", "vertical_scale", "time_scale", "trigger", "arm", "done_query", "waveform_source", "preamble", "data")
 

@@ -77,6 +77,7 @@ class ScopeSensor:
         self.counters = {"range_up": 0, "level_steps": 0}
         self.waveform_started = 0.0  # clock time the playing arbitrary waveform started
         self.leveller = ForceLeveller(exciter, max_force_n, self.force_room, scope.where)
+        self.noise_div: dict[int, float] = {}  # each channel's measured noise (divisions rms), see measure_noise
 
     @property
     def channels(self) -> tuple[ScopeChannel, ...]:
@@ -168,11 +169,26 @@ class ScopeSensor:
         return SampleBlock(t_s=record.t_s, force=units[0], response=units[1], others=tuple(units[2:]))
 
     # -- the instrument terms ----------------------------------------------------------------------
+    def measure_noise(self) -> None:
+        """Each channel's noise in divisions, with the output off: records forced without a
+        trigger at the smallest and the largest scale, the smaller of the two (the quantization
+        term counts on it, :func:`~setmem_hil.estimation.channel_errors.quantization_bias`)."""
+        scales = self.scope.profile.vertical_scales_v
+        found: dict[int, float] = {}
+        for scale in (scales[0], scales[-1]):
+            for ch in self.channels:
+                self.scope.set_vertical_scale(ch.number, scale)
+            for ch, div in self.scope.noise_divisions().items():
+                found[ch] = min(div, found.get(ch, math.inf))
+        self.noise_div = found
+
     def channel_error(self, channel: ScopeChannel, omega_rad_s: float) -> ChannelError:
         p = self.scope.profile
-        return scope_channel_error(gain_accuracy=p.gain_accuracy, full_scale_v=p.divisions * self.last_scales_v[channel.number],
+        scale = self.last_scales_v[channel.number]
+        return scope_channel_error(gain_accuracy=p.gain_accuracy, full_scale_v=p.divisions * scale,
                                    adc_bits=p.adc_bits, volt_per_unit=channel.volt_per_unit, calibration=channel.calibration_uncertainty,
-                                   omega_rad_s=omega_rad_s, trigger_jitter_s=p.trigger_jitter_s)
+                                   omega_rad_s=omega_rad_s, trigger_jitter_s=p.trigger_jitter_s,
+                                   noise_v=self.noise_div.get(channel.number, 0.0) * scale)
 
     def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
         """``m`` (from the last record) with every output's instrument terms added to its bound,

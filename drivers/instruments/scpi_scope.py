@@ -214,6 +214,25 @@ class ScpiScope(ScpiInstrument):
                 dt = pre.xincrement
         return ScopeRecord(t, volts, dict(self.scales_v), dt)
 
+    NOISE_RECORD_S = 0.05
+    NOISE_POINTS = 2000
+
+    def noise_divisions(self) -> dict[int, float]:
+        """Each channel's rms noise, in divisions at its present scale, from a record completed
+        without a trigger (``force_trigger``; call it with the output off). Empty when the
+        profile has no such command."""
+        if "force_trigger" not in self.profile.commands:
+            return {}
+        length = self.set_record_length(self.NOISE_RECORD_S, self.NOISE_POINTS / self.NOISE_RECORD_S)
+        self._command("arm")
+        self._command("force_trigger")
+        self._wait_done(length)
+        out = {}
+        for ch in self.channels:
+            pre, codes = self._read_channel(ch)
+            out[ch] = float(np.std(volts_from_codes(codes, pre, self.profile.y_origin))) / self.scales_v[ch]
+        return out
+
     def _wait_done(self, length_s: float) -> None:
         """Poll the done query until the record is complete; no trigger within the wait (the
         record's length, ten trigger periods of 1 s at most, and 2 s of room) is an error."""

@@ -15,11 +15,19 @@ A sampled force or response channel's fitted phasor ``X_hat`` differs from the s
   holds (an earlier mode still ringing, the range it forced). And the phase error of the timing
   (``omega x trigger_jitter_s``, a stand-in for the channels' skew, which no datasheet states:
   the jitter itself moves every channel alike and cancels in the ratio);
-* ``absolute`` (in the channel's units, amplitude): the quantization and the ADC's
-  nonlinearity: with every sample within half a code of the truth, a sine fit's amplitude moves
-  by at most ``(4 / pi) q / 2``; the term takes ``q`` of an ADC spanning 1.5 screens
-  (``1.5 x full scale / 2^bits``; the DS1000Z's spans 1.28, the InfiniiVision's 1.25), room
-  for the fit's transient regressors. This is the term the vertical ranging keeps small.
+* ``absolute`` (in the channel's units, amplitude): the quantization. With ``q`` one code of an
+  ADC spanning 1.5 screens (``1.5 x full scale / 2^bits``; the DS1000Z's spans 1.28, the
+  InfiniiVision's 1.25: never smaller than the true code), every sample is within ``q / 2`` of
+  the truth, so a sine fit's amplitude moves by at most ``(4 / pi) q / 2 < q``: the term is
+  ``q``, unless the channel's own analog noise dithers the quantizer. With Gaussian noise of rms
+  ``sigma`` before the ADC, the quantization error's mean given the signal is at most
+  ``(q / pi) sum_k exp(-2 pi^2 k^2 sigma^2 / q^2) / k`` (its Fourier series, Widrow and Kollar,
+  *Quantization Noise*, 2008, ch. 5); the rest of the error is noise, in the residuals the
+  confidence radius is computed from. The term is then ``4 / pi`` times that mean: for
+  ``sigma = q / 2`` it is 0.7 % of a code. ``sigma`` is measured on each channel with the output
+  off (records forced without a trigger, :meth:`ScpiScope.noise_divisions`), the smallest of
+  the scales tried, less the quantization's own ``q^2 / 12``: an underestimate, so the term
+  errs large.
 
 The sample clock's accuracy scales every channel's time axis alike: the fitted phasors of force
 and response are attenuated and turned by the same factor, so their ratio does not move to first
@@ -35,7 +43,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["ChannelError", "ratio_error_bound", "scope_channel_error", "MAX_CLOCK_PHASE_RAD", "GAIN_TEST_SPAN"]
+__all__ = ["ChannelError", "ratio_error_bound", "scope_channel_error", "quantization_bias", "MAX_CLOCK_PHASE_RAD", "GAIN_TEST_SPAN"]
 
 GAIN_TEST_SPAN = 0.75  # of full scale: the span over which the gain accuracy is verified (module docstring)
 MAX_CLOCK_PHASE_RAD = 0.5  # omega x clock error x record length above this: the record is refused (the sinc attenuation, common to every channel, would pass 1 %)
@@ -50,11 +58,24 @@ class ChannelError:
     relative: float = 0.0
 
 
+def quantization_bias(q: float, noise_rms: float) -> float:
+    """The largest shift of a sine fit's amplitude from quantizing with step ``q`` a signal
+    carrying Gaussian noise of rms ``noise_rms`` (module docstring); at most ``q``."""
+    ratio = noise_rms / q
+    if ratio < 0.2:  # too little noise to count on: the worst case
+        return q
+    terms = sum(math.exp(-2 * math.pi**2 * k * k * ratio * ratio) / k for k in range(1, 50))
+    return min(q, 4 / math.pi * q / math.pi * terms)
+
+
 def scope_channel_error(*, gain_accuracy: float, full_scale_v: float, adc_bits: int, volt_per_unit: float, calibration: float,
-                        omega_rad_s: float, trigger_jitter_s: float) -> ChannelError:
-    """A scope channel's discs from its datasheet figures and the vertical scale it recorded at."""
-    absolute_v = 1.5 * full_scale_v / 2.0 ** adc_bits
-    return ChannelError(absolute_v / volt_per_unit, calibration + gain_accuracy / GAIN_TEST_SPAN + omega_rad_s * trigger_jitter_s)
+                        omega_rad_s: float, trigger_jitter_s: float, noise_v: float = 0.0) -> ChannelError:
+    """A scope channel's discs from its datasheet figures, the vertical scale it recorded at and
+    its measured analog noise ``noise_v`` (rms volts at the ADC, quantization included)."""
+    q = 1.5 * full_scale_v / 2.0 ** adc_bits
+    analog = math.sqrt(max(0.0, noise_v**2 - q * q / 12.0))
+    return ChannelError(quantization_bias(q, analog) / volt_per_unit,
+                        calibration + gain_accuracy / GAIN_TEST_SPAN + omega_rad_s * trigger_jitter_s)
 
 
 def ratio_error_bound(g_hat: complex, force_amplitude: float, force: ChannelError, response: ChannelError) -> float:
