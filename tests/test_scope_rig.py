@@ -209,3 +209,41 @@ def test_a_scope_fault_is_exit_4_one_line_naming_the_scope_with_the_output_off(t
     assert code == 4
     assert len(err) == 1 and "scope" in err[0] and words in err[0], err
     assert not bench.output_on
+
+
+@pytest.mark.parametrize("signal", ["sine", "multisine"])
+def test_a_campaign_through_the_scope_keeps_every_truth_inside_and_the_force_within_its_limit(tmp_path, signal):
+    """The shipped 33500B + DS1104Z procedure as `run` drives it (a few added experiments: the
+    goal is out of reach of the scope's datasheet bounds, see the technician guide), single sines
+    and multisine records: every output's truth inside its bound at every point, the force never
+    above 1.05 x max_amplitude_n, the output off at the end, the outputs exported by name."""
+    from setmem_hil.campaign.session import start_run
+    from setmem_hil.io.journal import read_snapshot
+
+    text = SCOPE_PROCEDURE.read_text().replace("max_experiments = 30", "max_experiments = 3")
+    if signal == "multisine":
+        text = text.replace("[safety]", '[dwell]\nsignal = "multisine"\n\n[safety]', 1)
+    procedure = _procedure(text)
+    opened = []
+
+    def opener(p, seed):
+        opened.append(open_experiment(p, seed))
+        return opened[-1]
+
+    outcome = start_run(procedure, tmp_path / "run", opener=opener, quiet_report_hint=True)
+    assert outcome.summary["experiments_added"] == 3 and outcome.summary["rig_s"] > 0
+    measurements = read_snapshot(tmp_path / "run").measurements
+    assert len(measurements) == 15 + 3
+    ratios = [abs(g - _truth(x, m.omega_rad_s)) / bound
+              for m in measurements for x, (g, bound) in zip(POSITIONS, [(m.response, m.bound), *m.others])]
+    assert np.mean(np.array(ratios) <= 1.0) >= 0.99, max(ratios)
+    bench = opened[0].bench
+    assert bench.peak_force_n <= 1.05 * procedure.safety.max_amplitude_n
+    assert not bench.output_on
+    from setmem_hil.cli.main import main
+
+    assert main(["export", str(tmp_path / "run"), "--csv", str(tmp_path / "csv")]) == 0
+    import csv
+
+    rows = list(csv.DictReader((tmp_path / "csv" / "measurements.csv").open()))
+    assert {r["output"] for r in rows} == {"scope.ch2", "scope.ch3", "scope.ch4"} and len(rows) == 3 * len(measurements)

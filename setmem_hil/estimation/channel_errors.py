@@ -9,8 +9,9 @@ A sampled force or response channel's fitted phasor ``X_hat`` differs from the s
   accuracy, which datasheets state as a fraction of *full scale* (``divisions x V/div``) and
   performance-verification procedures measure as a *slope*: the gain between DC levels about
   three divisions either side of the centre, the slope's error times the 75 % of full scale
-  that span covers (Agilent/Keysight: ``DCGainError = (dV_scope / dV_in - 1) x 75``; Siglent
-  and Tektronix state the slope's error directly). The channel's gain is therefore within
+  that span covers (Rigol's performance verification guides: ``|(V1 - V2) - (Vin1 - Vin2)| /
+  full scale`` with the inputs at +-3 divisions; Agilent/Keysight: ``DCGainError = (dV_scope /
+  dV_in - 1) x 75``; Siglent and Tektronix state the slope's error directly). The channel's gain is therefore within
   ``gain_accuracy / 0.75`` of nominal, which scales the signal's phasor whatever else the record
   holds (an earlier mode still ringing, the range it forced). And the phase error of the timing
   (``omega x trigger_jitter_s``, a stand-in for the channels' skew, which no datasheet states:
