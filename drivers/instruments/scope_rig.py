@@ -148,8 +148,11 @@ class ScopeSensor:
         raise AssertionError("unreachable")  # pragma: no cover (the last step re-raises)
 
     def acquire(self, duration_s: float) -> SampleBlock:
+        """A record of ``duration_s`` (at most the scope's longest: a window planned longer, at
+        a very low frequency, is fitted on what the scope holds)."""
         start = self.clock.now()
-        record = self._record(duration_s, self.sample_rate_hz)
+        longest = self.scope.profile.time_scales_s[-1] * self.scope.profile.time_divisions
+        record = self._record(min(duration_s, longest), self.sample_rate_hz)
         self.last_acquire_s = self.clock.now() - start
         self.last_scales_v = dict(record.scales_v)
         self.last_sample_rate_hz = 1.0 / record.sample_interval_s
