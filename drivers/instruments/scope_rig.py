@@ -41,7 +41,7 @@ from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.drivers.sine_dwell import SineDwellExperiment
 from setmem_hil.errors import DataQualityError
-from setmem_hil.estimation.channel_errors import MAX_CLOCK_PHASE_RAD, ChannelError, ratio_error_bound, scope_channel_error
+from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, ratio_error_bound, scope_channel_error
 from setmem_hil.model.experiment import Measurement
 
 __all__ = ["ScopeChannel", "ScopeSensor", "ScopeRig", "ScopeDwellExperiment"]
@@ -100,9 +100,13 @@ class ScopeSensor:
 
     def force_room(self) -> float:
         """What the force channel may be off by, relative, at a tightly ranged scale (its
-        calibration and the scope's gain accuracy): the level's target leaves this much room."""
+        calibration, the scope's gain accuracy and, at worst, a whole code of quantization on a
+        signal filling ``SCREEN_FILL / RANGE_HEADROOM`` of the half screen): the level's target
+        leaves this much room."""
         p = self.scope.profile
-        return self.force.calibration_uncertainty + p.gain_accuracy * p.divisions / (0.8 * p.divisions / 2.0) / RANGE_HEADROOM
+        filled_div = self.scope.SCREEN_FILL / RANGE_HEADROOM * p.divisions / 2.0
+        code_div = 1.5 * p.divisions / 2.0 ** p.adc_bits
+        return self.force.calibration_uncertainty + p.gain_accuracy / GAIN_TEST_SPAN + code_div / filled_div
 
     def _force_of(self, record: ScopeRecord) -> tuple[np.ndarray, np.ndarray]:
         return record.t_s, record.volts[self.force.number] / self.force.volt_per_unit
