@@ -144,7 +144,7 @@ class SineDwellExperiment:
             raise SafetyLimitError(
                 f"dwell amplitude {self.settings.amplitude_n:g} N outside the safety limit (0, {limits.max_amplitude_n:g}] N"
             )
-        self.exciter = SafeExciter(rig.exciter, limits)
+        self.safe_exciter = SafeExciter(rig.exciter, limits)
         self.extra_bound = extra_bound
         self.model: IntervalModel | ModalParameters | None = model
         self.n_measured = 0
@@ -159,6 +159,11 @@ class SineDwellExperiment:
         ref = weakref.ref(self)
         self._atexit = lambda: (lambda e: e is not None and e.close())(ref())
         atexit.register(self._atexit)
+
+    @property
+    def exciter(self) -> SafeExciter:
+        """The rig's exciter behind the safety checks (what every dwell commands)."""
+        return self.safe_exciter
 
     # -- model -----------------------------------------------------------------------------
     def update_model(self, model: IntervalModel | ModalParameters | None) -> None:
@@ -181,7 +186,7 @@ class SineDwellExperiment:
         check_dwell(self.limits, plan.skip_s + plan.window_s)
 
         def start(plan):
-            self.exciter.set_sine(plan.omega_rad_s, self.settings.amplitude_n)
+            self.safe_exciter.set_sine(plan.omega_rad_s, self.settings.amplitude_n)
 
         def estimate(plan, block, attempt, dwell_s, extensions):
             return estimate_dwell(self.settings, self.model, self.pole_tracker, self.extra_bound, plan, block, attempt, dwell_s, extensions)
@@ -213,7 +218,7 @@ class SineDwellExperiment:
         signal = design_multisine(lines, self.settings.amplitude_n, longest)
 
         def start(plan):
-            self.exciter.set_multisine(signal, longest)
+            self.safe_exciter.set_multisine(signal, longest)
 
         def estimate(plan, block, attempt, dwell_s, extensions):
             return estimate_multisine(self.settings, self.model, self.pole_tracker, self.extra_bound, plan, block, attempt,
@@ -245,20 +250,20 @@ class SineDwellExperiment:
             try:
                 return self._dwell(plan, attempt, start, estimate)
             except DataQualityError as exc:
-                safe_stop(self.exciter)
+                safe_stop(self.safe_exciter)
                 self._count("discarded_dwell")
                 errors.append(f"attempt {attempt + 1}: data discarded: {exc}")
                 last_exc = exc
                 continue
             except DeviceError as exc:
-                safe_stop(self.exciter)
+                safe_stop(self.safe_exciter)
                 self._count("device_error")
                 errors.append(f"attempt {attempt + 1}: device fault: {exc}")
                 last_exc = exc
                 self._try_reconnect(errors)
                 continue
             except BaseException:
-                safe_stop(self.exciter)
+                safe_stop(self.safe_exciter)
                 raise
         self._failed_attempts += self.settings.max_attempts
         summary = "; ".join(errors)
@@ -302,7 +307,7 @@ class SineDwellExperiment:
             plan = replan_fixed_rate(plan, rig.metadata.sample_rate_hz)
         # output_guard: zero output however the block ends; a failing stop during an abort is
         # logged and never replaces the original exception (so Ctrl-C stays Ctrl-C)
-        with output_guard(self.exciter):
+        with output_guard(self.safe_exciter):
             start(plan)
             if isinstance(sensor, WaitingSensor):
                 sensor.wait(plan.skip_s)
@@ -340,7 +345,7 @@ class SineDwellExperiment:
         self._closed = True
         atexit.unregister(self._atexit)
         try:
-            safe_stop(self.exciter)
+            safe_stop(self.safe_exciter)
         finally:
             self.rig.close()
 

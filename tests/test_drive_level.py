@@ -71,3 +71,23 @@ def test_a_force_above_the_trip_switches_the_output_off_first():
     with pytest.raises(SafetyLimitError, match="exceeds max_amplitude_n"):
         leveller.force_peak(t, 1.2 * np.sin(2 * math.pi * t))
     assert not source.output
+
+
+def test_an_output_off_that_cannot_be_read_back_is_said_not_confirmed():
+    from setmem_hil.errors import DeviceError, OutputNotConfirmedOffError
+
+    class DeadLink(FakeSource):
+        def set_output(self, on):
+            if not on:
+                raise DeviceError("fgen: the instrument closed the connection")
+            super().set_output(on)
+
+        def reconnect(self):
+            raise DeviceError("fgen: no answer on a fresh connection")
+
+    exciter = LevelledExciter(DeadLink(), newton_per_volt=4.0)
+    exciter.set_sine(2 * math.pi, 1.0)
+    assert not exciter.confirmed_off
+    with pytest.raises(OutputNotConfirmedOffError, match="could not be confirmed off.*switch it off at the instrument"):
+        exciter.stop()
+    assert not exciter.confirmed_off

@@ -242,6 +242,16 @@ def test_a_campaign_through_the_scope_keeps_every_truth_inside_and_the_force_wit
     bench = opened[0].bench
     assert bench.peak_force_n <= 1.05 * procedure.safety.max_amplitude_n
     assert not bench.output_on
+    from setmem_hil.io.journal import Journal
+
+    journal = Journal.open(tmp_path / "run")  # the session armed the generator and read its output back off
+    try:
+        kinds = [(e["kind"], e["message"]) for e in journal.events()]
+    finally:
+        journal.close()
+    assert any(k == "exciter-armed" and "fgen" in m for k, m in kinds)
+    assert any(k == "output-off" and m.startswith("confirmed") and "fgen" in m for k, m in kinds)
+    assert any(k == "instruments" and "RIGOL TECHNOLOGIES,DS1104Z" in m for k, m in kinds)
     from setmem_hil.cli.main import main
 
     assert main(["export", str(tmp_path / "run"), "--csv", str(tmp_path / "csv")]) == 0

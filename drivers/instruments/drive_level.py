@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 
 from setmem_hil.drivers.instruments.source import SignalSource
-from setmem_hil.errors import DataQualityError, DeviceRejectedError, SafetyLimitError
+from setmem_hil.errors import DataQualityError, DeviceRejectedError, OutputNotConfirmedOffError, SafetyLimitError
 from setmem_hil.estimation.sine_fit import fit_sine
 
 __all__ = ["LevelledExciter", "ForceLeveller", "held_waveform_gain", "level_record_s", "levelling_allowance_s", "FORCE_TRIP",
@@ -101,6 +101,7 @@ class LevelledExciter:
         self.target_n = 0.0
         self.needs_level = False
         self.arbitrary: tuple[np.ndarray, float] | None = None  # the multisine record playing: (points, Sa/s)
+        self.confirmed_off = True  # the output read back off (the rig forced it off when it opened)
         self.lowest_rad_s = 0.0
 
     def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
@@ -159,6 +160,7 @@ class LevelledExciter:
         fraction = self.NEXT_FRACTION if self.measured else self.FIRST_FRACTION
         self.set_volts(fraction * amplitude_n / self.gain_estimate)
         if not self.on:
+            self.confirmed_off = False  # from the moment the command may take effect
             self.source.set_output(True)
             self.on = True
         self.needs_level = True
@@ -169,9 +171,27 @@ class LevelledExciter:
         self.source.set_amplitude_v(self.volts)
 
     def stop(self) -> None:
+        """Output off, read back; when that fails (the link dropped), once more on a fresh
+        connection. Raises :class:`~setmem_hil.errors.OutputNotConfirmedOffError` when neither is
+        confirmed (``confirmed_off`` stays False: the output may still be on)."""
         self.on = False
         self.needs_level = False
-        self.source.set_output(False)
+        try:
+            self.source.set_output(False)
+            self.confirmed_off = True
+            return
+        except Exception as first:  # noqa: BLE001 - any failure: try a fresh connection
+            log.error("%s: switching the output off failed (%s); opening a fresh connection", self.source.name, first)
+            cause = first
+        try:
+            self.source.reconnect()
+            self.source.set_output(False)
+            self.confirmed_off = True
+        except Exception as second:  # noqa: BLE001
+            self.confirmed_off = False
+            raise OutputNotConfirmedOffError(self.source.name, f"{self.source.name}: the output could not be confirmed off ({cause}; "
+                                             f"a fresh connection failed too: {second}): it may still be on: switch it off at "
+                                             "the instrument or at the amplifier") from None
 
 
 class ForceLeveller:

@@ -192,7 +192,8 @@ def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None
     """Source + NI-DAQ: the sine dwell on a sampled rig (:mod:`.sampled_rig`)."""
     from setmem_hil.drivers.instruments.nidaq_sensor import NidaqSensor
     from setmem_hil.drivers.instruments.sampled_rig import DaqChannel, SampledInstrumentRig
-    from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
+    from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment
+    from setmem_hil.drivers.sine_dwell import DwellSettings
 
     backend = procedure.backend
     exciter, force = procedure.instruments[backend.exciter], procedure.instruments[backend.force]
@@ -200,7 +201,7 @@ def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None
     daq: DaqProfile = checked[force.name][1]
     source = open_instrument(exciter, checked[exciter.name][1])
     try:
-        source.check_identity()
+        identity = source.check_identity()
         source.initialise()
         sensor = NidaqSensor(force.resource, [r.resource for r in responses], force.volt_per_unit, [r.volt_per_unit for r in responses],
                              range_v=daq.range_v, terminal=daq.terminal, nidaqmx_module=nidaqmx_module)
@@ -216,7 +217,8 @@ def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None
         source.close()
         raise
     settings = DwellSettings(amplitude_n=min(1.0, procedure.safety.max_amplitude_n))
-    return SineDwellExperiment(rig, procedure.safety, settings, model=procedure.prior.initial_bounds(), extra_bound=extra_bound)
+    return SampledDwellExperiment(rig, procedure.safety, settings, model=procedure.prior.initial_bounds(), extra_bound=extra_bound,
+                                  identities={source.name: identity})
 
 
 def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = None, extra_bound: Callable[[float], float] | None = None,

@@ -39,7 +39,7 @@ from setmem_hil.drivers.instruments.phasor_dwell import to_receptance
 from setmem_hil.drivers.instruments.scpi_scope import ClippedChannel, ScopeRecord, ScpiScope
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
-from setmem_hil.drivers.sine_dwell import SineDwellExperiment
+from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment
 from setmem_hil.errors import DataQualityError
 from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, ratio_error_bound, scope_channel_error
 from setmem_hil.model.experiment import Measurement
@@ -239,9 +239,5 @@ class ScopeRig:
                     thing.close()
 
 
-class ScopeDwellExperiment(SineDwellExperiment):
-    """The sine dwell on a :class:`ScopeRig`; ``identities`` are journaled with the run."""
-
-    def __init__(self, rig: ScopeRig, limits, settings=None, model=None, extra_bound=None, identities=None):
-        super().__init__(rig, limits, settings, model, extra_bound)
-        self.identities = dict(identities or {})
+class ScopeDwellExperiment(SampledDwellExperiment):
+    """The sine dwell on a :class:`ScopeRig` (identities journaled, the output confirmed off)."""
