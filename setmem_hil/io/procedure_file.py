@@ -444,13 +444,6 @@ def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentS
         )
     if backend.kind != "instruments":
         return found
-    scope = found.get(backend.force)
-    if scope is not None and scope.channel_roles:
-        return _check_scope_roles(top, backend, found, scope)
-    if backend.control_output > max(1, len(backend.responses)):
-        raise ProcedureError(top.source, "[backend] key 'control_output'", f"{backend.control_output} but only one response instrument")
-    if backend.emulation is not None and len(backend.emulation.sensors) != len(backend.response_instruments()):
-        raise ProcedureError(top.source, "[backend.emulation] key 'sensors'", f"one position per response instrument, found {list(backend.emulation.sensors)}")
     roles = [("exciter", backend.exciter, "newton_per_volt"), ("force", backend.force, "volt_per_unit")]
     roles += [("response", name, "volt_per_unit") for name in backend.response_instruments() or ("",)]
     for role, name, needs in roles:
@@ -461,8 +454,15 @@ def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentS
             close = difflib.get_close_matches(name, list(found), n=1)
             hint = f"; did you mean {close[0]!r}?" if close else ""
             raise ProcedureError(top.source, where, f"no [instruments.{name}] table{hint} (tables: {', '.join(found) or 'none'})")
-        if getattr(found[name], needs) is None:
+        if getattr(found[name], needs) is None and not found[name].channel_roles:  # a scope's channels carry their own
             raise ProcedureError(top.source, f"[instruments.{name}]", f"missing key {needs!r} (the {role} needs it)")
+    if found[backend.force].channel_roles:
+        _check_scope_roles(top, backend, found[backend.force])
+        return found
+    if backend.control_output > max(1, len(backend.responses)):
+        raise ProcedureError(top.source, "[backend] key 'control_output'", f"{backend.control_output} but only one response instrument")
+    if backend.emulation is not None and len(backend.emulation.sensors) != len(backend.response_instruments()):
+        raise ProcedureError(top.source, "[backend.emulation] key 'sensors'", f"one position per response instrument, found {list(backend.emulation.sensors)}")
     force = found[backend.force]
     if (force.quantity or "force") != "force":
         raise ProcedureError(top.source, f"[instruments.{force.name}] key 'quantity'", f"the force role's sensor must measure force, found {force.quantity!r}")
@@ -504,7 +504,7 @@ def _channel_sensors(source: str, name: str, tables: Mapping) -> dict[int, Chann
     return sensors
 
 
-def _check_scope_roles(top: _Table, backend: BackendSettings, found: dict, scope: InstrumentSettings) -> dict[str, InstrumentSettings]:
+def _check_scope_roles(top: _Table, backend: BackendSettings, scope: InstrumentSettings) -> None:
     """One oscilloscope as both the force and the response (issue 26): every channel it uses has
     its sensor table, the roles name it, the emulation places one sensor per response channel."""
     where = f"[instruments.{scope.name}]"
@@ -525,15 +525,10 @@ def _check_scope_roles(top: _Table, backend: BackendSettings, found: dict, scope
     if scope.trigger_channel is not None and scope.trigger_channel in scope.channel_roles["response"]:
         raise ProcedureError(top.source, f"{where} key 'trigger_channel'", f"channel {scope.trigger_channel} is a response channel; "
                              "trigger on the generator's sync (a spare channel or EXT) or on the force channel")
-    if backend.exciter not in found:
-        raise ProcedureError(top.source, "[backend] key 'exciter'", f"no [instruments.{backend.exciter}] table")
-    if found[backend.exciter].newton_per_volt is None:
-        raise ProcedureError(top.source, f"[instruments.{backend.exciter}]", "missing key 'newton_per_volt' (the exciter needs it)")
     n_outputs = len(scope.channel_roles["response"])
     if backend.emulation is not None and len(backend.emulation.sensors) != n_outputs:
         raise ProcedureError(top.source, "[backend.emulation] key 'sensors'", f"one position per response channel of "
                              f"{scope.name!r} ({n_outputs}), found {list(backend.emulation.sensors)}")
-    return found
 
 
 def _transport_options(top: _Table, backend: _Table, kind: str) -> dict[str, Any]:
