@@ -25,8 +25,8 @@ from typing import Callable
 
 import numpy as np
 
-from setmem_hil.drivers.instruments.source import SignalSource
-from setmem_hil.errors import DataQualityError, DeviceRejectedError, OutputNotConfirmedOffError, SafetyLimitError
+from setmem_hil.drivers.instruments.source import SignalSource, switch_output_off
+from setmem_hil.errors import DataQualityError, DeviceRejectedError, SafetyLimitError
 from setmem_hil.estimation.sine_fit import fit_sine
 
 __all__ = ["LevelledExciter", "ForceLeveller", "held_waveform_gain", "level_record_s", "levelling_allowance_s", "FORCE_TRIP",
@@ -119,10 +119,6 @@ class LevelledExciter:
     # -- multisine records through the generator's arbitrary waveform (issue 26) ---------------
     MIN_POINTS_PER_PERIOD = 8
 
-    @property
-    def plays_multisine(self) -> bool:
-        return bool(getattr(self.source, "plays_arbitrary", False))
-
     def set_multisine_record(self, multisine, duration_s: float) -> None:
         """Upload the record (and room for the levelling) as one arbitrary waveform and play it
         at a quarter (then half) of the target level; the levelling finishes it. Its peak is
@@ -176,22 +172,9 @@ class LevelledExciter:
         confirmed (``confirmed_off`` stays False: the output may still be on)."""
         self.on = False
         self.needs_level = False
-        try:
-            self.source.set_output(False)
-            self.confirmed_off = True
-            return
-        except Exception as first:  # noqa: BLE001 - any failure: try a fresh connection
-            log.error("%s: switching the output off failed (%s); opening a fresh connection", self.source.name, first)
-            cause = first
-        try:
-            self.source.reconnect()
-            self.source.set_output(False)
-            self.confirmed_off = True
-        except Exception as second:  # noqa: BLE001
-            self.confirmed_off = False
-            raise OutputNotConfirmedOffError(self.source.name, f"{self.source.name}: the output could not be confirmed off ({cause}; "
-                                             f"a fresh connection failed too: {second}): it may still be on: switch it off at "
-                                             "the instrument or at the amplifier") from None
+        self.confirmed_off = False
+        switch_output_off(self.source)
+        self.confirmed_off = True
 
 
 class ForceLeveller:

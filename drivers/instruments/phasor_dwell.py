@@ -46,9 +46,9 @@ import numpy as np
 
 from setmem_hil.drivers.clock import Clock
 from setmem_hil.drivers.instruments.lockin import LockIn, LockInOverload, ReferenceUnlocked
-from setmem_hil.drivers.instruments.source import SignalSource
+from setmem_hil.drivers.instruments.source import SignalSource, switch_output_off
 from setmem_hil.drivers.safety import check_sine_command
-from setmem_hil.errors import DeviceError, DeviceRejectedError, OutputNotConfirmedOffError, SafetyLimitError
+from setmem_hil.errors import DeviceError, DeviceRejectedError, SafetyLimitError
 from setmem_hil.estimation.phasor_estimate import exponential_gap, exponential_trend, phasor_point, settling_test
 from setmem_hil.estimation.ringdown import FreeResponseBound, leak_time_constant, leak_wait_s, ringdown_wait_s, ringing_modes
 from setmem_hil.io.procedure import SafetyLimits
@@ -574,27 +574,13 @@ class PhasorDwellExperiment:
         """Switch the output off and read it back; when that fails (the link dropped), open a
         fresh connection and try once more. Raises :class:`OutputNotConfirmedOffError` when
         neither is confirmed: the output may still be on."""
-        try:
-            self.source.set_output(False)
-            self.output_confirmed_off = True
-            self._drive_changed(0.0)
-            return
-        except Exception as first:  # noqa: BLE001 - any failure: try a fresh connection
-            log.error("%s: switching the output off failed (%s); opening a fresh connection", self.exciter, first)
-            cause = first
-        try:
+
+        def counted() -> None:
             self.counters["reconnects"] += 1
-            self.source.reconnect()
-            self.source.set_output(False)
-            self.output_confirmed_off = True
-            log.warning("%s: output switched off (read back) on a fresh connection", self.exciter)
-        except Exception as second:  # noqa: BLE001
-            self.output_confirmed_off = False
-            raise OutputNotConfirmedOffError(self.source.name, f"{self.exciter}: the output could not be confirmed off "
-                                             f"({_short(cause)}; a fresh connection failed too: {_short(second)}): it may still "
-                                             "be on: switch it off at the instrument or at the amplifier") from None
+
+        self.output_confirmed_off = False
+        if not switch_output_off(self.source, self.exciter, counted):
+            self._drive_changed(0.0)
+        self.output_confirmed_off = True
 
 
-def _short(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) < 160 else text[:157] + "..."

@@ -7,11 +7,14 @@ newtons and every safety check live in :mod:`setmem_hil.drivers.instruments.phas
 
 from __future__ import annotations
 
+import logging
 from typing import Protocol, runtime_checkable
 
-from setmem_hil.errors import SafetyLimitError
+from setmem_hil.errors import OutputNotConfirmedOffError, SafetyLimitError
 
-__all__ = ["SignalSource", "IdentifiedInstrument", "check_instrument_range"]
+__all__ = ["SignalSource", "IdentifiedInstrument", "check_instrument_range", "switch_output_off"]
+
+log = logging.getLogger(__name__)
 
 
 def check_instrument_range(where: str, model: str, value: float, limits: tuple[float, float], unit: str) -> None:
@@ -63,3 +66,33 @@ class SignalSource(IdentifiedInstrument, Protocol):
         """Drop the present connection and open a fresh one (a dropped link: the output may
         still be on, and the switch-off must reach the instrument)."""
         ...
+
+
+def switch_output_off(source: "SignalSource", label: str | None = None, on_reconnect=lambda: None) -> bool:
+    """Switch the output off and read it back; when that fails (the link dropped), open a fresh
+    connection (``on_reconnect()`` first) and try once more. Returns whether the fresh connection
+    was needed; raises :class:`~setmem_hil.errors.OutputNotConfirmedOffError` when neither is
+    confirmed: the output may still be on. ``label`` names the source in messages."""
+    label = label or source.name
+    try:
+        source.set_output(False)
+        return False
+    except Exception as first:  # noqa: BLE001 - any failure: try a fresh connection
+        log.error("%s: switching the output off failed (%s); opening a fresh connection", label, first)
+        cause = first
+    try:
+        on_reconnect()
+        source.reconnect()
+        source.set_output(False)
+        log.warning("%s: output switched off (read back) on a fresh connection", label)
+        return True
+    except Exception as second:  # noqa: BLE001
+        raise OutputNotConfirmedOffError(source.name, f"{label}: the output could not be confirmed off ({short_cause(cause)}; "
+                                         f"a fresh connection failed too: {short_cause(second)}): it may still be on: switch "
+                                         "it off at the instrument or at the amplifier") from None
+
+
+def short_cause(exc: BaseException) -> str:
+    """An exception as one short line (a message quoting another)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) < 160 else text[:157] + "..."
