@@ -5,9 +5,38 @@ like the lock-in rig): a pause waits for it, the journal records it at the end o
 
 from __future__ import annotations
 
-from setmem_hil.drivers.sine_dwell import SineDwellExperiment
+import dataclasses
+import math
+from typing import Sequence
 
-__all__ = ["SampledDwellExperiment"]
+from setmem_hil.drivers.instruments.phasor_dwell import to_receptance
+from setmem_hil.drivers.sine_dwell import SineDwellExperiment
+from setmem_hil.errors import DataQualityError
+from setmem_hil.estimation.channel_errors import ChannelError, ratio_error_bound
+from setmem_hil.model.experiment import Measurement
+
+__all__ = ["SampledDwellExperiment", "with_instrument_terms"]
+
+
+def with_instrument_terms(m: Measurement, force_amplitude_n: float, force: ChannelError,
+                          outputs: Sequence[tuple[ChannelError, str]], where: str) -> Measurement:
+    """``m`` with every output's instrument terms added to its bound
+    (:func:`~setmem_hil.estimation.channel_errors.ratio_error_bound` with the force channel's
+    ``force`` and each output's error, control output first), then converted to receptance
+    where the output's sensor measures velocity or acceleration (its quantity)."""
+    w = m.omega_rad_s
+
+    def one(g: complex, bound: float, error: ChannelError, quantity: str) -> tuple[complex, float]:
+        total = bound + ratio_error_bound(g, force_amplitude_n, force, error)
+        if not math.isfinite(total):
+            raise DataQualityError(f"{where}: the force at {w:g} rad/s ({force_amplitude_n:.3g} N) is not larger than its "
+                                   f"channel's error ({force.absolute:.3g} N)")
+        return to_receptance(g, w, quantity), total * abs(to_receptance(1.0, w, quantity))
+
+    (first_error, first_quantity), rest = outputs[0], outputs[1:]
+    response, bound = one(m.response, m.bound, first_error, first_quantity)
+    others = tuple(one(g, b, error, quantity) for (g, b), (error, quantity) in zip(m.others, rest))
+    return dataclasses.replace(m, response=response, bound=bound, others=others)
 
 
 class SampledDwellExperiment(SineDwellExperiment):

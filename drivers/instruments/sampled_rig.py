@@ -15,14 +15,12 @@ sensor's ratio is converted to receptance (:meth:`LevelledDaqSensor.corrected`).
 from __future__ import annotations
 
 import dataclasses
-import math
 
 from setmem_hil.drivers.instruments.drive_level import ForceLeveller, LevelledExciter
-from setmem_hil.drivers.instruments.phasor_dwell import to_receptance
+from setmem_hil.drivers.instruments.sampled_dwell import with_instrument_terms
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
-from setmem_hil.errors import DataQualityError
-from setmem_hil.estimation.channel_errors import ChannelError, ratio_error_bound
+from setmem_hil.estimation.channel_errors import ChannelError
 from setmem_hil.model.experiment import Measurement
 
 __all__ = ["LevelledDaqSensor", "SampledInstrumentRig", "DaqChannel"]
@@ -80,17 +78,9 @@ class LevelledDaqSensor:
 
     def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
         """``m`` with each sensor's calibration in its bound, converted to receptance."""
-        force = ChannelError(0.0, self.force.calibration_uncertainty)
-
-        def one(g: complex, bound: float, channel: DaqChannel) -> tuple[complex, float]:
-            total = bound + ratio_error_bound(g, force_amplitude_n, force, ChannelError(0.0, channel.calibration_uncertainty))
-            if not math.isfinite(total):
-                raise DataQualityError(f"{self.leveller.where}: no usable force at {m.omega_rad_s:g} rad/s")
-            return to_receptance(g, m.omega_rad_s, channel.quantity), total * abs(to_receptance(1.0, m.omega_rad_s, channel.quantity))
-
-        response, bound = one(m.response, m.bound, self.responses[0])
-        others = tuple(one(g, b, ch) for (g, b), ch in zip(m.others, self.responses[1:]))
-        return dataclasses.replace(m, response=response, bound=bound, others=others)
+        return with_instrument_terms(m, force_amplitude_n, ChannelError(0.0, self.force.calibration_uncertainty),
+                                     [(ChannelError(0.0, ch.calibration_uncertainty), ch.quantity) for ch in self.responses],
+                                     self.leveller.where)
 
 
 class SampledInstrumentRig:

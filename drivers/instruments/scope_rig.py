@@ -26,7 +26,6 @@ cost.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -35,13 +34,12 @@ import numpy as np
 
 from setmem_hil.drivers.clock import Clock
 from setmem_hil.drivers.instruments.drive_level import FORCE_TRIP, LEVEL_TOLERANCE, MAX_STEP_UP, ForceLeveller, LevelledExciter
-from setmem_hil.drivers.instruments.phasor_dwell import to_receptance
 from setmem_hil.drivers.instruments.scpi_scope import ClippedChannel, ScopeRecord, ScpiScope
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
-from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment
+from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, with_instrument_terms
 from setmem_hil.errors import DataQualityError
-from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, ratio_error_bound, scope_channel_error
+from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, scope_channel_error
 from setmem_hil.model.experiment import Measurement
 
 __all__ = ["ScopeChannel", "ScopeSensor", "ScopeRig", "ScopeDwellExperiment"]
@@ -73,7 +71,6 @@ class ScopeSensor:
         self.last_acquire_s = 0.0
         self.last_sample_rate_hz = 0.0
         self.last_scales_v: dict[int, float] = {}
-        self.last_length_s = 0.0
         self.counters = {"range_up": 0, "level_steps": 0}
         self.waveform_started = 0.0  # clock time the playing arbitrary waveform started
         self.leveller = ForceLeveller(exciter, max_force_n, self.force_room, scope.where)
@@ -160,7 +157,7 @@ class ScopeSensor:
         self.last_acquire_s = self.clock.now() - start
         self.last_scales_v = dict(record.scales_v)
         self.last_sample_rate_hz = 1.0 / record.sample_interval_s
-        self.last_length_s = float(record.t_s[-1] - record.t_s[0] + record.sample_interval_s)
+        length_s = float(record.t_s[-1] - record.t_s[0] + record.sample_interval_s)
         units = [record.volts[ch.number] / ch.volt_per_unit for ch in self.channels]
         if self.exciter.arbitrary is not None:
             points, rate = self.exciter.arbitrary
@@ -169,9 +166,9 @@ class ScopeSensor:
                                        f"({points.size / rate:.0f} s); the record is taken again")
         if self.exciter.omega_rad_s or self.exciter.arbitrary is not None:
             self.leveller.force_peak(*self._force_of(record))  # the trip
-            drift = self.exciter.omega_rad_s * self.scope.profile.timebase_ppm * 1e-6 * self.last_length_s
+            drift = self.exciter.omega_rad_s * self.scope.profile.timebase_ppm * 1e-6 * length_s
             if drift > MAX_CLOCK_PHASE_RAD:
-                raise DataQualityError(f"{self.scope.where}: a {self.last_length_s:.4g} s record at {self.exciter.omega_rad_s:g} rad/s: the "
+                raise DataQualityError(f"{self.scope.where}: a {length_s:.4g} s record at {self.exciter.omega_rad_s:g} rad/s: the "
                                        f"{self.scope.profile.timebase_ppm:g} ppm time base may turn the phasors by {drift:.3g} rad")
         return SampleBlock(t_s=record.t_s, force=units[0], response=units[1], others=tuple(units[2:]))
 
@@ -201,19 +198,8 @@ class ScopeSensor:
         """``m`` (from the last record) with every output's instrument terms added to its bound,
         then converted to receptance where a sensor measures velocity or acceleration."""
         w = m.omega_rad_s
-        force = self.channel_error(self.force, w)
-
-        def one(g: complex, bound: float, channel: ScopeChannel) -> tuple[complex, float]:
-            total = bound + ratio_error_bound(g, force_amplitude_n, force, self.channel_error(channel, w))
-            if not math.isfinite(total):
-                raise DataQualityError(f"{self.scope.where}: the force at {w:g} rad/s ({force_amplitude_n:.3g} N) is not larger than "
-                                       f"channel {self.force.number}'s error ({force.absolute:.3g} N)")
-            scale = abs(to_receptance(1.0, w, channel.quantity))
-            return to_receptance(g, w, channel.quantity), total * scale
-
-        response, bound = one(m.response, m.bound, self.responses[0])
-        others = tuple(one(g, b, ch) for (g, b), ch in zip(m.others, self.responses[1:]))
-        return dataclasses.replace(m, response=response, bound=bound, others=others)
+        return with_instrument_terms(m, force_amplitude_n, self.channel_error(self.force, w),
+                                     [(self.channel_error(ch, w), ch.quantity) for ch in self.responses], self.scope.where)
 
 
 class ScopeRig:
