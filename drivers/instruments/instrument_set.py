@@ -127,8 +127,9 @@ def instrument_warnings(procedure: Procedure) -> list[str]:
             for warning in profile_warnings(profile)]
 
 
-def open_instrument(settings: InstrumentSettings, profile: Profile):
-    """Open one instrument (no command sent yet): a ScpiGenerator, ModbusGenerator, LockIn or ScpiScope."""
+def open_instrument(settings: InstrumentSettings, profile: Profile, clock: Clock | None = None):
+    """Open one instrument (no command sent yet): a ScpiGenerator, ModbusGenerator, LockIn or
+    ScpiScope (which waits for its records on ``clock``, the wall clock by default)."""
     if isinstance(profile, ModbusProfile):
         return ModbusGenerator(settings.name, profile, settings.resource)
     if isinstance(profile, DbcProfile):
@@ -144,7 +145,7 @@ def open_instrument(settings: InstrumentSettings, profile: Profile):
             from setmem_hil.drivers.instruments.scpi_scope import ScpiScope
 
             channels = (*settings.channel_roles["force"], *settings.channel_roles["response"])
-            return ScpiScope(settings.name, profile, link, channels, *scope_trigger(settings, profile), WallClock())
+            return ScpiScope(settings.name, profile, link, channels, *scope_trigger(settings, profile), clock or WallClock())
         assert isinstance(profile, LockInProfile)
         return LockIn(settings.name, profile, link)
     except BaseException:
@@ -221,6 +222,27 @@ def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None
                                   identities={source.name: identity})
 
 
+def _open_identified(checked: dict, clock: Clock, owned: tuple) -> tuple[dict, dict[str, str]]:
+    """Open every checked instrument (``{name: driver}``, in the order checked: the exciter first),
+    check every identity before any init command (a wrong instrument never sees one), then
+    initialise them (the exciter's output forced off before anything else). On any failure
+    everything opened, and ``owned``, is closed."""
+    opened = {}
+    try:
+        for name, (settings, profile, role) in checked.items():
+            opened[name] = open_instrument(settings, profile, clock)
+        identities = {inst.name: inst.check_identity() for inst in opened.values()}
+        for inst in opened.values():
+            inst.initialise()
+    except BaseException:
+        for inst in opened.values():
+            inst.close()
+        for thing in owned:
+            thing.close()
+        raise
+    return opened, identities
+
+
 def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = None, extra_bound: Callable[[float], float] | None = None,
                                on_measurement: Callable[[int], None] | None = None, owned: tuple = ()) -> PhasorDwellExperiment:
     """Open, identify (all three before any output is touched) and initialise the instruments."""
@@ -229,21 +251,7 @@ def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = No
         return open_daq_experiment(procedure, checked, extra_bound=extra_bound)
     if isinstance(checked[procedure.backend.force][1], ScopeProfile):
         return open_scope_experiment(procedure, checked, clock=clock or WallClock(), extra_bound=extra_bound, owned=owned)
-    opened = {}  # instrument name -> opened driver, in the order checked: exciter, force, responses
-    try:
-        for name, (settings, profile, role) in checked.items():
-            opened[name] = open_instrument(settings, profile)
-        identities = {}
-        for inst in opened.values():  # identities first: a wrong instrument never sees an init command
-            identities[inst.name] = inst.check_identity()
-        for inst in opened.values():  # the exciter first: its output is forced off before anything else
-            inst.initialise()
-    except BaseException:
-        for inst in opened.values():
-            inst.close()
-        for thing in owned:
-            thing.close()
-        raise
+    opened, identities = _open_identified(checked, clock or WallClock(), owned)
     backend = procedure.backend
     exciter = procedure.instruments[backend.exciter]
     force = procedure.instruments[backend.force]
@@ -282,12 +290,10 @@ def open_scope_experiment(procedure: Procedure, checked: dict, *, clock: Clock, 
     """Generator + oscilloscope: the sine dwell on one scope's channels (:mod:`.scope_rig`); both
     identities are checked before either instrument is initialised (the generator's output off first)."""
     from setmem_hil.drivers.instruments.scope_rig import ScopeChannel, ScopeDwellExperiment, ScopeRig
-    from setmem_hil.drivers.instruments.scpi_scope import ScpiScope
     from setmem_hil.drivers.sine_dwell import DwellSettings
 
     backend = procedure.backend
     exciter, scope_settings = procedure.instruments[backend.exciter], procedure.instruments[backend.force]
-    profile: ScopeProfile = checked[scope_settings.name][1]
 
     def channel(number: int, default_quantity: str) -> ScopeChannel:
         sensor = scope_settings.channel_sensors[number]
@@ -295,24 +301,8 @@ def open_scope_experiment(procedure: Procedure, checked: dict, *, clock: Clock, 
 
     force = channel(scope_settings.channel_roles["force"][0], "force")
     responses = tuple(channel(c, "displacement") for c in scope_settings.response_channels(backend.control_output))
-    source_, level = scope_trigger(scope_settings, profile)
-    opened = []
-    try:
-        source = open_instrument(exciter, checked[exciter.name][1])
-        opened.append(source)
-        link = VisaLink(scope_settings.name, scope_settings.resource, visa_library=scope_settings.visa_library,
-                        termination=profile.termination, timeout_s=profile.timeout_s)
-        scope = ScpiScope(scope_settings.name, profile, link, tuple(c.number for c in (force, *responses)), source_, level, clock)
-        opened.append(scope)
-        identities = {inst.name: inst.check_identity() for inst in opened}
-        for inst in opened:  # the generator first: its output is forced off before anything else
-            inst.initialise()
-    except BaseException:
-        for inst in opened:
-            inst.close()
-        for thing in owned:
-            thing.close()
-        raise
+    opened, identities = _open_identified(checked, clock, owned)
+    source, scope = opened[exciter.name], opened[scope_settings.name]
     rig = ScopeRig(source, scope, force, responses, exciter.newton_per_volt, exciter.max_drive_v or math.inf,
                    procedure.safety.max_amplitude_n, clock, owned=owned)
     try:
