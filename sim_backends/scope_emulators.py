@@ -140,6 +140,23 @@ class ScopeEmulator(_Emulator):
         self.codes = {c: self._adc(c, self._volts(c, signals)) for c in self.channels_on()}
         self.ready_at = t0 + length
 
+    def _trigger_source_command(self, args: str, query: bool, allowed: str) -> str | None:
+        """The edge trigger's source (both guides): one of ``allowed`` (a regular expression)."""
+        if query:
+            return self.trigger_source
+        source = canonical_header(args)[0] if args else ""
+        if not re.fullmatch(allowed, source):
+            raise ValueError(args)
+        self.trigger_source = source
+        return None
+
+    def _trigger_level_command(self, args: str, query: bool, answer: str) -> str | None:
+        """The edge trigger's level in volts (both guides; ``answer`` the model's number format)."""
+        if query:
+            return answer.format(self.trigger_level)
+        self.trigger_level = _number(args)
+        return None
+
     def _trigger_channel(self) -> int | None:
         m = re.fullmatch(r"CHAN(\d)", self.trigger_source)
         return int(m.group(1)) if m else None
@@ -294,17 +311,9 @@ class RigolScopeEmulator(ScopeEmulator):
         if nodes in (("ACQ", "TYPE"), ("TRIG", "MODE"), ("TRIG", "EDG", "SLOP"), ("TRIG", "SWE")):
             return None if not query else "NORM"
         if nodes == ("TRIG", "EDG", "SOUR"):
-            if query:
-                return self.trigger_source
-            if args.upper() not in ("CHAN1", "CHAN2", "CHAN3", "CHAN4", "AC"):  # the -Z models have no EXT input
-                raise ValueError(args)
-            self.trigger_source = args.upper()
-            return None
+            return self._trigger_source_command(args, query, r"CHAN[1-4]|AC")  # the -Z models have no EXT input
         if nodes == ("TRIG", "EDG", "LEV"):
-            if query:
-                return f"{self.trigger_level:.6e}"
-            self.trigger_level = _number(args)
-            return None
+            return self._trigger_level_command(args, query, "{:.6e}")
         if nodes == ("TRIG", "STAT") and query:
             return "STOP" if self.done() else ("WAIT" if self.armed else "STOP")
         if nodes and nodes[0] == "WAV":
@@ -383,18 +392,9 @@ class KeysightScopeEmulator(ScopeEmulator):
         if nodes in (("ACQ", "TYPE"), ("TRIG", "MODE"), ("TRIG", "EDGE", "SLOP"), ("TRIG", "SWE")):
             return None if not query else "NORM"
         if nodes == ("TRIG", "EDGE", "SOUR"):
-            if query:
-                return self.trigger_source
-            source = canonical_header(args)[0]
-            if not re.fullmatch(r"CHAN[1-4]|EXT", source):
-                raise ValueError(args)
-            self.trigger_source = source
-            return None
+            return self._trigger_source_command(args, query, r"CHAN[1-4]|EXT")
         if nodes == ("TRIG", "EDGE", "LEV"):
-            if query:
-                return f"{self.trigger_level:+.6E}"
-            self.trigger_level = _number(args)
-            return None
+            return self._trigger_level_command(args, query, "{:+.6E}")
         if nodes == ("OPER", "COND") and query:
             return "+0" if self.done() or not self.armed else "+8"
         if nodes and nodes[0] == "WAV":
