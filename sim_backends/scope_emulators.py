@@ -90,6 +90,8 @@ class ScopeEmulator(_Emulator):
         if nodes == ("SING",):
             self.arm()
             return None
+        if nodes and nodes[0] == "WAV":
+            return self._waveform(nodes[1:], args, query)
         if nodes in (("TFOR",), ("TRIG", "FORC")):  # Rigol :TFORce, Keysight :TRIGger:FORCe
             if self.armed and self.ready_at == math.inf:
                 self._take(self.bench.clock.now() + self.pretrigger_s())
@@ -97,6 +99,25 @@ class ScopeEmulator(_Emulator):
         return self._model_command(nodes, args, query)
 
     def _model_command(self, nodes: tuple[str, ...], args: str, query: bool) -> str | bytes | None:  # pragma: no cover - per model
+        raise NotImplementedError
+
+    def _waveform(self, nodes: tuple[str, ...], args: str, query: bool) -> str | bytes | None:
+        """``:WAVeform`` (both guides): the source, the preamble and the data; the model's own settings."""
+        if nodes == ("SOUR",):
+            return self._waveform_source(args, query)
+        if nodes == ("PRE",) and query:
+            return self._preamble()
+        if nodes == ("DATA",) and query:
+            return self._data()
+        return self._waveform_setting(nodes, args, query)
+
+    def _waveform_setting(self, nodes: tuple[str, ...], args: str, query: bool) -> str | None:  # pragma: no cover - per model
+        raise NotImplementedError
+
+    def _preamble(self) -> str:  # pragma: no cover - per model
+        raise NotImplementedError
+
+    def _data(self) -> bytes:  # pragma: no cover - per model
         raise NotImplementedError
 
     def channels_on(self) -> list[int]:
@@ -316,13 +337,9 @@ class RigolScopeEmulator(ScopeEmulator):
             return self._trigger_level_command(args, query, "{:.6e}")
         if nodes == ("TRIG", "STAT") and query:
             return "STOP" if self.done() else ("WAIT" if self.armed else "STOP")
-        if nodes and nodes[0] == "WAV":
-            return self._waveform(nodes[1:], args, query)
         return self._undefined(query)
 
-    def _waveform(self, nodes, args: str, query: bool):
-        if nodes == ("SOUR",):
-            return self._waveform_source(args, query)
+    def _waveform_setting(self, nodes, args: str, query: bool):
         if nodes in (("MODE",), ("FORM",)):
             if query:
                 return self.wave[nodes[0]]
@@ -333,10 +350,6 @@ class RigolScopeEmulator(ScopeEmulator):
                 return str(self.wave[nodes[0]])
             self.wave[nodes[0]] = int(_number(args))
             return None
-        if nodes == ("PRE",) and query:
-            return self._preamble()
-        if nodes == ("DATA",) and query:
-            return self._data()
         return self._undefined(query)
 
     def _preamble(self) -> str:
@@ -397,13 +410,9 @@ class KeysightScopeEmulator(ScopeEmulator):
             return self._trigger_level_command(args, query, "{:+.6E}")
         if nodes == ("OPER", "COND") and query:
             return "+0" if self.done() or not self.armed else "+8"
-        if nodes and nodes[0] == "WAV":
-            return self._waveform(nodes[1:], args, query)
         return self._undefined(query)
 
-    def _waveform(self, nodes, args: str, query: bool):
-        if nodes == ("SOUR",):
-            return self._waveform_source(args, query)
+    def _waveform_setting(self, nodes, args: str, query: bool):
         if nodes == ("POIN",):
             if query:
                 return str(self._record_codes().size or self.wave["POIN"])
@@ -420,10 +429,6 @@ class KeysightScopeEmulator(ScopeEmulator):
                 return "1" if self.wave["UNS"] else "0"
             self.wave["UNS"] = args.upper() in ("1", "ON")
             return None
-        if nodes == ("PRE",) and query:
-            return self._preamble()
-        if nodes == ("DATA",) and query:
-            return self._data()
         return self._undefined(query)
 
     def _scaling(self) -> tuple[float, float, float]:
