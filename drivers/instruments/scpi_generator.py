@@ -43,10 +43,6 @@ class ScpiGenerator(ScpiInstrument):
         self.run_init()
         self.set_output(False)
 
-    @property
-    def plays_arbitrary(self) -> bool:
-        return self.profile.arbitrary is not None
-
     def play_arbitrary(self, points, rate_hz: float) -> None:
         """Upload ``points`` (in [-1, 1]; each held one sample period) and play them at ``rate_hz``
         Sa/s, then read back the function and the rate (issue 26). The amplitude (``set_amplitude_v``)

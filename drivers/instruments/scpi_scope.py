@@ -104,7 +104,9 @@ class ScpiScope(ScpiInstrument):
                  trigger_level_v: float, clock: Clock):
         super().__init__(name, profile, link)
         self.profile: ScopeProfile = profile
-        bad = [c for c in (*channels, *([int(trigger_source[2:])] if trigger_source.startswith("ch") else [])) if c not in profile.channels]
+        # "ext", or "chN": the channel the trigger is wired to (switched on even when not read)
+        self.trigger_channel = int(trigger_source[2:]) if trigger_source.startswith("ch") else None
+        bad = [c for c in (*channels, *([self.trigger_channel] if self.trigger_channel else [])) if c not in profile.channels]
         if bad:
             raise DeviceRejectedError("instrument", f"{self.where}: channel {bad[0]} does not exist on a {profile.model} (channels {list(profile.channels)})")
         self.channels, self.trigger_source, self.trigger_level_v, self.clock = tuple(channels), trigger_source, trigger_level_v, clock
@@ -118,13 +120,11 @@ class ScpiScope(ScpiInstrument):
         for ch in self.channels:
             self._command("channel_on", ch=ch)
             self.set_vertical_scale(ch, self.scales_v[ch])
-        if self.trigger_source.startswith("ch"):
-            trigger_channel = int(self.trigger_source[2:])
-            if trigger_channel not in self.channels:
-                self._command("channel_on", ch=trigger_channel)
-                self.set_vertical_scale(trigger_channel, self._scale_for(abs(self.trigger_level_v) * 4 + 1e-3))
-        source = (self.profile.trigger_sources["ext"] if self.trigger_source == "ext"
-                  else render(self.profile.trigger_sources["channel"], ch=int(self.trigger_source[2:])))
+        if self.trigger_channel is not None and self.trigger_channel not in self.channels:
+            self._command("channel_on", ch=self.trigger_channel)
+            self.set_vertical_scale(self.trigger_channel, self._scale_for(abs(self.trigger_level_v) * 4 + 1e-3))
+        source = (self.profile.trigger_sources["ext"] if self.trigger_channel is None
+                  else render(self.profile.trigger_sources["channel"], ch=self.trigger_channel))
         self._command("trigger", source=source, value=self.trigger_level_v)
         if "waveform_setup" in self.profile.commands:
             self._command("waveform_setup")
@@ -185,7 +185,7 @@ class ScpiScope(ScpiInstrument):
             raise DeviceRejectedError("range", f"{self.where}: a {duration_s:.4g} s record is longer than the {self.profile.model}'s "
                                                f"{self.profile.time_scales_s[-1] * self.profile.time_divisions:g} s")
         length = scale * self.profile.time_divisions
-        n_on = len(set(self.channels) | ({int(self.trigger_source[2:])} if self.trigger_source.startswith("ch") else set()))
+        n_on = len(set(self.channels) | ({self.trigger_channel} if self.trigger_channel is not None else set()))
         offered = self.profile.record_points[n_on]
         points = next((p for p in offered if p >= min_rate_hz * length), offered[-1])
         if scale != self.time_scale_s:
@@ -244,7 +244,7 @@ class ScpiScope(ScpiInstrument):
             if self._is_done(reply):
                 return
             if self.clock.now() - start > timeout:
-                source = "its EXT input" if self.trigger_source == "ext" else f"channel {self.trigger_source[2:]}"
+                source = "its EXT input" if self.trigger_channel is None else f"channel {self.trigger_channel}"
                 raise DeviceRejectedError("no trigger", f"{self.where}: no trigger on {source} within {timeout:.3g} s "
                                                         f"({self.profile.commands['done_query']!r} answered {reply!r}): is the "
                                                         "generator's sync output wired to it and switched on?")
