@@ -50,7 +50,8 @@ class HeldWaveform:
         """``(t, z)`` at ``t_from``, at every hold's edge inside, and at ``t_to``."""
         h = 1.0 / self.rate_hz
         first = self.t_start + math.ceil((t_from - self.t_start) * self.rate_hz - 1e-9) * h
-        edges = [t_from, *np.arange(first, t_to, h)[(np.arange(first, t_to, h) > t_from)], t_to]
+        inside = np.arange(first, t_to, h)
+        edges = [t_from, *inside[inside > t_from], t_to]
         out = [(t_from, z)]
         for a, b in zip(edges, edges[1:]):
             if b > a:

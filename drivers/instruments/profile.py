@@ -103,9 +103,9 @@ class ArbitraryWaveform:
     """A generator's ``[arbitrary]`` table (issue 26): how to upload a waveform and play it.
 
     Templates take ``{ch}``, ``{name}``, ``{values}`` (comma-separated floats in [-1, 1]) and
-    ``{value}`` (a number). ``select`` may hold several commands separated by ``;``. The played
-    waveform holds each point for one sample period (``filter`` switches the interpolation off):
-    its peak is exactly the largest point, which the safety check needs."""
+    ``{value}`` (a number). ``select`` may hold several commands separated by ``;``; it must
+    switch the generator's interpolation filter off, so the played waveform holds each point for
+    one sample period: its peak is then exactly the largest point, which the safety check needs."""
 
     clear: str  # free the volatile memory
     upload: str  # {name}, {values}
