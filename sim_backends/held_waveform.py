@@ -46,28 +46,42 @@ class HeldWaveform:
         """The real state at ``t_to`` from ``x`` at ``t_from``, hold by hold."""
         return np.real(self.V @ self._z_at_edges(self.Vinv @ x, t_from, t_to)[-1][1])
 
-    def _z_at_edges(self, z: np.ndarray, t_from: float, t_to: float) -> list[tuple[float, np.ndarray]]:
-        """``(t, z)`` at ``t_from``, at every hold's edge inside, and at ``t_to``."""
-        h = 1.0 / self.rate_hz
-        first = self.t_start + math.ceil((t_from - self.t_start) * self.rate_hz - 1e-9) * h
-        inside = np.arange(first, t_to, h)
-        edges = [t_from, *inside[inside > t_from], t_to]
-        out = [(t_from, z)]
-        for a, b in zip(edges, edges[1:]):
+    def _hold_index(self, k: int) -> float:
+        return float(self.force_n[k % self.force_n.size])
+
+    def _z_at_edges(self, z: np.ndarray, t_from: float, t_to: float) -> list[tuple[float, np.ndarray, int]]:
+        """``(t, z, k)`` at ``t_from``, at every hold's edge inside, and at ``t_to``; ``k`` the
+        point held from ``t`` on. Each edge is ``t_start + k / rate`` from its integer ``k``
+        (not a running sum of ``1 / rate``: at thousands of seconds that drifts by more than the
+        index test's room, and the structure would be driven by the wrong point)."""
+        rate = self.rate_hz
+        held = math.floor((t_from - self.t_start) * rate + 1e-9)  # the point under way at t_from (an edge within 1e-9 counts as passed)
+        a, k = t_from, held + 1  # the next edge
+        out = [(t_from, z, held)]
+        while True:
+            b = self.t_start + k / rate
+            if b >= t_to:
+                break
             if b > a:
-                z = self._hold(z, b - a, float(self.force_at(np.array([a]))[0]))
-                out.append((b, z))
+                z = self._hold(z, b - a, self._hold_index(held))
+                out.append((b, z, k))
+                a = b
+            held, k = k, k + 1
+        if t_to > a:
+            z = self._hold(z, t_to - a, self._hold_index(held))
+            out.append((t_to, z, held))
         return out
 
     def samples(self, x: np.ndarray, t_now: float, times: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The force and every output row ``rows @ x`` at ``times`` (ascending, >= ``t_now``)."""
         times = np.asarray(times, dtype=float)
         edges = self._z_at_edges(self.Vinv @ x, t_now, float(times[-1]))
-        starts = np.array([t for t, _ in edges])
-        zs = np.array([z for _, z in edges])
+        starts = np.array([t for t, _, _ in edges])
+        zs = np.array([z for _, z, _ in edges])
+        held = np.array([k for _, _, k in edges])
         j = np.clip(np.searchsorted(starts, times, side="right") - 1, 0, len(starts) - 1)
         tau = times - starts[j]
-        force = self.force_at(starts[j] + 1e-12)
+        force = self.force_n[np.mod(held[j], self.force_n.size)]
         e = np.exp(np.multiply.outer(tau, self.lam))
         z = e * zs[j] + (e - 1.0) / self.lam * np.multiply.outer(force, self.Bm)
         outputs = np.real(z @ (rows @ self.V).T).T
