@@ -21,7 +21,9 @@ Written from the programming guides (not from our driver):
   clipped high, WORD is the 8-bit sample left-shifted.
 
 The channels are wired by the caller (``wiring``: channel -> ``"force"``, ``"response"``,
-``"response2"``..., or ``"sync"``). Each channel adds a white noise of ``noise_div`` divisions
+``"response2"``..., ``"sync"``, or ``"drive"``: the generator's output through a BNC tee, as
+``setmem-hil calibrate-channels`` asks). Each input's gain is off by a fixed fraction, part the
+channel's and part its V/div setting's (:meth:`ScopeEmulator.gain`). Each channel adds a white noise of ``noise_div`` divisions
 RMS before the 8-bit ADC. The trigger is the generator's sync output's rising edge (a channel
 wired to ``"sync"``, or EXT), or the force channel's rising zero crossing (the same instant);
 nothing triggers while the generator's output is off.
@@ -68,8 +70,13 @@ class ScopeEmulator(_Emulator):
         self.wave_source = 1
         self.running = True
         self.rng = np.random.default_rng(seed)
-        # each input's vertical gain is off by a fixed fraction (within the datasheets' figures)
-        self.gain_errors = {c: float(e) for c, e in zip(self.channel, self.rng.uniform(-gain_error, gain_error, self.n_channels))}
+        # each input's vertical gain is off by a fixed fraction (within the datasheets' figures):
+        # two thirds of it the channel's own, a third the scale's (each V/div setting switches
+        # its own attenuator and amplifier gain); ``seed`` is this unit's: its serial number
+        self.channel_errors = {c: float(e) for c, e in zip(self.channel, self.rng.uniform(-gain_error, gain_error, self.n_channels) * 2 / 3)}
+        self.scale_error_span = gain_error / 3
+        self.unit_seed = int(seed)
+        self.idn = self.idn.replace(self.serial, f"{self.serial[:-5]}{self.unit_seed % 100000:05d}")
         self.short_by = 0  # tests: the next data transfer loses this many points
         self.bad_header = False  # tests: the next data transfer has a malformed block header
 
@@ -139,7 +146,10 @@ class ScopeEmulator(_Emulator):
             return
         if self._trigger_source_signal() == "force":
             edge = self.bench.force_rising_after(now + self.pretrigger_s(),
-                                                 self.trigger_level / (self.volt_per_unit["force"] * (1 + self.gain_errors[self._trigger_channel()])))
+                                                 self.trigger_level / (self.volt_per_unit["force"] * self.gain(self._trigger_channel())))
+        elif self._trigger_source_signal() == "drive":  # a tee'd generator output (channel match)
+            edge = self.bench.force_rising_after(now + self.pretrigger_s(),
+                                                 self.trigger_level / self.gain(self._trigger_channel()) * self.bench.true_gain)
         else:
             edge = self.bench.sync_edge_after(now + self.pretrigger_s())
         if edge is None:
@@ -154,7 +164,7 @@ class ScopeEmulator(_Emulator):
         t0 = edge - self.pretrigger_s()
         force, outputs = self.bench.record(t0, dt, n)
         self.record_t0, self.record_dt = t0 - edge, dt
-        signals = {"force": force, "sync": np.where(np.sin(2 * math.pi * self.bench.frequency_hz * (np.arange(n) * dt - (edge - t0))) >= 0,
+        signals = {"force": force, "drive": force / self.bench.true_gain, "sync": np.where(np.sin(2 * math.pi * self.bench.frequency_hz * (np.arange(n) * dt - (edge - t0))) >= 0,
                                                     SYNC_HIGH_V, 0.0)}
         for k, name in enumerate(self.bench.response_names(outputs.shape[0])):
             signals[name] = outputs[k]
@@ -195,6 +205,8 @@ class ScopeEmulator(_Emulator):
             return 0.0 < self.trigger_level < SYNC_HIGH_V
         if source == "force":  # a zero crossing of the force: a level inside its swing
             return abs(self.trigger_level) < self.bench.force_amplitude_n * self.volt_per_unit.get("force", 1.0)
+        if source == "drive":
+            return abs(self.trigger_level) < self.bench.force_amplitude_n / self.bench.true_gain
         return False
 
     has_ext_sync = False  # the generator's sync wired to EXT (Keysight)
@@ -202,8 +214,16 @@ class ScopeEmulator(_Emulator):
     def _volts(self, channel: int, signals: dict[str, np.ndarray]) -> np.ndarray:
         name = self.wiring.get(channel)
         n = next(iter(signals.values())).size
-        clean = np.zeros(n) if name is None else signals[name] * (1.0 if name == "sync" else self.volt_per_unit[name] * (1 + self.gain_errors[channel]))
+        per_unit = 1.0 if name in ("sync", "drive") else self.volt_per_unit.get(name, 1.0)
+        clean = np.zeros(n) if name is None else signals[name] * (1.0 if name == "sync" else per_unit * self.gain(channel))
         return clean + self.noise_div * self.channel[channel]["SCAL"] * self.rng.standard_normal(n)
+
+    def gain(self, channel: int) -> float:
+        """The channel's true gain at its present scale (the emulation's truth; tests read it)."""
+        scale = self.channel[channel]["SCAL"]
+        key = int(round(math.log10(scale) * 1e4)) + 100000
+        own = np.random.default_rng((self.unit_seed, channel, key)).uniform(-1.0, 1.0) * self.scale_error_span
+        return 1.0 + self.channel_errors[channel] + float(own)
 
     def _adc(self, channel: int, volts: np.ndarray) -> np.ndarray:
         """8-bit codes 0..255, 127 at the offset, the span ``adc_span_div`` divisions."""
@@ -289,6 +309,7 @@ class RigolScopeEmulator(ScopeEmulator):
     has_vernier = True
 
     idn = "RIGOL TECHNOLOGIES,DS1104Z,DS1ZA123456789,00.04.04.SP4"
+    serial = "DS1ZA123456789"
     no_error = '0,"No error"'
     time_divisions = 12.0
     adc_span_div = 256 / 25.0  # 25 codes a division
@@ -374,6 +395,7 @@ class KeysightScopeEmulator(ScopeEmulator):
     """A Keysight DSOX2024A (module docstring); ``ext_sync``: the generator's sync on EXT."""
 
     idn = "KEYSIGHT TECHNOLOGIES,DSO-X 2024A,MY58123456,02.65.2021030741"
+    serial = "MY58123456"
     no_error = '+0,"No error"'
     time_divisions = 10.0
     adc_span_div = 10.0

@@ -18,9 +18,11 @@ passes the emulated bench's.
 
 from __future__ import annotations
 
+import datetime
 import logging
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 from setmem_hil.drivers.clock import Clock, WallClock
@@ -31,8 +33,10 @@ from setmem_hil.drivers.instruments.profile import (DaqProfile, DbcProfile, Lock
                                                     load_profile, profile_warnings)
 from setmem_hil.drivers.instruments.scpi_generator import ScpiGenerator
 from setmem_hil.drivers.instruments.visa_link import VisaLink
-from setmem_hil.errors import DeviceError, ProcedureError
+from setmem_hil.errors import DeviceError, DeviceIdentityError, ProcedureError
+from setmem_hil.io.channel_match_file import read_channel_match
 from setmem_hil.io.procedure import InstrumentSettings, Procedure
+from setmem_hil.model.channel_match import ChannelMatch
 
 __all__ = ["check_instruments", "instrument_warnings", "open_instrument", "probe_instruments", "ProbeResult", "open_instrument_experiment"]
 
@@ -122,9 +126,14 @@ def _multisine_refusal(procedure: Procedure, found: dict) -> str | None:
 
 
 def instrument_warnings(procedure: Procedure) -> list[str]:
-    """What ``run --check`` warns about in the instruments' profiles (see :func:`profile_warnings`)."""
-    return [f"[instruments.{name}] {warning}" for name, (_, profile, _) in check_instruments(procedure).items()
-            for warning in profile_warnings(profile)]
+    """What ``run --check`` warns about in the instruments' profiles (see :func:`profile_warnings`);
+    an oscilloscope's channel match that is missing, malformed or too old is an error there too."""
+    checked = check_instruments(procedure)
+    for settings, profile, _ in checked.values():
+        path = channel_match_path(procedure, settings)
+        if isinstance(profile, ScopeProfile) and path is not None and (procedure.backend.emulation is None or path.exists()):
+            _channel_match(procedure, settings)  # (an emulated rig measures a missing one on its emulated tee)
+    return [f"[instruments.{name}] {warning}" for name, (_, profile, _) in checked.items() for warning in profile_warnings(profile)]
 
 
 def open_instrument(settings: InstrumentSettings, profile: Profile, clock: Clock | None = None):
@@ -244,13 +253,16 @@ def _open_identified(checked: dict, clock: Clock, owned: tuple) -> tuple[dict, d
 
 
 def open_instrument_experiment(procedure: Procedure, *, clock: Clock | None = None, extra_bound: Callable[[float], float] | None = None,
-                               on_measurement: Callable[[int], None] | None = None, owned: tuple = ()) -> PhasorDwellExperiment:
-    """Open, identify (all three before any output is touched) and initialise the instruments."""
+                               on_measurement: Callable[[int], None] | None = None, owned: tuple = (),
+                               channel_match: ChannelMatch | None = None) -> PhasorDwellExperiment:
+    """Open, identify (all three before any output is touched) and initialise the instruments.
+    ``channel_match``: an oscilloscope's match given directly instead of its file."""
     checked = check_instruments(procedure)
     if isinstance(checked[procedure.backend.force][1], DaqProfile):
         return open_daq_experiment(procedure, checked, extra_bound=extra_bound)
     if isinstance(checked[procedure.backend.force][1], ScopeProfile):
-        return open_scope_experiment(procedure, checked, clock=clock or WallClock(), extra_bound=extra_bound, owned=owned)
+        return open_scope_experiment(procedure, checked, clock=clock or WallClock(), extra_bound=extra_bound, owned=owned,
+                                     channel_match=channel_match)
     opened, identities = _open_identified(checked, clock or WallClock(), owned)
     backend = procedure.backend
     exciter = procedure.instruments[backend.exciter]
@@ -286,9 +298,11 @@ def scope_trigger(settings: InstrumentSettings, profile: ScopeProfile) -> tuple[
     return f"ch{settings.channel_roles['force'][0]}", 0.0
 
 
-def open_scope_experiment(procedure: Procedure, checked: dict, *, clock: Clock, extra_bound=None, owned: tuple = ()):
+def open_scope_experiment(procedure: Procedure, checked: dict, *, clock: Clock, extra_bound=None, owned: tuple = (),
+                          channel_match: ChannelMatch | None = None):
     """Generator + oscilloscope: the sine dwell on one scope's channels (:mod:`.scope_rig`); both
-    identities are checked before either instrument is initialised (the generator's output off first)."""
+    identities are checked before either instrument is initialised (the generator's output off
+    first), and the channel match (``channel_match``, else the procedure's file) against the scope's."""
     from setmem_hil.drivers.instruments.scope_rig import ScopeChannel, ScopeDwellExperiment, ScopeRig
     from setmem_hil.drivers.sine_dwell import DwellSettings
 
@@ -301,11 +315,22 @@ def open_scope_experiment(procedure: Procedure, checked: dict, *, clock: Clock, 
 
     force = channel(scope_settings.channel_roles["force"][0], "force")
     responses = tuple(channel(c, "displacement") for c in scope_settings.response_channels(backend.control_output))
+    try:
+        match = channel_match if channel_match is not None else _channel_match(procedure, scope_settings)
+    except BaseException:
+        for thing in owned:
+            thing.close()
+        raise
     opened, identities = _open_identified(checked, clock, owned)
     source, scope = opened[exciter.name], opened[scope_settings.name]
     rig = ScopeRig(source, scope, force, responses, exciter.newton_per_volt, exciter.max_drive_v or math.inf,
-                   procedure.safety.max_amplitude_n, clock, owned=owned)
+                   procedure.safety.max_amplitude_n, clock, owned=owned, match=match)
     try:
+        if match is not None:
+            _check_match_identity(match, identities[scope.name], scope_settings)
+            identities[f"{scope.name} channel match"] = (f"{scope_settings.channel_match if channel_match is None else 'measured for this run'}, "
+                                                         f"{match.utc}, {len(match.gains)} gains within "
+                                                         f"{max(g.bound for g in match.gains):.2%}")
         rig.sensor.measure_noise()  # the output is off: the sensors at rest
     except BaseException:
         rig.close()
@@ -313,3 +338,69 @@ def open_scope_experiment(procedure: Procedure, checked: dict, *, clock: Clock, 
     settings = DwellSettings(amplitude_n=min(1.0, procedure.safety.max_amplitude_n))
     return ScopeDwellExperiment(rig, procedure.safety, settings, model=procedure.prior.initial_bounds(), extra_bound=extra_bound,
                                 identities=identities)
+
+
+MATCH_MAX_AGE_H = 24.0  # a channel match older than this is refused: the gains drift with temperature (measure it each day)
+
+
+def channel_match_path(procedure: Procedure, settings: InstrumentSettings) -> Path | None:
+    """Where the oscilloscope's ``channel_match`` file is (relative to the procedure file), or None."""
+    if settings.channel_match is None:
+        return None
+    base = Path(procedure.source_path).parent if procedure.source_path else Path.cwd()
+    return base / settings.channel_match
+
+
+def _channel_match(procedure: Procedure, settings: InstrumentSettings):
+    """The procedure's channel match, read and checked for age (ProcedureError naming the key)."""
+    path = channel_match_path(procedure, settings)
+    if path is None:
+        return None
+    where = f"[instruments.{settings.name}] key 'channel_match'"
+    if not path.exists():
+        raise ProcedureError(_source(procedure), where, f"{path} does not exist: wire the generator to every channel through a tee "
+                             "and run setmem-hil calibrate-channels first (docs/technician-guide.md)")
+    match = read_channel_match(path)
+    try:
+        measured = datetime.datetime.fromisoformat(match.utc)
+    except ValueError:
+        raise ProcedureError(str(path), "key 'utc'", f"not an ISO 8601 time: {match.utc!r}") from None
+    age_h = (datetime.datetime.now(datetime.timezone.utc) - measured).total_seconds() / 3600.0
+    if not -1.0 < age_h <= MATCH_MAX_AGE_H:
+        raise ProcedureError(_source(procedure), where, f"{path} was measured {age_h:.0f} h ago; a channel match holds for "
+                             f"{MATCH_MAX_AGE_H:.0f} h (the gains drift): run setmem-hil calibrate-channels again")
+    return match
+
+
+def _check_match_identity(match, identity: str, settings: InstrumentSettings) -> None:
+    """The match was measured on this oscilloscope (maker, model and serial number)."""
+    if [f.strip() for f in match.identity.split(",")[:3]] != [f.strip() for f in identity.split(",")[:3]]:
+        raise DeviceIdentityError(f"{settings.name}: the channel match {settings.channel_match} was measured on "
+                                  f"{match.identity!r}, but this oscilloscope is {identity!r}: run setmem-hil calibrate-channels with it")
+
+
+def calibrate_scope_channels(procedure: Procedure, *, clock: Clock | None = None, owned: tuple = (),
+                             progress: Callable[[int, int], None] = lambda done, total: None):
+    """Open the generator and the oscilloscope (identities first, the output off) and measure
+    the scope's channel match (:mod:`.scope_channel_match`) against its force channel, the
+    generator's output wired to every channel used through a tee. Closes both."""
+    from setmem_hil.drivers.instruments.scope_channel_match import measure_channel_match
+
+    checked = check_instruments(procedure)
+    backend = procedure.backend
+    scope_settings = procedure.instruments[backend.force]
+    if not isinstance(checked[backend.force][1], ScopeProfile):
+        raise ProcedureError(_source(procedure), "[backend] key 'force'", "calibrate-channels needs an oscilloscope in the force role "
+                             f"([instruments.{backend.force}] is a {checked[backend.force][1].kind})")
+    exciter = procedure.instruments[backend.exciter]
+    force_channel = scope_settings.channel_roles["force"][0]
+    force_peak_v = procedure.safety.max_amplitude_n * scope_settings.channel_sensors[force_channel].volt_per_unit
+    opened, _ = _open_identified(checked, clock or WallClock(), owned)
+    try:
+        return measure_channel_match(opened[exciter.name], opened[scope_settings.name], force_channel,
+                                     exciter.max_drive_v if exciter.max_drive_v is not None else math.inf, force_peak_v, progress)
+    finally:
+        for inst in opened.values():
+            inst.close()
+        for thing in owned:
+            thing.close()

@@ -17,7 +17,10 @@ fit), with three things the scope adds:
 * **instrument terms in the bound** (:meth:`ScopeSensor.corrected`,
   :mod:`setmem_hil.estimation.channel_errors`): gain accuracy, quantization, calibration and
   timing for every channel used, then the ratio converted to receptance (velocity and
-  acceleration sensors).
+  acceleration sensors). With a channel match (``channel_match``, measured by ``setmem-hil
+  calibrate-channels``: :mod:`setmem_hil.estimation.channel_match`) the ratio is divided by its
+  channels' measured gain ratio and the match's bound replaces the datasheet's gain accuracy;
+  the channels then range on the profile's listed steps only (the match holds there).
 
 The time spent (levelling, the trigger wait, records longer than asked because the time scale
 comes in 1-2-5 steps) is counted from the clock: ``last_acquire_s`` is what the last acquisition
@@ -26,6 +29,7 @@ cost.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -40,6 +44,8 @@ from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, with_instrument_terms
 from setmem_hil.errors import DataQualityError
 from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, scope_channel_error
+from setmem_hil.estimation.channel_match import DRIFT_ALLOWANCE
+from setmem_hil.model.channel_match import ChannelMatch
 from setmem_hil.model.experiment import Measurement
 
 __all__ = ["ScopeChannel", "ScopeSensor", "ScopeRig", "ScopeDwellExperiment"]
@@ -64,8 +70,11 @@ class ScopeSensor:
     """Sensor, rate-configurable, waiting: force and response channels of one oscilloscope."""
 
     def __init__(self, scope: ScpiScope, force: ScopeChannel, responses: tuple[ScopeChannel, ...], exciter: LevelledExciter,
-                 clock: Clock, max_force_n: float):
+                 clock: Clock, max_force_n: float, match: ChannelMatch | None = None):
         self.scope, self.force, self.responses = scope, force, tuple(responses)
+        self.match = match
+        if match is not None:  # the match holds at the scales it measured: the profile's listed steps
+            scope.fine_scales = False
         self.exciter, self.clock, self.max_force_n = exciter, clock, float(max_force_n)
         self.sample_rate_hz = 1000.0
         self.last_acquire_s = 0.0
@@ -174,42 +183,52 @@ class ScopeSensor:
 
     # -- the instrument terms ----------------------------------------------------------------------
     def measure_noise(self) -> None:
-        """Each channel's noise in divisions, with the output off: records forced without a
-        trigger at the smallest and the largest scale, the smaller of the two (the quantization
-        term counts on it, :func:`~setmem_hil.estimation.channel_errors.quantization_bias`)."""
-        scales = self.scope.profile.vertical_scales_v
-        found: dict[int, float] = {}
-        for scale in (scales[0], scales[-1]):
-            for ch in self.channels:
-                self.scope.set_vertical_scale(ch.number, scale)
-            for ch, div in self.scope.noise_divisions().items():
-                found[ch] = min(div, found.get(ch, math.inf))
-        self.noise_div = found
+        """Each channel's noise in divisions, with the output off (:meth:`ScpiScope.noise_floor_divisions`)."""
+        self.noise_div = self.scope.noise_floor_divisions()
 
-    def channel_error(self, channel: ScopeChannel, omega_rad_s: float) -> ChannelError:
+    def matched_gain(self, channel: ScopeChannel) -> tuple[float, float] | None:
+        """``(gain, bound)`` of ``channel`` at the scale of the last record from the channel match
+        (its bound plus the drift allowance), None without a match or at a scale it did not measure."""
+        entry = None if self.match is None else self.match.gain(channel.number, self.last_scales_v[channel.number])
+        return None if entry is None else (entry.gain, entry.bound + DRIFT_ALLOWANCE)
+
+    def channel_error(self, channel: ScopeChannel, omega_rad_s: float, matched: bool = False) -> ChannelError:
         p = self.scope.profile
         scale = self.last_scales_v[channel.number]
         return scope_channel_error(gain_accuracy=p.gain_accuracy, full_scale_v=p.divisions * scale,
                                    adc_bits=p.adc_bits, volt_per_unit=channel.volt_per_unit, calibration=channel.calibration_uncertainty,
                                    omega_rad_s=omega_rad_s, trigger_jitter_s=p.trigger_jitter_s,
-                                   noise_v=self.noise_div.get(channel.number, 0.0) * scale)
+                                   noise_v=self.noise_div.get(channel.number, 0.0) * scale,
+                                   matched_gain=self.matched_gain(channel) if matched else None)
 
     def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
         """``m`` (from the last record) with every output's instrument terms added to its bound,
-        then converted to receptance where a sensor measures velocity or acceleration."""
+        then converted to receptance where a sensor measures velocity or acceleration. With a
+        channel match covering every channel's scale, each ratio is first divided by its two
+        channels' gain ratio and the gain terms are the match's; otherwise the datasheet's."""
         w = m.omega_rad_s
-        return with_instrument_terms(m, force_amplitude_n, self.channel_error(self.force, w),
-                                     [(self.channel_error(ch, w), ch.quantity) for ch in self.responses], self.scope.where)
+        gains = [self.matched_gain(ch) for ch in self.channels]
+        matched = all(g is not None for g in gains)
+        if matched:
+            force_gain = gains[0][0]
+            ratios = [g[0] / force_gain for g in gains[1:]]
+            # the bound never shrinks (it also holds |W1|, which is in the structure's units)
+            m = dataclasses.replace(m, response=m.response / ratios[0], bound=m.bound / min(ratios[0], 1.0),
+                                    others=tuple((g / r, b / min(r, 1.0)) for (g, b), r in zip(m.others, ratios[1:])))
+            force_amplitude_n /= force_gain
+        return with_instrument_terms(m, force_amplitude_n, self.channel_error(self.force, w, matched),
+                                     [(self.channel_error(ch, w, matched), ch.quantity) for ch in self.responses], self.scope.where)
 
 
 class ScopeRig:
     """The Rig protocol over a generator and an oscilloscope (closed with both)."""
 
     def __init__(self, source: SignalSource, scope: ScpiScope, force: ScopeChannel, responses: tuple[ScopeChannel, ...],
-                 newton_per_volt: float, max_drive_v: float, max_force_n: float, clock: Clock, owned: tuple = ()):
+                 newton_per_volt: float, max_drive_v: float, max_force_n: float, clock: Clock, owned: tuple = (),
+                 match: ChannelMatch | None = None):
         self.source, self.scope, self.owned = source, scope, owned
         self.exciter = LevelledExciter(source, newton_per_volt, max_drive_v)
-        self.sensor = ScopeSensor(scope, force, responses, self.exciter, clock, max_force_n)
+        self.sensor = ScopeSensor(scope, force, responses, self.exciter, clock, max_force_n, match)
         # the dwell's own clipping check must never fire before the scope's: infinite ranges here
         self.metadata = RigMetadata(1000.0, math.inf, math.inf, name=f"{source.name} + {scope.name}")
 

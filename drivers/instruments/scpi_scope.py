@@ -113,6 +113,8 @@ class ScpiScope(ScpiInstrument):
         self.scales_v = {c: profile.vertical_scales_v[-1] for c in channels}  # every record starts on the largest scale
         self.time_scale_s = 0.0
         self.points = 0
+        # fine scales fill the screen; a channel match (issue 26) holds for the listed steps only
+        self.fine_scales = profile.vertical_fine
 
     # -- set-up ---------------------------------------------------------------------------------
     def initialise(self) -> None:
@@ -139,10 +141,10 @@ class ScpiScope(ScpiInstrument):
 
     def _scale_for(self, peak_v: float) -> float:
         """The smallest V/div whose screen (``divisions`` x V/div, centred) holds ``peak_v`` with
-        room: a listed step, or with ``vertical_fine`` the need itself rounded up to 3 digits."""
+        room: a listed step, or with fine scales (``vertical_fine``) the need itself rounded up to 3 digits."""
         scales = self.profile.vertical_scales_v
         need = 2.0 * peak_v / (self.SCREEN_FILL * self.profile.divisions)
-        if self.profile.vertical_fine and scales[0] < need < scales[-1]:
+        if self.fine_scales and scales[0] < need < scales[-1]:
             digits = 10.0 ** (math.floor(math.log10(need)) - 2)
             return math.ceil(need / digits * (1 - 1e-12)) * digits
         return next((s for s in scales if s >= need), scales[-1])
@@ -161,7 +163,7 @@ class ScpiScope(ScpiInstrument):
         scales = self.profile.vertical_scales_v
         if self.scales_v[channel] >= scales[-1] * (1 - 1e-9):
             return False
-        if self.profile.vertical_fine:
+        if self.fine_scales:
             self.set_vertical_scale(channel, min(scales[-1], self._scale_for(3.0 * self.scales_v[channel] * self.SCREEN_FILL * self.profile.divisions / 2)))
             return True
         self.set_vertical_scale(channel, next(s for s in scales if s > self.scales_v[channel] * (1 + 1e-9)))
@@ -232,6 +234,20 @@ class ScpiScope(ScpiInstrument):
             pre, codes = self._read_channel(ch)
             out[ch] = float(np.std(volts_from_codes(codes, pre, self.profile.y_origin))) / self.scales_v[ch]
         return out
+
+    def noise_floor_divisions(self) -> dict[int, float]:
+        """Each channel's noise in divisions with the output off: :meth:`noise_divisions` at the
+        smallest and the largest scale, the smaller of the two (the quantization terms count on
+        it: :func:`~setmem_hil.estimation.channel_errors.quantization_bias`). The channels are
+        left on the largest scale."""
+        scales = self.profile.vertical_scales_v
+        found: dict[int, float] = {}
+        for scale in (scales[0], scales[-1]):
+            for ch in self.channels:
+                self.set_vertical_scale(ch, scale)
+            for ch, div in self.noise_divisions().items():
+                found[ch] = min(div, found.get(ch, math.inf))
+        return found
 
     def _wait_done(self, length_s: float) -> None:
         """Poll the done query until the record is complete; no trigger within the wait (the

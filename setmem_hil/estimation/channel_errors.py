@@ -70,13 +70,17 @@ def quantization_bias(q: float, noise_rms: float) -> float:
 
 
 def scope_channel_error(*, gain_accuracy: float, full_scale_v: float, adc_bits: int, volt_per_unit: float, calibration: float,
-                        omega_rad_s: float, trigger_jitter_s: float, noise_v: float = 0.0) -> ChannelError:
+                        omega_rad_s: float, trigger_jitter_s: float, noise_v: float = 0.0, matched_gain: tuple[float, float] | None = None) -> ChannelError:
     """A scope channel's discs from its datasheet figures, the vertical scale it recorded at and
-    its measured analog noise ``noise_v`` (rms volts at the ADC, quantization included)."""
+    its measured analog noise ``noise_v`` (rms volts at the ADC, quantization included).
+
+    ``matched_gain``: ``(gain, bound)`` of a channel match at this scale (the signal is divided
+    by ``gain``; :mod:`setmem_hil.estimation.channel_match`): the gain term is then ``bound``
+    instead of the datasheet's accuracy, and the quantization is in the divided signal's units."""
     q = 1.5 * full_scale_v / 2.0 ** adc_bits
     analog = math.sqrt(max(0.0, noise_v**2 - q * q / 12.0))
-    return ChannelError(quantization_bias(q, analog) / volt_per_unit,
-                        calibration + gain_accuracy / GAIN_TEST_SPAN + omega_rad_s * trigger_jitter_s)
+    gain, gain_term = (1.0, gain_accuracy / GAIN_TEST_SPAN) if matched_gain is None else matched_gain
+    return ChannelError(quantization_bias(q, analog) / volt_per_unit / gain, calibration + gain_term + omega_rad_s * trigger_jitter_s)
 
 
 def ratio_error_bound(g_hat: complex, force_amplitude: float, force: ChannelError, response: ChannelError) -> float:

@@ -83,6 +83,7 @@ class InstrumentSettings:
     # each channel's sensor in channel_sensors
     channel_roles: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
     trigger_channel: int | None = None
+    channel_match: str | None = None  # an oscilloscope's channel-match file (relative to the procedure file)
     channel_sensors: Mapping[int, "ChannelSensor"] = field(default_factory=dict)
 
     def response_channels(self, control_output: int = 1) -> tuple[int, ...]:

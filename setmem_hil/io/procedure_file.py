@@ -162,6 +162,7 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("instrument", "channel", "integer", "", 1, "Output channel of a generator; on an oscilloscope, [instruments.<name>.channel.N] tables instead: each channel's sensor (volt_per_unit, calibration_uncertainty, quantity).", ge=1, le=16),
     KeySpec("instrument", "channels", "scope-channels", "", "required for an oscilloscope", "An oscilloscope's roles: channels = { force = 1, response = [2, 3] } (one force channel, one or more response channels; the same scope is then both [backend] force and response; several response channels are several outputs, control_output indexing them)."),
     KeySpec("instrument", "trigger_channel", "integer", "", "EXT where the profile has it, else the force channel", "The oscilloscope channel wired to the generator's sync output (the record's trigger).", ge=1, le=16),
+    KeySpec("instrument", "channel_match", "string", "", "none: the datasheet's gain accuracy on every point", "An oscilloscope's channel-match file (setmem-hil calibrate-channels), relative to the procedure: each channel's gain at each V/div, so a point's bound carries the match's uncertainty instead of both channels' gain accuracy."),
     KeySpec("instrument.channel", "volt_per_unit", "number", "V/unit", _REQUIRED, "This channel's sensor sensitivity: volts per newton (force) or per response unit.", gt=0.0),
     KeySpec("instrument.channel", "calibration_uncertainty", "number", "", 0.0, "Relative uncertainty of this channel's volt_per_unit; part of every point's bound.", ge=0.0, le=0.5),
     KeySpec("instrument.channel", "quantity", "choice", "", "force (the force channel) / displacement", "What this channel's sensor measures.", choices=SENSOR_QUANTITIES),
@@ -440,6 +441,7 @@ def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentS
             quantity=t.get("quantity"), visa_library=t.get("visa_library", "@py"),
             channel_roles=_scope_channel_roles(t, backend) if t.has("channels") else {},
             trigger_channel=t.get("trigger_channel"),
+            channel_match=t.get("channel_match"),
             channel_sensors=_channel_sensors(top.source, str(name), channel_tables or {}),
         )
     if backend.kind != "instruments":
@@ -456,6 +458,10 @@ def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentS
             raise ProcedureError(top.source, where, f"no [instruments.{name}] table{hint} (tables: {', '.join(found) or 'none'})")
         if getattr(found[name], needs) is None and not found[name].channel_roles:  # a scope's channels carry their own
             raise ProcedureError(top.source, f"[instruments.{name}]", f"missing key {needs!r} (the {role} needs it)")
+    for inst in found.values():
+        if inst.channel_match is not None and not inst.channel_roles:
+            raise ProcedureError(top.source, f"[instruments.{inst.name}] key 'channel_match'", "only an oscilloscope (a table with "
+                                 "channels = { force = N, response = [...] }) has a channel match")
     if found[backend.force].channel_roles:
         _check_scope_roles(top, backend, found[backend.force])
         return found

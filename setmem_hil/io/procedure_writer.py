@@ -95,6 +95,8 @@ def format_procedure(procedure: Procedure) -> str:
             out.append(f"channels = {{ force = {roles['force'][0]}, response = {_toml_value(list(roles['response']))} }}")
         if inst.trigger_channel is not None:
             out.append(f"trigger_channel = {inst.trigger_channel}")
+        if inst.channel_match is not None:
+            out.append(f"channel_match = {_toml_value(inst.channel_match)}")
         out.append("")
         for ch, sensor in inst.channel_sensors.items():
             out += [f"[instruments.{_toml_key(name)}.channel.{ch}]", f"volt_per_unit = {_toml_value(sensor.volt_per_unit)}",

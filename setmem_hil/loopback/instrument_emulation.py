@@ -16,7 +16,8 @@ from __future__ import annotations
 import dataclasses
 import re
 
-from setmem_hil.drivers.instruments.instrument_set import check_instruments, open_instrument_experiment
+from setmem_hil.drivers.instruments.instrument_set import (calibrate_scope_channels, channel_match_path, check_instruments,
+                                                         open_instrument_experiment)
 from setmem_hil.drivers.instruments.phasor_dwell import PhasorDwellExperiment
 from setmem_hil.drivers.instruments.profile import LockInProfile, ModbusProfile, ScopeProfile, ScpiGeneratorProfile
 from setmem_hil.errors import ProcedureError
@@ -28,7 +29,7 @@ from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, Inst
 from setmem_hil.sim_backends.modbus_controller_emulator import ModbusControllerEmulator
 from setmem_hil.sim_backends.scope_emulators import KeysightScopeEmulator, RigolScopeEmulator
 
-__all__ = ["open_emulated_instruments", "start_emulators", "emulator_model", "with_damping"]
+__all__ = ["open_emulated_instruments", "start_emulators", "emulator_model", "with_damping", "calibrate_emulated_channels"]
 
 _SOCKET = re.compile(r"^TCPIP0?::(127\.0\.0\.1|localhost)::(\d+)::SOCKET$", re.IGNORECASE)
 _MODBUS_TCP = re.compile(r"^tcp://(127\.0\.0\.1|localhost):(\d+)$")
@@ -46,9 +47,10 @@ def emulator_model(profile) -> str | None:
     return None
 
 
-def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, EmulatedBench, list]:
+def start_emulators(procedure: Procedure, seed: int, tee: bool = False) -> tuple[Procedure, EmulatedBench, list]:
     """Start an emulator for each instrument; returns the procedure with the resources they
-    listen on, the bench, and the servers (close them when done)."""
+    listen on, the bench, and the servers (close them when done). ``tee``: the oscilloscope's
+    force and response channels all wired to the generator's output (a channel match)."""
     source = procedure.source_path or procedure.name
     emulation = procedure.backend.emulation
     checked = check_instruments(procedure)
@@ -87,7 +89,7 @@ def start_emulators(procedure: Procedure, seed: int) -> tuple[Procedure, Emulate
                 if not m:
                     raise ProcedureError(source, f"[instruments.{name}] key 'resource'", f"emulation listens on TCPIP::127.0.0.1::PORT::SOCKET, found {settings.resource!r}")
                 if isinstance(profile, ScopeProfile):
-                    emulator = _scope_emulator(bench, settings, model, seed, backend.control_output)
+                    emulator = _scope_emulator(bench, settings, model, seed, backend.control_output, tee)
                 elif isinstance(profile, ScpiGeneratorProfile) and model.startswith("SDG"):
                     emulator = SiglentGeneratorEmulator(bench, model, channel=settings.channel)
                 elif isinstance(profile, ScpiGeneratorProfile):
@@ -132,14 +134,17 @@ def _sensor_positions(procedure: Procedure) -> list[float]:
     return [where[name] for name in backend.response_instruments()]
 
 
-def _scope_emulator(bench: EmulatedBench, settings, model: str, seed: int, control_output: int):
+def _scope_emulator(bench: EmulatedBench, settings, model: str, seed: int, control_output: int, tee: bool = False):
     """The scope's channels wired as the procedure says: force, the responses (the bench's
-    ``response``, ``response2``... in measurement order), the generator's sync on trigger_channel."""
+    ``response``, ``response2``... in measurement order), the generator's sync on trigger_channel;
+    with ``tee`` the force and response channels all on the generator's output instead."""
     roles = settings.channel_roles
     names = EmulatedBench.response_names(len(roles["response"]))
     wiring = {roles["force"][0]: "force", **dict(zip(settings.response_channels(control_output), names))}
     volt_per_unit = {"force": settings.channel_sensors[roles["force"][0]].volt_per_unit}
     volt_per_unit.update({name: settings.channel_sensors[c].volt_per_unit for c, name in wiring.items() if name != "force"})
+    if tee:
+        wiring = {c: "drive" for c in wiring}
     if settings.trigger_channel is not None:
         wiring[settings.trigger_channel] = "sync"
     if model == "DS1000Z":
@@ -164,12 +169,25 @@ def _emulated_outputs(procedure: Procedure) -> list[ModalParameters]:
 
 
 def open_emulated_instruments(procedure: Procedure, seed: int, extra_bound=None) -> PhasorDwellExperiment:
-    """Start the emulators for the procedure's instruments and open the experiment on them."""
+    """Start the emulators for the procedure's instruments and open the experiment on them. An
+    oscilloscope whose ``channel_match`` file does not exist is matched first on the emulated
+    tee (what ``calibrate-channels`` does; a real rig refuses to run without the file)."""
+    match = None
+    scope = procedure.instruments.get(procedure.backend.force)
+    path = None if scope is None else channel_match_path(procedure, scope)
+    if path is not None and not path.exists():
+        match = calibrate_emulated_channels(procedure, seed)
     wired, bench, servers = start_emulators(procedure, seed)
-    experiment = open_instrument_experiment(wired, clock=bench.clock, extra_bound=extra_bound,
+    experiment = open_instrument_experiment(wired, clock=bench.clock, extra_bound=extra_bound, channel_match=match,
                                             on_measurement=lambda index: bench.reseed((index,)), owned=tuple(servers))
     experiment.bench = bench  # tests read the emulated truth and the peak force through it
     return experiment
+
+
+def calibrate_emulated_channels(procedure: Procedure, seed: int, progress=lambda done, total: None):
+    """The channel match of the procedure's emulated oscilloscope (its channels on a tee)."""
+    wired, bench, servers = start_emulators(procedure, seed, tee=True)
+    return calibrate_scope_channels(wired, clock=bench.clock, owned=tuple(servers), progress=progress)
 
 
 def with_damping(procedure: Procedure, damping: float, calibration: float | None = None) -> Procedure:
