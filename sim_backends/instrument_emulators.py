@@ -111,6 +111,7 @@ class GeneratorEmulator(_Emulator):
         self.settings = {ch: {"FUNC": "SIN", "FREQ": 1000.0, "VOLT": 0.1, "OFFS": 0.0, "OUTP": False, "LOAD": math.inf, "UNIT": "VPP",
                               "ARB": "", "SRAT": 40e3, "FILT": "STEP"} for ch in (1, 2)}
         self.volatile: dict[int, dict[str, np.ndarray]] = {1: {}, 2: {}}  # arbitrary waveforms downloaded (33500B)
+        self.uploads, self.generation = 0, {}  # which download each (channel, name) holds
         self.playing: tuple | None = None  # what the bench plays: (points id, rate)
 
     def handle(self, command: str) -> str | None:
@@ -165,6 +166,8 @@ class GeneratorEmulator(_Emulator):
                     or np.max(np.abs(points)) > 1.0:
                 raise ValueError(args[:40])
             self.volatile[ch][name.strip().upper()] = points
+            self.uploads += 1  # each download is a new waveform, even one equal to the last
+            self.generation[(ch, name.strip().upper())] = self.uploads
             return None
         return self._undefined(query)
 
@@ -226,7 +229,7 @@ class GeneratorEmulator(_Emulator):
         peak = volt / 2.0 if s["UNIT"] == "VPP" else volt * math.sqrt(2.0)
         # an arbitrary waveform's points are held one sample period each with the filter off
         # (STEP and NORMal interpolate; emulated as held too: the drivers switch the filter off)
-        playing = (id(self.volatile[self.channel][s["ARB"]]), s["SRAT"]) if arb else None
+        playing = (self.generation[(self.channel, s["ARB"])], s["SRAT"]) if arb else None
         if playing != self.playing:
             self.bench.set_arbitrary(self.volatile[self.channel][s["ARB"]] if arb else None, s["SRAT"])
             self.playing = playing

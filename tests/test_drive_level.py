@@ -91,3 +91,50 @@ def test_an_output_off_that_cannot_be_read_back_is_said_not_confirmed():
     with pytest.raises(OutputNotConfirmedOffError, match="could not be confirmed off.*switch it off at the instrument"):
         exciter.stop()
     assert not exciter.confirmed_off
+
+
+def test_a_waveform_longer_than_its_record_is_levelled_to_the_designed_peak():
+    """The multisine's peak is designed over the record's duration; the uploaded waveform is
+    longer (levelling room, doubled after an overrun) and reaches higher there. Its largest point
+    must be levelled to the designed peak, so the force stays within the limit everywhere (a bug
+    this caught: the longer waveform's peak became the target, 1.13 N for a 1 N limit)."""
+    from setmem_hil.estimation.multisine import design_multisine
+
+    class ArbitrarySource(FakeSource):
+        class profile:
+            class arbitrary:
+                max_points = 1_000_000
+
+        def play_arbitrary(self, points, rate):
+            self.points, self.rate = np.asarray(points), rate
+
+    lines = [0.996458, 1.0107, 5.95715, 6.3051]
+    duration = 240.0
+    signal = design_multisine(lines, 1.0, duration)
+    source = ArbitrarySource()
+    exciter = LevelledExciter(source, newton_per_volt=4.0, max_drive_v=5.0)
+    exciter.waveform_room = 2.0
+    exciter.set_multisine_record(signal, duration)
+    whole = signal.force(np.arange(source.points.size) / source.rate)
+    assert np.max(np.abs(whole)) > 1.0  # the longer waveform does reach past the designed peak
+    assert exciter.target_n <= signal.peak_bound(duration) <= 1.0 + 1e-9
+    assert np.max(np.abs(source.points)) == pytest.approx(1.0)  # its largest point plays at the target
+
+
+def test_a_short_record_of_close_lines_is_aligned_where_the_clock_puts_it():
+    """Five lines within 0.3 rad/s at 17 rad/s, a 0.6 s record: the waveform looks alike at many
+    places. Told where the record starts (to 10 ms, as the rig's clock knows it), the gain is
+    right at every place tried, with the sensor's noise and an 8-bit scope's quantization."""
+    from setmem_hil.estimation.multisine import design_multisine
+
+    rng = np.random.default_rng(7)
+    lines = list(np.linspace(16.65, 16.93, 5))
+    rate = 91.62636647118308
+    points = design_multisine(lines, 1.0, 100.0).force(np.arange(19766) / rate)
+    points /= np.max(np.abs(points))
+    code = 1.0 / 25 * 0.005 / 0.0225  # a DS1000Z code at 5 mV/div, in newtons of a 22.5 mV/N sensor
+    for start in rng.uniform(0.0, 200.0, 12):
+        t = start + np.arange(3000) * 2e-4
+        force = 0.4961 * points[np.floor(t * rate + 1e-9).astype(int) % points.size]
+        force = np.round((force + 0.2 * code * rng.standard_normal(t.size)) / code) * code
+        assert held_waveform_gain(t, force, points, rate, near_s=start + rng.uniform(-0.01, 0.01)) == pytest.approx(0.4961, rel=0.01)

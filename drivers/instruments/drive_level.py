@@ -59,10 +59,21 @@ def levelling_allowance_s(lowest_rad_s: float) -> float:
     return MAX_LEVEL_STEPS * 2.5 * level_record_s(lowest_rad_s) * 1.2 + 10.0
 
 
-def held_waveform_gain(t_s: np.ndarray, force_n: np.ndarray, points: np.ndarray, rate_hz: float) -> float:
+# how far from where the clock puts it a record is searched for in its waveform: the clock knows
+# it to the command latency; a short record of close lines matches other places a second away
+ALIGN_WITHIN_S = 0.1
+
+
+def held_waveform_gain(t_s: np.ndarray, force_n: np.ndarray, points: np.ndarray, rate_hz: float,
+                       near_s: float | None = None, within_s: float = ALIGN_WITHIN_S) -> float:
     """Force per unit point of a played arbitrary waveform, from a record of the force that
-    starts anywhere in it: the record on the waveform's sample grid, aligned by circular
-    cross-correlation, then the least-squares scale."""
+    starts anywhere in it (or, with ``near_s``, within ``within_s`` of ``near_s`` seconds into
+    the waveform): the record on the waveform's sample grid, aligned by circular
+    cross-correlation, then the least-squares scale.
+
+    Without ``near_s`` a short record of a long waveform can match a wrong place almost as well
+    (a 0.6 s record of lines at 16.6-16.9 rad/s matched 0.3 s away with a gain 20 % small, and the
+    drive set from it tripped the force limit). The rigs pass where their clock says the record is."""
     grid = np.arange(t_s[0], t_s[-1], 1.0 / rate_hz)
     r = np.interp(grid, t_s, force_n)
     n = points.size
@@ -71,7 +82,13 @@ def held_waveform_gain(t_s: np.ndarray, force_n: np.ndarray, points: np.ndarray,
     corr = np.fft.irfft(np.conj(np.fft.rfft(r, n)) * np.fft.rfft(points, n), n)
     # normalised by each window's energy: the least-squares fit's quality at every alignment
     energy = np.convolve(np.concatenate([points, points[: r.size - 1]]) ** 2, np.ones(r.size), "valid")
-    shift = int(np.argmax(corr * np.abs(corr) / np.maximum(energy, 1e-300)))
+    score = corr * np.abs(corr) / np.maximum(energy, 1e-300)
+    if near_s is not None:  # only the shifts within within_s of where the clock puts the record
+        centre, half = int(round(near_s * rate_hz)), int(math.ceil(within_s * rate_hz))
+        allowed = np.mod(np.arange(centre - half, centre + half + 1), n)
+        score = np.full(n, -np.inf)
+        score[allowed] = (corr * np.abs(corr) / np.maximum(energy, 1e-300))[allowed]
+    shift = int(np.argmax(score))
     # refine within a hold on the record's own samples: the played value at each sample time
     best = (-math.inf, 0.0)
     for offset in np.linspace(-1.0, 1.0, 41):
@@ -90,8 +107,9 @@ class LevelledExciter:
     FIRST_FRACTION = 0.25  # of the target, with the nominal gain (the first dwell)
     NEXT_FRACTION = 0.5  # with the gain measured at the last frequency
 
-    def __init__(self, source: SignalSource, newton_per_volt: float, max_drive_v: float = math.inf):
-        self.source, self.max_drive_v = source, float(max_drive_v)
+    def __init__(self, source: SignalSource, newton_per_volt: float, max_drive_v: float = math.inf, clock=None):
+        self.source, self.max_drive_v, self.clock = source, float(max_drive_v), clock
+        self.arbitrary_started = 0.0  # clock time the arbitrary waveform began to play (with a clock)
         self.newton_per_volt = float(newton_per_volt)
         self.gain_estimate = float(newton_per_volt)  # N/V, measured from the force once the output is on
         self.measured = False
@@ -103,6 +121,9 @@ class LevelledExciter:
         self.arbitrary: tuple[np.ndarray, float] | None = None  # the multisine record playing: (points, Sa/s)
         self.confirmed_off = True  # the output read back off (the rig forced it off when it opened)
         self.lowest_rad_s = 0.0
+        # the waveform's length over what the record and its levelling should need: doubled by the
+        # sensor when a record runs past its end (re-records after clipping took the room)
+        self.waveform_room = 1.0
 
     def set_sine(self, omega_rad_s: float, amplitude_n: float) -> None:
         frequency_hz = omega_rad_s / (2 * math.pi)
@@ -126,7 +147,7 @@ class LevelledExciter:
         arb = self.source.profile.arbitrary
         top_hz = max(multisine.omegas_rad_s) / (2 * math.pi)
         # the scope's records may come out longer than asked (1-2-5 time base): room for that too
-        length = 1.5 * duration_s + levelling_allowance_s(min(multisine.omegas_rad_s))
+        length = self.waveform_room * (1.5 * duration_s + levelling_allowance_s(min(multisine.omegas_rad_s)))
         rate = POINTS_PER_PERIOD * top_hz
         if length * rate > arb.max_points:
             rate = arb.max_points / length
@@ -136,13 +157,18 @@ class LevelledExciter:
                                                    f"the {self.source.model} profile holds {arb.max_points}; nothing was sent")
         force = multisine.force(np.arange(int(math.ceil(length * rate))) / rate)
         peak_n = float(np.max(np.abs(force)))
-        self._check_drive(peak_n, top_hz)
+        # the design holds its peak over the record's duration only; the longer waveform may
+        # reach higher: its largest point is levelled to the designed peak, never more
+        target_n = min(peak_n, multisine.peak_bound(duration_s))
+        self._check_drive(target_n, top_hz)
         if self.on:
             self.stop()
         self.source.play_arbitrary(force / peak_n, rate)
+        if self.clock is not None:  # it plays from the function's selection on
+            self.arbitrary_started = self.clock.now()
         self.arbitrary = (force / peak_n, rate)
-        self.omega_rad_s, self.target_n, self.lowest_rad_s = 0.0, peak_n, min(multisine.omegas_rad_s)
-        self._start(peak_n)
+        self.omega_rad_s, self.target_n, self.lowest_rad_s = 0.0, target_n, min(multisine.omegas_rad_s)
+        self._start(target_n)
 
     def _check_drive(self, amplitude_n: float, frequency_hz: float) -> None:
         lo, hi = self.source.frequency_limits_hz
@@ -189,14 +215,17 @@ class ForceLeveller:
     def target_n(self) -> float:
         return self.exciter.target_n / (1.0 + self.force_room())
 
-    def force_peak(self, t_s: np.ndarray, force_n: np.ndarray) -> float:
+    def force_peak(self, t_s: np.ndarray, force_n: np.ndarray, position_s: float | None = None) -> float:
         """The force's peak (N) as the drive sets it: a sine's fitted amplitude, or the played
-        waveform's scale (its largest point is 1); above the trip level the output goes off first."""
+        waveform's scale (its largest point is 1; ``position_s``: where in the waveform the
+        record starts, by the clock); above the trip level the output goes off first."""
         if self.exciter.arbitrary is None:
             amplitude = abs(fit_sine(t_s, force_n, np.array([self.exciter.omega_rad_s]), t_ref_s=float(t_s[0])).line(0).phasor)
         else:
             points, rate = self.exciter.arbitrary
-            amplitude = max(held_waveform_gain(t_s, force_n, points, rate), float(np.max(np.abs(force_n))))
+            # the clock's room, and the done-polling's (a hundredth of the record at most)
+            within = ALIGN_WITHIN_S + 0.01 * float(t_s[-1] - t_s[0])
+            amplitude = max(held_waveform_gain(t_s, force_n, points, rate, position_s, within), float(np.max(np.abs(force_n))))
         if amplitude > FORCE_TRIP * self.max_force_n:
             self.exciter.stop()
             raise SafetyLimitError(f"{self.where}: measured force {amplitude:.4g} N exceeds max_amplitude_n "
@@ -213,7 +242,7 @@ class ForceLeveller:
         length = level_record_s(omega)
         rate = 20 * omega / (2 * math.pi) if self.exciter.arbitrary is None else 4 * self.exciter.arbitrary[1]
         for _ in range(MAX_LEVEL_STEPS):
-            force_n = self.force_peak(*take(length, rate))
+            force_n = self.force_peak(*take(length, rate))  # take: (t_s, force_n[, position_s])
             self.steps += 1
             if after(target / max(force_n, 1e-12)):
                 continue

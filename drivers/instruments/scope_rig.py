@@ -81,7 +81,6 @@ class ScopeSensor:
         self.last_sample_rate_hz = 0.0
         self.last_scales_v: dict[int, float] = {}
         self.counters = {"range_up": 0, "level_steps": 0}
-        self.waveform_started = 0.0  # clock time the playing arbitrary waveform started
         self.leveller = ForceLeveller(exciter, max_force_n, self.force_room, scope.where)
         self.noise_div: dict[int, float] = {}  # each channel's measured noise (divisions rms), see measure_noise
 
@@ -95,8 +94,6 @@ class ScopeSensor:
     # -- the dwell's settling: level the drive, range the channels, let the rest pass --------------
     def wait(self, duration_s: float) -> None:
         start = self.clock.now()
-        if self.exciter.arbitrary is not None and self.exciter.needs_level:
-            self.waveform_started = start - 1.0  # the output came on just before (a second's room)
         if self.exciter.needs_level:
             self._level()
         left = duration_s - (self.clock.now() - start)
@@ -114,8 +111,13 @@ class ScopeSensor:
         code_div = 1.5 * p.divisions / 2.0 ** p.adc_bits
         return self.force.calibration_uncertainty + p.gain_accuracy / GAIN_TEST_SPAN + code_div / filled_div
 
-    def _force_of(self, record: ScopeRecord) -> tuple[np.ndarray, np.ndarray]:
-        return record.t_s, record.volts[self.force.number] / self.force.volt_per_unit
+    def _force_of(self, record: ScopeRecord) -> tuple[np.ndarray, np.ndarray, float]:
+        """The record's force and where in the generator's arbitrary waveform it starts, by the
+        clock (the record ended when the scope said it was complete; the drive level aligns it
+        with the waveform near there, :func:`~setmem_hil.drivers.instruments.drive_level.held_waveform_gain`)."""
+        length_s = float(record.t_s[-1] - record.t_s[0] + record.sample_interval_s)
+        position_s = record.completed_at_s - length_s - self.exciter.arbitrary_started
+        return record.t_s, record.volts[self.force.number] / self.force.volt_per_unit, position_s
 
     def _level(self) -> None:
         """Short records: measure the force, correct the drive, range every channel (module docs)."""
@@ -170,9 +172,10 @@ class ScopeSensor:
         units = [record.volts[ch.number] / ch.volt_per_unit for ch in self.channels]
         if self.exciter.arbitrary is not None:
             points, rate = self.exciter.arbitrary
-            if self.clock.now() > self.waveform_started + points.size / rate:
+            if self.clock.now() > self.exciter.arbitrary_started + points.size / rate:
+                self.exciter.waveform_room *= 2.0  # the next attempt uploads a waveform twice as long
                 raise DataQualityError(f"{self.scope.where}: the record ran past the end of the generator's waveform "
-                                       f"({points.size / rate:.0f} s); the record is taken again")
+                                       f"({points.size / rate:.0f} s); the record is taken again on a waveform twice as long")
         if self.exciter.omega_rad_s or self.exciter.arbitrary is not None:
             self.leveller.force_peak(*self._force_of(record))  # the trip
             drift = self.exciter.omega_rad_s * self.scope.profile.timebase_ppm * 1e-6 * length_s
@@ -227,7 +230,7 @@ class ScopeRig:
                  newton_per_volt: float, max_drive_v: float, max_force_n: float, clock: Clock, owned: tuple = (),
                  match: ChannelMatch | None = None):
         self.source, self.scope, self.owned = source, scope, owned
-        self.exciter = LevelledExciter(source, newton_per_volt, max_drive_v)
+        self.exciter = LevelledExciter(source, newton_per_volt, max_drive_v, clock)
         self.sensor = ScopeSensor(scope, force, responses, self.exciter, clock, max_force_n, match)
         # the dwell's own clipping check must never fire before the scope's: infinite ranges here
         self.metadata = RigMetadata(1000.0, math.inf, math.inf, name=f"{source.name} + {scope.name}")

@@ -93,6 +93,7 @@ class ScopeRecord:
     volts: dict[int, np.ndarray]
     scales_v: dict[int, float]  # V/div of each channel when recorded
     sample_interval_s: float
+    completed_at_s: float = math.nan  # the clock when the scope said the record was complete (before the transfer)
 
 
 class ScpiScope(ScpiInstrument):
@@ -204,6 +205,7 @@ class ScpiScope(ScpiInstrument):
         length = self.set_record_length(duration_s, min_rate_hz)
         self._command("arm")
         self._wait_done(length)
+        completed = self.clock.now()
         volts, t, dt = {}, None, 0.0
         for ch in self.channels:
             pre, codes = self._read_channel(ch)
@@ -214,7 +216,7 @@ class ScpiScope(ScpiInstrument):
             if t is None:
                 t = (np.arange(pre.points) - pre.xreference) * pre.xincrement + pre.xorigin
                 dt = pre.xincrement
-        return ScopeRecord(t, volts, dict(self.scales_v), dt)
+        return ScopeRecord(t, volts, dict(self.scales_v), dt, completed)
 
     NOISE_RECORD_S = 0.05
     NOISE_POINTS = 2000
