@@ -185,7 +185,8 @@ def pole_bands(model: IntervalModel | ModalParameters | None, relative_band: flo
     """Pole estimates and search bands of the modelled modes.
 
     From an :class:`IntervalModel`: midpoint poles (eq. 2.25) and ``omega_n`` bands
-    ``[sqrt(a0_lower), sqrt(a0_upper)]``; damping from the ``a1`` midpoint. From a point model:
+    ``[sqrt(a0_lower), sqrt(a0_upper)]``; damping from the ``a1`` midpoint, the decay rate kept
+    within ``a1 / 2`` of the interval. From a point model:
     ``omega_n (1 +- relative_band)``.
     """
     if model is None:
@@ -199,7 +200,9 @@ def pole_bands(model: IntervalModel | ModalParameters | None, relative_band: flo
             a1 = 0.5 * (lo[i, 0] + hi[i, 0])
             if wn <= 0:
                 continue
-            out.append(PoleSearchBand(DampedPole.from_modal(wn, a1 / (2 * wn)), w_lo, w_hi))
+            # the identified a1 interval holds the true decay rate a1 / 2 (guaranteed bounds)
+            out.append(PoleSearchBand(DampedPole.from_modal(wn, a1 / (2 * wn)), w_lo, w_hi,
+                                      sigma_min_per_s=max(1e-6, 0.5 * lo[i, 0]), sigma_max_per_s=max(0.5 * hi[i, 0], 1e-6)))
         return tuple(out)
     out = []
     for wn, z in zip(model.natural_frequencies, model.damping_ratios):

@@ -71,6 +71,10 @@ class PoleSearchBand:
     omega_min_rad_s: float
     omega_max_rad_s: float
     exclude: tuple[tuple[float, float], ...] = ()  # sub-intervals not to scan (other modes' bands)
+    # the decay rate's guaranteed range (an identified mode: a1 / 2 within its interval); a pole
+    # left free to become undamped at a line's frequency is the line itself, and the fit splits them
+    sigma_min_per_s: float = 1e-6
+    sigma_max_per_s: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -400,8 +404,11 @@ def _refine(t, v, omega, t_ref, poles, t_start, bands, fixed=(), priors=None, no
             R = np.linalg.cholesky(np.asarray(info, dtype=float) + 1e-300 * np.eye(2)).T  # info = R^T R
             prior_rows.append((k, np.asarray(mean, dtype=float), noise_scale * R))
     x0 = np.array([q for p in poles for q in (p.sigma_per_s, p.omega_d_rad_s)])
-    lo = np.array([q for b in bands for q in (1e-6, b[0])])
-    hi = np.array([q for b in bands for q in (max(b[1], 1e-3), b[1])])
+    # bands: (omega_lo, omega_hi[, sigma_lo, sigma_hi]); the decay rate below omega_hi unless bounded tighter
+    s_lo = [max(1e-6, b[2]) if len(b) > 2 else 1e-6 for b in bands]
+    s_hi = [max(min(max(b[1], 1e-3), b[3]), lo_s + 1e-9) if len(b) > 3 else max(b[1], 1e-3) for b, lo_s in zip(bands, s_lo)]
+    lo = np.array([q for b, sl in zip(bands, s_lo) for q in (sl, b[0])])
+    hi = np.array([q for b, sh in zip(bands, s_hi) for q in (sh, b[1])])
     x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
 
     def unpack(x):
@@ -489,7 +496,7 @@ def fit_sine_with_transients(t_s, y, omega_rad_s, bands: tuple[PoleSearchBand, .
     if T <= 0:
         raise DataQualityError("sine fit: samples span no time")
     kept: list[DampedPole] = []
-    kept_bands: list[tuple[float, float]] = []
+    kept_bands: list[tuple[float, float, float, float]] = []
     kept_idx: list[int] = []
     fixed = tuple(fixed_poles)
     rss = _rss(t, v, omega_rad_s, t_ref, fixed, t_start)
@@ -503,7 +510,7 @@ def fit_sine_with_transients(t_s, y, omega_rad_s, bands: tuple[PoleSearchBand, .
             kept.append(mean_pole)
             lo_w = min(float(band.omega_min_rad_s), mean_pole.omega_d_rad_s)
             hi_w = max(float(band.omega_max_rad_s), mean_pole.omega_d_rad_s)
-            kept_bands.append((lo_w, hi_w))
+            kept_bands.append((lo_w, hi_w, band.sigma_min_per_s, band.sigma_max_per_s))
             kept_idx.append(band_index)
             kept_priors.append((np.array([mean_pole.sigma_per_s, mean_pole.omega_d_rad_s]), np.linalg.inv(pcov)))
             rss = _rss(t, v, omega_rad_s, t_ref, fixed + tuple(kept), t_start)
@@ -524,13 +531,14 @@ def fit_sine_with_transients(t_s, y, omega_rad_s, bands: tuple[PoleSearchBand, .
         if grid.size == 0:
             continue
         sig0 = max(float(band.guess.sigma_per_s), 1e-4)
-        sigmas = np.array(sorted({min(sig0, 4.0 / T), 0.2 / T, 1.0 / T}))
+        sigmas = np.array(sorted({float(np.clip(s, band.sigma_min_per_s, band.sigma_max_per_s))
+                                  for s in (min(sig0, 4.0 / T), 0.2 / T, 1.0 / T)}))
         best = _scan(t, v, omega_rad_s, t_ref, fixed + tuple(kept), t_start, grid, sigmas)
         n_par = _n_steady(omega_rad_s) + 2 * len(fixed) + 4 * (len(kept) + 1)
         s2 = best[0] / max(1, t.size - n_par)
         if rss - best[0] > significance * s2:
             kept.append(best[1])
-            kept_bands.append((w_lo, w_hi))
+            kept_bands.append((w_lo, w_hi, band.sigma_min_per_s, band.sigma_max_per_s))
             kept_idx.append(band_index)
             kept_priors.append(None)
             rss = best[0]
