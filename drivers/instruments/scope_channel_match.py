@@ -22,6 +22,7 @@ from typing import Callable
 
 from setmem_hil.drivers.instruments.scpi_scope import ScpiScope
 from setmem_hil.drivers.instruments.source import SignalSource, switch_output_off
+from setmem_hil.estimation.channel_errors import adc_code
 from setmem_hil.estimation.channel_match import MatchRecord, amplitude_error_bound, fit_amplitude, solve_channel_match
 from setmem_hil.errors import DataQualityError, DeviceError
 from setmem_hil.model.channel_match import ChannelMatch
@@ -58,7 +59,7 @@ def _record(scope: ScpiScope, scales: dict[int, float], noise_div: dict[int, flo
     amplitudes, bounds = {}, {}
     for ch, scale in scales.items():
         amplitude, _ = fit_amplitude(record.t_s, record.volts[ch], FREQUENCY_HZ)
-        code_v = 1.5 * p.divisions * scale / 2.0 ** p.adc_bits  # as channel_errors counts a code: never smaller than the true one
+        code_v = adc_code(p.divisions * scale, p.adc_bits)
         amplitudes[ch] = amplitude
         bounds[ch] = amplitude_error_bound(amplitude, record.volts[ch].size, noise_div.get(ch, 0.0) * scale, code_v)
     return MatchRecord(dict(scales), amplitudes, bounds)

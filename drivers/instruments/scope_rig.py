@@ -43,7 +43,7 @@ from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, with_instrument_terms
 from setmem_hil.errors import DataQualityError
-from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, scope_channel_error
+from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, adc_code, scope_channel_error
 from setmem_hil.estimation.channel_match import DRIFT_ALLOWANCE
 from setmem_hil.model.channel_match import ChannelMatch
 from setmem_hil.model.experiment import Measurement
@@ -108,7 +108,7 @@ class ScopeSensor:
         leaves this much room."""
         p = self.scope.profile
         filled_div = self.scope.SCREEN_FILL / RANGE_HEADROOM * p.divisions / 2.0
-        code_div = 1.5 * p.divisions / 2.0 ** p.adc_bits
+        code_div = adc_code(p.divisions, p.adc_bits)
         return self.force.calibration_uncertainty + p.gain_accuracy / GAIN_TEST_SPAN + code_div / filled_div
 
     def _force_of(self, record: ScopeRecord) -> tuple[np.ndarray, np.ndarray, float]:

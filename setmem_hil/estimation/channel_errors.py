@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["ChannelError", "ratio_error_bound", "scope_channel_error", "quantization_bias", "MAX_CLOCK_PHASE_RAD", "GAIN_TEST_SPAN"]
+__all__ = ["ChannelError", "ratio_error_bound", "scope_channel_error", "quantization_bias", "adc_code", "MAX_CLOCK_PHASE_RAD", "GAIN_TEST_SPAN"]
 
 GAIN_TEST_SPAN = 0.75  # of full scale: the span over which the gain accuracy is verified (module docstring)
 MAX_CLOCK_PHASE_RAD = 0.5  # omega x clock error x record length above this: the record is refused (the sinc attenuation, common to every channel, would pass 1 %)
@@ -57,6 +57,13 @@ class ChannelError:
 
     absolute: float = 0.0
     relative: float = 0.0
+
+
+def adc_code(full_scale: float, adc_bits: int) -> float:
+    """One ADC code as these bounds count it: an ADC spanning 1.5 screens of ``full_scale``
+    (module docstring: never smaller than a DS1000Z's or an InfiniiVision's true code), in the
+    units of ``full_scale`` (volts, or divisions)."""
+    return 1.5 * full_scale / 2.0 ** adc_bits
 
 
 def quantization_bias(q: float, noise_rms: float) -> float:
@@ -77,7 +84,7 @@ def scope_channel_error(*, gain_accuracy: float, full_scale_v: float, adc_bits: 
     ``matched_gain``: ``(gain, bound)`` of a channel match at this scale (the signal is divided
     by ``gain``; :mod:`setmem_hil.estimation.channel_match`): the gain term is then ``bound``
     instead of the datasheet's accuracy, and the quantization is in the divided signal's units."""
-    q = 1.5 * full_scale_v / 2.0 ** adc_bits
+    q = adc_code(full_scale_v, adc_bits)
     analog = math.sqrt(max(0.0, noise_v**2 - q * q / 12.0))
     gain, gain_term = (1.0, gain_accuracy / GAIN_TEST_SPAN) if matched_gain is None else matched_gain
     return ChannelError(quantization_bias(q, analog) / volt_per_unit / gain, calibration + gain_term + omega_rad_s * trigger_jitter_s)
