@@ -139,3 +139,13 @@ class InstrumentTermsSensor(Protocol):
 
     def corrected(self, measurement, force_amplitude: float):
         ...
+
+
+@runtime_checkable
+class ResolutionLimitedSensor(Protocol):
+    """A sampled sensor of few bits (an 8-bit oscilloscope): ``dynamic_range`` is the largest
+    ratio between a record's summed line amplitudes and one line it still resolves well; a
+    multisine record's lines are split into records that respect it
+    (:func:`~setmem_hil.estimation.multisine.resolvable_groups`)."""
+
+    dynamic_range: float

@@ -58,6 +58,7 @@ import logging
 import weakref
 from typing import Callable
 
+import numpy as np
 
 from setmem_hil.drivers.protocols import (
     InstrumentTermsSensor,
@@ -66,6 +67,7 @@ from setmem_hil.drivers.protocols import (
     RateConfigurableSensor,
     ReconnectableRig,
     RecordedMultisineExciter,
+    ResolutionLimitedSensor,
     Rig,
     WaitingSensor,
 )
@@ -88,7 +90,7 @@ from setmem_hil.estimation.dwell_estimate import (
     record_duration_s,
     replan_fixed_rate,
 )
-from setmem_hil.estimation.multisine import design_multisine
+from setmem_hil.estimation.multisine import design_multisine, resolvable_groups
 from setmem_hil.estimation.sine_fit import SineFit
 
 log = logging.getLogger(__name__)
@@ -203,6 +205,12 @@ class SineDwellExperiment:
         lines, so a resumed campaign repeats the record exactly.
         """
         lines = [float(w) for w in omegas_rad_s]
+        groups = self._resolvable_groups(lines)
+        if len(groups) > 1:  # one record per group, the measurements in the order asked
+            measured = {}
+            for group in groups:
+                measured.update(zip(group, self.measure_multisine([lines[i] for i in group])))
+            return [measured[i] for i in range(len(lines))]
         if len(lines) == 1:
             return [self.measure(lines[0])]
         if self._closed:
@@ -226,6 +234,18 @@ class SineDwellExperiment:
 
         label = f"multisine record at {', '.join(f'{w:g}' for w in lines)} rad/s"
         return self._finish(self._attempts(label, plan, start, estimate))
+
+    def _resolvable_groups(self, lines: list[float]) -> list[list[int]]:
+        """The lines split into records the sensor resolves (a :class:`ResolutionLimitedSensor`:
+        :func:`~setmem_hil.estimation.multisine.resolvable_groups` on the model midpoint's
+        response); one record otherwise, or while the model cannot say (residues unbounded)."""
+        sensor = self.rig.sensor
+        if not isinstance(sensor, ResolutionLimitedSensor) or self.model is None or len(lines) == 1:
+            return [list(range(len(lines)))]
+        with np.errstate(invalid="ignore", over="ignore"):  # the prior's unbounded residues: nan
+            nominal = getattr(self.model, "midpoint", self.model)
+            expected = np.abs(nominal.frequency_response(np.array(lines)))
+        return resolvable_groups(expected, sensor.dynamic_range)
 
     def _finish(self, results: list[DwellResult]) -> list[Measurement]:
         """Count a finished dwell or record, learn its poles, add its device time; each of its
@@ -309,14 +329,10 @@ class SineDwellExperiment:
         # logged and never replaces the original exception (so Ctrl-C stays Ctrl-C)
         with output_guard(self.safe_exciter):
             start(plan)
-            if isinstance(sensor, WaitingSensor):
-                sensor.wait(plan.skip_s)
-            else:
-                sensor.acquire(plan.skip_s)
             timed = isinstance(sensor, InstrumentTermsSensor)  # it knows what its waits and records cost
-            self._device_s += sensor.last_acquire_s if timed else plan.skip_s + plan.window_s
-            block = sensor.acquire(plan.window_s)
-            self._device_s += sensor.last_acquire_s if timed else 0.0
+            settle = sensor.wait if isinstance(sensor, WaitingSensor) else sensor.acquire
+            self._timed(settle, plan.skip_s, timed, plan.skip_s + plan.window_s)
+            block = self._timed(sensor.acquire, plan.window_s, timed, 0.0)
             rate = sensor.last_sample_rate_hz if timed else plan.sample_rate_hz
             check_block(block, rig.metadata.force_range_n, rig.metadata.response_range, rate)
             dwell_s = plan.skip_s + plan.window_s
@@ -331,11 +347,19 @@ class SineDwellExperiment:
                         "(the halves of the window disagree beyond their uncertainty)"
                     )
                 # consecutive windows: the next estimate uses the newest window only
-                block = sensor.acquire(plan.window_s)
-                self._device_s += sensor.last_acquire_s if timed else plan.window_s
+                block = self._timed(sensor.acquire, plan.window_s, timed, plan.window_s)
                 check_block(block, rig.metadata.force_range_n, rig.metadata.response_range, rate)
                 dwell_s += plan.window_s
                 extensions += 1
+
+    def _timed(self, take, duration_s: float, timed: bool, untimed_s: float):
+        """``take(duration_s)`` with its rig time added to the dwell's, also when it fails (a
+        clipped record, a failed levelling): a timed sensor reports what it cost, an untimed
+        one costs ``untimed_s``."""
+        try:
+            return take(duration_s)
+        finally:
+            self._device_s += self.rig.sensor.last_acquire_s if timed else untimed_s
 
     # -- lifecycle -------------------------------------------------------------------------
     def close(self) -> None:

@@ -154,3 +154,18 @@ def test_scope_profiles_declare_their_datasheet_figures_and_validate():
         parse_profile(rigol.source and open(rigol.source).read().replace('arm = ":SING"\n', ""), "broken.toml")
     with pytest.raises(ProcedureError, match="exactly one of expect"):
         parse_profile(open(rigol.source).read().replace("[done]\nexpect = '^STOP$'", "[done]"), "broken.toml")
+
+
+def test_a_window_a_sample_longer_than_a_time_scale_keeps_that_scale(rig):
+    """A dwell's 120 s window is a whole number of samples (it asks 120.01 s): 10 s/div x 12
+    divisions holds it; asking 1 % more moves to the next 1-2-5 step. The record's own time axis
+    says how long it is."""
+    bench, _, scope = rig
+    divisions = scope.profile.time_divisions
+    step = next(s for s in scope.profile.time_scales_s if s * divisions >= 1.0)
+    length = step * divisions
+    assert scope.record_length_for(length * 1.0001) == pytest.approx(length)
+    bigger = next(s for s in scope.profile.time_scales_s if s > step) * divisions
+    assert scope.record_length_for(length * 1.02) == pytest.approx(bigger)
+    record = scope.record(length * 1.0001)
+    assert record.t_s[-1] - record.t_s[0] + record.sample_interval_s == pytest.approx(length, rel=1e-3)

@@ -249,3 +249,32 @@ def test_update_model_uses_the_new_poles():
     assert exp.plan(5.0).window_s != wide.window_s  # the separation from mode 2 is now known
     m = exp.measure(5.0)
     assert abs(m.response - TRUTH.frequency_response(5.0)[0]) <= m.bound
+
+
+def test_the_rig_time_of_a_refused_record_is_counted():
+    """A timed sensor's acquisition that fails (a clipped record taken again, a levelling that
+    failed) took rig time: the dwell's rig_s holds it, not only the attempt that succeeded."""
+    from setmem_hil.errors import DataQualityError
+
+    rig = RecordingRig()
+    inner = rig.sensor.acquire
+    calls = []
+
+    class TimedSensor:
+        last_acquire_s, last_sample_rate_hz = 0.0, 10.0
+
+        def acquire(self, duration_s):
+            calls.append(duration_s)
+            self.last_acquire_s = duration_s + 1.0  # what the instrument's clock counted
+            if len(calls) == 2:  # the first window is refused
+                raise DataQualityError("clipped")
+            return inner(duration_s)
+
+        def corrected(self, m, force_amplitude):
+            return m
+
+    rig.sensor = TimedSensor()
+    with SineDwellExperiment(rig, default_procedure().safety) as exp:
+        m = exp.measure(3.0)
+    assert len(calls) == 4  # settle + refused window, settle + window
+    assert m.rig_s == pytest.approx(sum(calls) + len(calls))

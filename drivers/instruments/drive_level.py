@@ -121,6 +121,11 @@ class LevelledExciter:
         self.arbitrary: tuple[np.ndarray, float] | None = None  # the multisine record playing: (points, Sa/s)
         self.confirmed_off = True  # the output read back off (the rig forced it off when it opened)
         self.lowest_rad_s = 0.0
+        # what plays, for predicting the response (the scope's ranging): the lines' relative
+        # phasors (phases at drive_origin, a clock time) and every level set since the start
+        self.lines: tuple[tuple[float, ...], tuple[complex, ...]] = ((), ())
+        self.drive_origin = 0.0
+        self.drive_steps: list[tuple[float, float]] = []  # (clock time, volts)
         # the waveform's length over what the record and its levelling should need: doubled by the
         # sensor when a record runs past its end (re-records after clipping took the room)
         self.waveform_room = 1.0
@@ -135,6 +140,8 @@ class LevelledExciter:
             self.arbitrary = None
         self.omega_rad_s, self.target_n = float(omega_rad_s), float(amplitude_n)
         self.source.set_frequency_hz(frequency_hz)
+        self.lines = ((float(omega_rad_s),), (1.0 + 0j,))  # the generator's phase at turn-on is unknown: 0
+        self.drive_origin = self._now()
         self._start(amplitude_n)
 
     # -- multisine records through the generator's arbitrary waveform (issue 26) ---------------
@@ -168,6 +175,10 @@ class LevelledExciter:
             self.arbitrary_started = self.clock.now()
         self.arbitrary = (force / peak_n, rate)
         self.omega_rad_s, self.target_n, self.lowest_rad_s = 0.0, target_n, min(multisine.omegas_rad_s)
+        # a_k sin(w_k t + phi_k) = Re a_k e^{j (phi_k - pi/2)} e^{j w_k t}, t from the waveform's start
+        self.lines = (tuple(multisine.omegas_rad_s),
+                      tuple(a / peak_n * complex(np.exp(1j * (phi - np.pi / 2))) for a, phi in zip(multisine.amplitudes_n, multisine.phases_rad)))
+        self.drive_origin = self.arbitrary_started
         self._start(target_n)
 
     def _check_drive(self, amplitude_n: float, frequency_hz: float) -> None:
@@ -178,8 +189,12 @@ class LevelledExciter:
                                    f"nominal {self.newton_per_volt:g} N/V (max_drive_v {self.max_drive_v:g} V, instrument "
                                    f"{self.source.amplitude_limits_v[1]:g} V, {lo:g}-{hi:g} Hz); nothing was sent")
 
+    def _now(self) -> float:
+        return self.clock.now() if self.clock is not None else 0.0
+
     def _start(self, amplitude_n: float) -> None:
         fraction = self.NEXT_FRACTION if self.measured else self.FIRST_FRACTION
+        self.drive_steps = []
         self.set_volts(fraction * amplitude_n / self.gain_estimate)
         if not self.on:
             self.confirmed_off = False  # from the moment the command may take effect
@@ -191,6 +206,7 @@ class LevelledExciter:
         vlo, vhi = self.source.amplitude_limits_v
         self.volts = float(min(max(volts, vlo), vhi, self.max_drive_v))
         self.source.set_amplitude_v(self.volts)
+        self.drive_steps.append((self._now(), self.volts))
 
     def stop(self) -> None:
         """Output off, read back; when that fails (the link dropped), once more on a fresh

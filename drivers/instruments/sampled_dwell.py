@@ -15,7 +15,16 @@ from setmem_hil.errors import DataQualityError
 from setmem_hil.estimation.channel_errors import ChannelError, ratio_error_bound
 from setmem_hil.model.experiment import Measurement
 
-__all__ = ["SampledDwellExperiment", "with_instrument_terms"]
+__all__ = ["SampledDwellExperiment", "with_instrument_terms", "scale_structure_terms"]
+
+
+def scale_structure_terms(m: Measurement, scales: Sequence[tuple[float, float]]) -> Measurement:
+    """``m`` with each output's bound times the largest of its calibration scale: the ratio is
+    measured in that scale, and the bound's terms in the structure's units (``|W1|`` for the
+    unmodelled modes) are too."""
+    (first, rest) = scales[0], scales[1:]
+    return dataclasses.replace(m, bound=m.bound * first[1],
+                               others=tuple((g, b * scale[1]) for (g, b), scale in zip(m.others, rest)))
 
 
 def with_instrument_terms(m: Measurement, force_amplitude_n: float, force: ChannelError,
@@ -50,6 +59,12 @@ class SampledDwellExperiment(SineDwellExperiment):
     @property
     def exciter(self) -> str:  # the generator's name, in messages (the dwell commands self.safe_exciter)
         return self.rig.exciter.source.name
+
+    @property
+    def calibration_scales(self) -> tuple[tuple[float, float], ...]:
+        """Each output's calibration scale (the sensor's; see
+        :class:`~setmem_hil.model.experiment.CalibrationScaledExperiment`)."""
+        return self.rig.sensor.calibration_scales
 
     @property
     def output_confirmed_off(self) -> bool:

@@ -17,10 +17,11 @@ from __future__ import annotations
 import dataclasses
 
 from setmem_hil.drivers.instruments.drive_level import ForceLeveller, LevelledExciter
-from setmem_hil.drivers.instruments.sampled_dwell import with_instrument_terms
+from setmem_hil.drivers.instruments.sampled_dwell import scale_structure_terms, with_instrument_terms
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.estimation.channel_errors import ChannelError
+from setmem_hil.identification.calibration_scale import ratio_scale
 from setmem_hil.model.experiment import Measurement
 
 __all__ = ["LevelledDaqSensor", "SampledInstrumentRig", "DaqChannel"]
@@ -65,22 +66,29 @@ class LevelledDaqSensor:
                 self.leveller.level(take)
             finally:
                 self.inner.set_sample_rate(rate)
+                self.last_acquire_s = spent  # a levelling that failed took rig time too
         if duration_s > spent:
             self.inner.acquire(duration_s - spent)
         self.last_acquire_s = max(duration_s, spent)
 
     def acquire(self, duration_s: float) -> SampleBlock:
+        self.last_acquire_s = duration_s  # also when the acquisition fails
         block = self.inner.acquire(duration_s)
-        self.last_acquire_s, self.last_sample_rate_hz = duration_s, self.inner.sample_rate_hz
+        self.last_sample_rate_hz = self.inner.sample_rate_hz
         if block.force.size and (self.exciter.omega_rad_s or self.exciter.arbitrary is not None):
             self.leveller.force_peak(block.t_s, block.force)  # the trip
         return block
 
+    @property
+    def calibration_scales(self) -> tuple[tuple[float, float], ...]:
+        """Each output's calibration scale (force and response sensors; control output first),
+        put on the model's residues by the campaign, not in each bound."""
+        return tuple(ratio_scale(self.force.calibration_uncertainty, ch.calibration_uncertainty) for ch in self.responses)
+
     def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
-        """``m`` with each sensor's calibration in its bound, converted to receptance."""
-        return with_instrument_terms(m, force_amplitude_n, ChannelError(0.0, self.force.calibration_uncertainty),
-                                     [(ChannelError(0.0, ch.calibration_uncertainty), ch.quantity) for ch in self.responses],
-                                     self.leveller.where)
+        """``m`` in its calibration scale (:attr:`calibration_scales`), converted to receptance."""
+        return with_instrument_terms(scale_structure_terms(m, self.calibration_scales), force_amplitude_n, ChannelError(),
+                                     [(ChannelError(), ch.quantity) for ch in self.responses], self.leveller.where)
 
 
 class SampledInstrumentRig:

@@ -41,10 +41,12 @@ from setmem_hil.drivers.instruments.drive_level import FORCE_TRIP, LEVEL_TOLERAN
 from setmem_hil.drivers.instruments.scpi_scope import ClippedChannel, ScopeRecord, ScpiScope
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
-from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, with_instrument_terms
+from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, scale_structure_terms, with_instrument_terms
 from setmem_hil.errors import DataQualityError
 from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, adc_code, scope_channel_error
 from setmem_hil.estimation.channel_match import DRIFT_ALLOWANCE
+from setmem_hil.estimation.response_growth import predicted_peak
+from setmem_hil.identification.calibration_scale import ratio_scale
 from setmem_hil.model.channel_match import ChannelMatch
 from setmem_hil.model.experiment import Measurement
 
@@ -83,6 +85,13 @@ class ScopeSensor:
         self.counters = {"range_up": 0, "level_steps": 0}
         self.leveller = ForceLeveller(exciter, max_force_n, self.force_room, scope.where)
         self.noise_div: dict[int, float] = {}  # each channel's measured noise (divisions rms), see measure_noise
+        # each response channel's model (the campaign's midpoints; one for all until the outputs
+        # have their own) and what the last record saw: (clock start, end, peak volts per channel)
+        self.response_models: tuple = ()
+        # a multisine record's lines share the screen: one at least 1/16 of their sum (8 bits) has
+        # about 2 % of it, several codes above the dithered quantization (ResolutionLimitedSensor)
+        self.dynamic_range = 2.0 ** (scope.profile.adc_bits - 4)
+        self._seen: tuple[float, float, dict[int, float]] | None = None
 
     @property
     def channels(self) -> tuple[ScopeChannel, ...]:
@@ -94,12 +103,14 @@ class ScopeSensor:
     # -- the dwell's settling: level the drive, range the channels, let the rest pass --------------
     def wait(self, duration_s: float) -> None:
         start = self.clock.now()
-        if self.exciter.needs_level:
-            self._level()
-        left = duration_s - (self.clock.now() - start)
-        if left > 0:
-            self.clock.sleep(left)
-        self.last_acquire_s = self.clock.now() - start
+        try:
+            if self.exciter.needs_level:
+                self._level()
+            left = duration_s - (self.clock.now() - start)
+            if left > 0:
+                self.clock.sleep(left)
+        finally:  # a levelling that failed took rig time too
+            self.last_acquire_s = self.clock.now() - start
 
     def force_room(self) -> float:
         """What the force channel may be off by, relative, at a tightly ranged scale (its
@@ -151,7 +162,11 @@ class ScopeSensor:
         """One record; a clipped channel moves up a scale and the record is taken again."""
         for step in range(MAX_RANGE_STEPS + 1):
             try:
-                return self.scope.record(duration_s, min_rate_hz)
+                record = self.scope.record(duration_s, min_rate_hz)
+                length_s = float(record.t_s[-1] - record.t_s[0] + record.sample_interval_s)
+                self._seen = (record.completed_at_s - length_s, record.completed_at_s,
+                              {ch: float(np.max(np.abs(v))) for ch, v in record.volts.items()})
+                return record
             except ClippedChannel as exc:
                 self.counters["range_up"] += 1
                 if step == MAX_RANGE_STEPS or not self.scope.range_up(exc.channel):
@@ -164,8 +179,11 @@ class ScopeSensor:
         a very low frequency, is fitted on what the scope holds)."""
         start = self.clock.now()
         longest = self.scope.profile.time_scales_s[-1] * self.scope.profile.time_divisions
-        record = self._record(min(duration_s, longest), self.sample_rate_hz)
-        self.last_acquire_s = self.clock.now() - start
+        try:
+            self._range_for_growth(min(duration_s, longest))
+            record = self._record(min(duration_s, longest), self.sample_rate_hz)
+        finally:  # records refused (clipped) took rig time too
+            self.last_acquire_s = self.clock.now() - start
         self.last_scales_v = dict(record.scales_v)
         self.last_sample_rate_hz = 1.0 / record.sample_interval_s
         length_s = float(record.t_s[-1] - record.t_s[0] + record.sample_interval_s)
@@ -184,6 +202,37 @@ class ScopeSensor:
                                        f"{self.scope.profile.timebase_ppm:g} ppm time base may turn the phasors by {drift:.3g} rad")
         return SampleBlock(t_s=record.t_s, force=units[0], response=units[1], others=tuple(units[2:]))
 
+    def _range_for_growth(self, duration_s: float) -> None:
+        """Each response channel moved up (never down) to hold what it will show over the coming
+        record: the drive's response from rest by the model
+        (:func:`~setmem_hil.estimation.response_growth.predicted_peak`; a lightly damped mode
+        driven near resonance grows for several of its decay times, and a clipped record costs
+        the whole record again) plus what the last record showed beyond that drive's response
+        then (an earlier dwell's mode still ringing). Without a model, or before any record,
+        nothing changes. The model is in displacement: a velocity or acceleration channel is
+        left to the clipping check."""
+        if self._seen is None or not self.response_models or not self.exciter.drive_steps or not self.exciter.lines[0]:
+            return
+        origin = self.exciter.drive_origin
+        start, end, peaks = self._seen
+        now = self.clock.now()
+        coming = (now - origin, now - origin + self.scope.record_length_for(duration_s))
+        seen = (start - origin, end - origin)
+        force_n = self.leveller.target_n()
+        omegas, phasors = self.exciter.lines
+        phasors = [force_n * p for p in phasors]
+        steps = [(t - origin, volts / self.exciter.volts) for t, volts in self.exciter.drive_steps]
+        for k, ch in enumerate(self.responses):
+            if ch.quantity != "displacement" or ch.number not in peaks:
+                continue
+            model = self.response_models[min(k, len(self.response_models) - 1)]
+            forced_then = predicted_peak(model, omegas, phasors, steps, seen) * ch.volt_per_unit
+            forced_next = predicted_peak(model, omegas, phasors, steps, coming) * ch.volt_per_unit
+            if not (math.isfinite(forced_then) and math.isfinite(forced_next)):
+                continue
+            ringing = max(0.0, peaks[ch.number] - forced_then)
+            self.scope.hold(ch.number, RANGE_HEADROOM * (forced_next + ringing))
+
     # -- the instrument terms ----------------------------------------------------------------------
     def measure_noise(self) -> None:
         """Each channel's noise in divisions, with the output off (:meth:`ScpiScope.noise_floor_divisions`)."""
@@ -195,32 +244,48 @@ class ScopeSensor:
         entry = None if self.match is None else self.match.gain(channel.number, self.last_scales_v[channel.number])
         return None if entry is None else (entry.gain, entry.bound + DRIFT_ALLOWANCE)
 
+    @property
+    def calibration_scales(self) -> tuple[tuple[float, float], ...]:
+        """Each output's calibration scale (force and response sensors' calibration; control
+        output first): common to all its points, so the campaign puts it on the model's residues
+        (:mod:`~setmem_hil.identification.calibration_scale`), not in each bound."""
+        return tuple(ratio_scale(self.force.calibration_uncertainty, ch.calibration_uncertainty) for ch in self.responses)
+
     def channel_error(self, channel: ScopeChannel, omega_rad_s: float, matched: bool = False) -> ChannelError:
+        """The channel's per-point discs (the sensor's calibration is not among them: :attr:`calibration_scales`)."""
         p = self.scope.profile
         scale = self.last_scales_v[channel.number]
         return scope_channel_error(gain_accuracy=p.gain_accuracy, full_scale_v=p.divisions * scale,
-                                   adc_bits=p.adc_bits, volt_per_unit=channel.volt_per_unit, calibration=channel.calibration_uncertainty,
+                                   adc_bits=p.adc_bits, volt_per_unit=channel.volt_per_unit, calibration=0.0,
                                    omega_rad_s=omega_rad_s, trigger_jitter_s=p.trigger_jitter_s,
                                    noise_v=self.noise_div.get(channel.number, 0.0) * scale,
                                    matched_gain=self.matched_gain(channel) if matched else None)
 
     def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
         """``m`` (from the last record) with every output's instrument terms added to its bound,
-        then converted to receptance where a sensor measures velocity or acceleration. With a
-        channel match covering every channel's scale, each ratio is first divided by its two
-        channels' gain ratio and the gain terms are the match's; otherwise the datasheet's."""
-        w = m.omega_rad_s
-        gains = [self.matched_gain(ch) for ch in self.channels]
-        matched = all(g is not None for g in gains)
-        if matched:
-            force_gain = gains[0][0]
-            ratios = [g[0] / force_gain for g in gains[1:]]
-            # the bound never shrinks (it also holds |W1|, which is in the structure's units)
-            m = dataclasses.replace(m, response=m.response / ratios[0], bound=m.bound / min(ratios[0], 1.0),
-                                    others=tuple((g / r, b / min(r, 1.0)) for (g, b), r in zip(m.others, ratios[1:])))
-            force_amplitude_n /= force_gain
-        return with_instrument_terms(m, force_amplitude_n, self.channel_error(self.force, w, matched),
-                                     [(self.channel_error(ch, w, matched), ch.quantity) for ch in self.responses], self.scope.where)
+        then converted to receptance where a sensor measures velocity or acceleration. Where the
+        channel match covers the force channel's and an output's channel's scales, that ratio is
+        first divided by the two channels' gain ratio and its gain terms are the match's;
+        otherwise the datasheet's (output by output: one channel ranged off the match's steps
+        costs only its own output the match)."""
+        # the ratio is measured in its calibration scale: the parts of the bound in the
+        # structure's units (|W1|) scale with it
+        m = scale_structure_terms(m, self.calibration_scales)
+        force_gain = self.matched_gain(self.force)
+        points = []
+        for (g, bound), ch in zip([(m.response, m.bound), *m.others], self.responses):
+            gain = self.matched_gain(ch)
+            matched = force_gain is not None and gain is not None
+            force_n = force_amplitude_n
+            if matched:
+                ratio = gain[0] / force_gain[0]
+                # the bound never shrinks (it also holds |W1|, which is in the structure's units)
+                g, bound, force_n = g / ratio, bound / min(ratio, 1.0), force_amplitude_n / force_gain[0]
+            one = with_instrument_terms(dataclasses.replace(m, response=g, bound=bound, others=()), force_n,
+                                        self.channel_error(self.force, m.omega_rad_s, matched),
+                                        [(self.channel_error(ch, m.omega_rad_s, matched), ch.quantity)], self.scope.where)
+            points.append((one.response, one.bound))
+        return dataclasses.replace(m, response=points[0][0], bound=points[0][1], others=tuple(points[1:]))
 
 
 class ScopeRig:
@@ -248,4 +313,20 @@ class ScopeRig:
 
 
 class ScopeDwellExperiment(SampledDwellExperiment):
-    """The sine dwell on a :class:`ScopeRig` (identities journaled, the output confirmed off)."""
+    """The sine dwell on a :class:`ScopeRig` (identities journaled, the output confirmed off);
+    the campaign's models also range the response channels (:meth:`ScopeSensor._range_for_growth`)."""
+
+    def update_model(self, model) -> None:
+        super().update_model(model)
+        if not self._output_models:
+            with np.errstate(invalid="ignore"):  # the prior's unbounded residues: nan (no prediction)
+                self.rig.sensor.response_models = (getattr(model, "midpoint", model),)
+
+    def update_output_models(self, models) -> None:
+        """Every output's interval model (control first, issue 25): each response channel's growth
+        is predicted with its own residues."""
+        self._output_models = tuple(models)
+        with np.errstate(invalid="ignore"):
+            self.rig.sensor.response_models = tuple(m.midpoint for m in models)
+
+    _output_models: tuple = ()

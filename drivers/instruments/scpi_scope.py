@@ -176,17 +176,37 @@ class ScpiScope(ScpiInstrument):
         if not math.isclose(scale, self.scales_v[channel]):
             self.set_vertical_scale(channel, scale)
 
+    def hold(self, channel: int, peak_v: float) -> None:
+        """A larger V/div for ``channel`` if its present one does not hold ``peak_v`` (never a smaller one)."""
+        if self._scale_for(peak_v) > self.scales_v[channel] * (1 + 1e-9):
+            self.range_for(channel, peak_v)
+
     def full_scale_v(self, channel: int) -> float:
         return self.profile.divisions * self.scales_v[channel]
 
-    def set_record_length(self, duration_s: float, min_rate_hz: float = 0.0) -> float:
-        """The shortest time scale whose record covers ``duration_s``, and the smallest memory
-        depth sampling it at ``min_rate_hz`` or faster (else the deepest); returns the record's length."""
+    # A record may come out this much shorter than asked: a dwell's window is a whole number of
+    # samples (a planned 120 s window asks 120.01 s) and its fit uses whatever length the record
+    # has; without the slack a 12-division screen of 10 s/div would become one of 20 s/div, twice
+    # the rig time for nothing.
+    LENGTH_SLACK = 0.01
+
+    def _time_scale_for(self, duration_s: float) -> float:
         need = duration_s / self.profile.time_divisions
-        scale = next((s for s in self.profile.time_scales_s if s >= need * (1 - 1e-12)), None)
+        scale = next((s for s in self.profile.time_scales_s if s >= need * (1 - self.LENGTH_SLACK)), None)
         if scale is None:
             raise DeviceRejectedError("range", f"{self.where}: a {duration_s:.4g} s record is longer than the {self.profile.model}'s "
                                                f"{self.profile.time_scales_s[-1] * self.profile.time_divisions:g} s")
+        return scale
+
+    def record_length_for(self, duration_s: float) -> float:
+        """The length of the record :meth:`set_record_length` would set for ``duration_s`` (nothing sent)."""
+        return self._time_scale_for(duration_s) * self.profile.time_divisions
+
+    def set_record_length(self, duration_s: float, min_rate_hz: float = 0.0) -> float:
+        """The shortest time scale whose record covers ``duration_s`` (within ``LENGTH_SLACK``),
+        and the smallest memory depth sampling it at ``min_rate_hz`` or faster (else the deepest);
+        returns the record's length."""
+        scale = self._time_scale_for(duration_s)
         length = scale * self.profile.time_divisions
         n_on = len(set(self.channels) | ({self.trigger_channel} if self.trigger_channel is not None else set()))
         offered = self.profile.record_points[n_on]

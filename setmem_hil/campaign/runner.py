@@ -52,6 +52,7 @@ import numpy as np
 from setmem_hil.numerics.blas_threads import blas_one_thread
 from setmem_hil.errors import CampaignReplayError, DeviceError
 from setmem_hil.model.experiment import (
+    CalibrationScaledExperiment,
     BoundPredictingExperiment,
     Experiment,
     Measurement,
@@ -63,6 +64,7 @@ from setmem_hil.model.experiment import (
     ResumableExperiment,
 )
 from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.identification.calibration_scale import measured_scale_prior, plant_bounds
 from setmem_hil.design.input_design import InputChoice, candidate_frequencies, choose_input, sensitivity_matrix, uniform_weights
 from setmem_hil.io.procedure import Procedure
 from setmem_hil.design.safeguard import SafeguardOutcome, safeguarded_design
@@ -251,7 +253,7 @@ class _Replay:
         return stored + list(record[len(stored):])
 
 
-def identify_sensors(measured: list[Measurement], procedure: Procedure, previous):
+def identify_sensors(measured: list[Measurement], procedure: Procedure, previous, scales=None):
     """Several sensors (issue 25): every output's data in one identification with shared poles
     (:func:`~setmem_hil.identification.algorithm.identify_outputs`). Returns the control output
     as a one-output result (the analysis, the H2 design and the input design use it; the other
@@ -259,14 +261,18 @@ def identify_sensors(measured: list[Measurement], procedure: Procedure, previous
     from setmem_hil.identification.algorithm import identify_outputs
 
     datas = [FrequencyData.from_measurements(measured, output=k) for k in range(1 + len(measured[0].others))]
-    multi = identify_outputs(datas, [procedure.prior] * len(datas), list(procedure.backend.output_order()), previous=previous,
+    priors = [procedure.prior if scales is None else measured_scale_prior(procedure.prior, scales[k]) for k in range(len(datas))]
+    multi = identify_outputs(datas, priors, list(procedure.backend.output_order()), previous=previous,
                              settings=_identify_settings())
     models = list(multi.models) if previous is None else [m.intersect(p) for m, p in zip(multi.models, previous)]
     return multi.for_output(0), models
 
 
-def sensors_document(procedure: Procedure, models) -> dict:
-    """The journal's ``iteration.outputs``: every output's bounds, control output first."""
+def sensors_document(procedure: Procedure, models, scales=None) -> dict:
+    """The journal's ``iteration.outputs``: every output's bounds, control output first (the
+    plant's: with calibration ``scales``, the residues widened by them)."""
+    if scales is not None:
+        models = [plant_bounds(m, scale) for m, scale in zip(models, scales)]
     return {"names": list(procedure.backend.output_order()), "lower": [m.lower.tolist() for m in models], "upper": [m.upper.tolist() for m in models]}
 
 
@@ -510,6 +516,11 @@ def run_campaign(
         measured = measure_batch(source, procedure, procedure.initial_omegas_rad_s, iteration=0, role="initial")
     previous_model = None
     previous_sensor_models = None
+    # the sensors' calibration: one scale per output, on the residues (calibration_scale)
+    scales = tuple(experiment.calibration_scales) if isinstance(experiment, CalibrationScaledExperiment) else None
+    plant_procedure = procedure
+    if scales is not None:  # identification and input design work on the data as measured
+        procedure = replace(procedure, prior=measured_scale_prior(procedure.prior, scales[0]))
     sensor_models = None
     previous_outcome: SafeguardOutcome | None = None
     rows: list[IterationSummary] = []
@@ -519,7 +530,7 @@ def run_campaign(
         try:
             with blas_one_thread():
                 if measured[0].others:  # several sensors: shared poles, the control output's model drives the rest
-                    result, sensor_models = identify_sensors(measured, procedure, previous_sensor_models)
+                    result, sensor_models = identify_sensors(measured, plant_procedure, previous_sensor_models, scales)
                 else:
                     result = identify(data, procedure.prior, previous=previous_model, settings=_identify_settings())
         except InconsistentDataError as exc:
@@ -531,13 +542,14 @@ def run_campaign(
             experiment.update_model(model)
         if sensor_models is not None and isinstance(experiment, OutputModelsAwareExperiment):
             experiment.update_output_models(sensor_models)
+        plant = model if scales is None else plant_bounds(model, scales[0])
         with blas_one_thread():
-            outcome = safeguarded_design(model, previous_outcome, analyze)
+            outcome = safeguarded_design(plant, previous_outcome, analyze)
         analysis = outcome.analysis
         emit("iteration", k=k, n_points=len(measured), mu_peak=outcome.mu_peak,
              mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch,
              rig_s=float(sum(m.rig_s for m in measured)), mu_peak_certified=outcome.certified,
-             outputs=None if sensor_models is None else sensors_document(procedure, sensor_models))
+             outputs=None if sensor_models is None else sensors_document(procedure, sensor_models, scales))
         reached = goal_certified(outcome, goal)
         certified_intervals = int(getattr(analysis, "mu_certified_intervals", 0))
         budget_spent = n_added >= goal.max_experiments
@@ -558,8 +570,8 @@ def run_campaign(
                 journal.add_iteration(IterationRecord(
                     k=k,
                     n_points=len(measured),
-                    lower=model.lower,
-                    upper=model.upper,
+                    lower=plant.lower,
+                    upper=plant.upper,
                     mu_peak=float(outcome.mu_peak),
                     mu_peak_omega=float(analysis.mu_peak_omega),
                     mu_lower_peak=float(analysis.mu_lower_peak),
@@ -577,7 +589,7 @@ def run_campaign(
                     controller=controller_matrices(analysis.controller),
                     mu_peak_certified=bool(outcome.certified),
                     mu_certified_intervals=certified_intervals,
-                    outputs=None if sensor_models is None else sensors_document(procedure, sensor_models),
+                    outputs=None if sensor_models is None else sensors_document(procedure, sensor_models, scales),
                 ))
                 if choice is not None and np.size(choice.resolved_omega_rad_s):
                     import json

@@ -4,7 +4,7 @@ Optional capabilities are declared protocols too (checked with ``isinstance``, n
 with ``getattr``): :class:`ResumableExperiment`, :class:`ModelAwareExperiment`,
 :class:`BoundPredictingExperiment`, :class:`CountingExperiment`, :class:`PlanningExperiment`,
 :class:`IdentifiedExperiment`, :class:`MultisineExperiment`, :class:`OutputConfirmingExperiment`,
-:class:`OutputModelsAwareExperiment`.
+:class:`OutputModelsAwareExperiment`, :class:`CalibrationScaledExperiment`.
 
 One call applies a unit-amplitude sinusoid at ``omega_rad_s`` and returns the steady-state
 complex response ``G(j omega)`` with an absolute bound on its total error (noise, estimation
@@ -87,6 +87,18 @@ class OutputModelsAwareExperiment(Protocol):
     output first), e.g. for each output's free-response allowance."""
 
     def update_output_models(self, models: Any) -> None: ...
+
+
+@runtime_checkable
+class CalibrationScaledExperiment(Protocol):
+    """Measures every output's ratio in its sensors' calibration scale: ``calibration_scales``
+    holds, per output (control first), the interval ``(c_lo, c_hi)`` of measured over true ratio,
+    common to all its points and left out of their bounds; the campaign identifies the model as
+    measured and widens the residues by it
+    (:mod:`setmem_hil.identification.calibration_scale`)."""
+
+    @property
+    def calibration_scales(self) -> tuple[tuple[float, float], ...]: ...
 
 
 @runtime_checkable
