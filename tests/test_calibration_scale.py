@@ -44,3 +44,75 @@ def test_the_measured_scale_prior_holds_c_times_the_prior_and_keeps_fixed_and_un
     assert first.b0_min == pytest.approx(2.0 * scale[0]) and first.b0_max == pytest.approx(5.0 * scale[1])
     assert second.b0_min == -np.inf and second.b0_max == np.inf
     assert (first.omega_min, first.zeta_max) == (0.9, 0.5)
+
+
+def test_a_campaign_on_miscalibrated_sensors_keeps_the_true_residues_inside_the_plant_bounds(tmp_path, monkeypatch):
+    """Every ratio 1.5 % high (the sensors' calibration, within the declared 1 % + 1 %): the
+    journal's plant bounds are the measured model's residues widened by the scale and hold the
+    true beam's; the experiment's transient model is the model as measured."""
+    import importlib.util
+    from pathlib import Path
+
+    import dataclasses
+
+    from setmem_hil.campaign.runner import run_campaign
+    from setmem_hil.io.journal import Journal
+    from setmem_hil.io.procedure_file import load_procedure
+    from setmem_hil.sim_backends.beam import beam_parameters
+
+    spec = importlib.util.spec_from_file_location("_campaign_helpers", Path(__file__).with_name("_campaign_helpers.py"))
+    helpers = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(helpers)
+    helpers.install_fast_analysis(monkeypatch)
+    scale = ratio_scale(0.01, 0.01)
+
+    class Miscalibrated(helpers.ForwardingExperiment):
+        calibration_scales = (scale,)
+
+        def __init__(self, inner):
+            super().__init__(inner)
+            self.models = []
+
+        def measure(self, omega_rad_s):
+            m = self.inner.measure(omega_rad_s)
+            return dataclasses.replace(m, response=1.015 * m.response, bound=scale[1] * m.bound)
+
+        def update_model(self, model):
+            self.models.append(model)
+
+    path = tmp_path / "cheap.toml"
+    path.write_text(helpers.cheap_procedure_text(2))
+    p = load_procedure(path)
+    exp = Miscalibrated(helpers.simulated(p, p.seed))
+    journal = Journal.create(tmp_path / "j.sqlite", procedure_text=p.source_text, procedure_name=p.name, seed=p.seed,
+                             software_version="test", backend="test", strategy="mu")
+    run_campaign(p, exp, journal)
+    stored = journal.iterations()
+    journal.close()
+    truth = beam_parameters(3).values
+    assert len(stored) == len(exp.models) >= 2
+    for measured, record in zip(exp.models, stored):
+        plant = plant_bounds(measured, scale)
+        assert np.array_equal(record.lower, plant.lower) and np.array_equal(record.upper, plant.upper)
+        assert np.all(record.lower[:, B0] <= truth[:, B0]) and np.all(truth[:, B0] <= record.upper[:, B0])
+        assert np.all(record.lower[:, :2] <= truth[:, :2]) and np.all(truth[:, :2] <= record.upper[:, :2])
+
+
+def test_tight_data_from_a_miscalibrated_sensor_exclude_the_truth_until_the_plant_bounds_widen_them():
+    """One mode measured 1.8 % high with 0.1 % bounds: the model as measured excludes the true
+    residue (the data say so), the plant bounds hold it, and the poles are not touched."""
+    from setmem_hil.identification.algorithm import identify
+    from setmem_hil.model.frequency_data import FrequencyData
+    from setmem_hil.model.modal_model import ModalParameters
+
+    truth = ModalParameters.from_modal([6.27], [0.02], [3.0], [0.0])
+    omega = np.array([5.0, 5.6, 6.0, 6.2, 6.4, 6.6, 7.0, 7.6])
+    g = 1.018 * truth.frequency_response(omega)
+    prior = Prior((ModePrior(5.41, 7.34, 0.5, b1_min=0.0, b1_max=0.0),))
+    scale = ratio_scale(0.01, 0.01)
+    measured = identify(FrequencyData(omega, g, 1e-3 * np.abs(g)), measured_scale_prior(prior, scale)).model
+    plant = plant_bounds(measured, scale)
+    b0 = truth.values[0, B0]
+    assert not measured.lower[0, B0] <= b0 <= measured.upper[0, B0]
+    assert plant.lower[0, B0] <= b0 <= plant.upper[0, B0]
+    assert np.array_equal(plant.lower[:, :2], measured.lower[:, :2]) and np.array_equal(plant.upper[:, :2], measured.upper[:, :2])
