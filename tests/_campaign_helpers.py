@@ -61,7 +61,7 @@ def cheap_procedure_text(max_experiments: int = 3) -> str:
     return CHEAP_PROCEDURE.replace("{max_experiments}", str(int(max_experiments)))
 
 
-def fast_analysis(model, weights=None, omega_rad_s=None, controller=None):
+def fast_analysis(model, weights=None, omega_rad_s=None, controller=None, gain=None):
     """Deterministic stand-in for ``analyze_robust_performance`` (same attributes)."""
     rel = np.where(model.fixed, 0.0, model.width / np.maximum(np.abs(model.upper) + np.abs(model.lower), 1e-12))
     mu_peak = 0.5 + float(rel.sum())

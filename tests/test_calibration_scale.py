@@ -116,3 +116,82 @@ def test_tight_data_from_a_miscalibrated_sensor_exclude_the_truth_until_the_plan
     assert not measured.lower[0, B0] <= b0 <= measured.upper[0, B0]
     assert plant.lower[0, B0] <= b0 <= plant.upper[0, B0]
     assert np.array_equal(plant.lower[:, :2], measured.lower[:, :2]) and np.array_equal(plant.upper[:, :2], measured.upper[:, :2])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_uncertain_plant_with_a_common_gain_holds_every_gain_times_every_box_plant(seed):
+    """A second formulation: for any k in the gain interval and any residues in the box, the
+    output row ``k (C_mid + Delta C)`` is ``C + sum q_i l_i n_i`` with every ``|q_i| <= 1``."""
+    from setmem_hil.robust.uncertain_plant import uncertain_plant
+
+    rng = np.random.default_rng(seed)
+    lower = np.column_stack([rng.uniform(0.01, 0.1, 3), rng.uniform(1, 400, 3), np.zeros(3), rng.uniform(0.5, 3, 3)])
+    upper = lower + np.column_stack([rng.uniform(0, 0.02, 3), rng.uniform(0, 2, 3), np.zeros(3), rng.uniform(0, 1, 3)])
+    model = IntervalModel(lower, upper)
+    gain = (0.98, 1.02)
+    plant = uncertain_plant(model, gain)
+    assert plant.names[-1] == "gain" and plant.n_real == uncertain_plant(model).n_real + 1
+    _, _, c_mid, _ = model.midpoint.state_space_matrices()
+    rows = plant.E_c.ravel()[:, None] * plant.F_c  # each C parameter's row for q = 1
+    k0, e = 1.0, 0.02
+    mid, half = 0.5 * (lower[:, B0] + upper[:, B0]), 0.5 * (upper[:, B0] - lower[:, B0])
+    free = half > 0
+    for _ in range(50):
+        k = rng.uniform(*gain)
+        b0 = rng.uniform(lower[:, B0], upper[:, B0])
+        target = np.zeros_like(np.ravel(c_mid))
+        target[0::2] = k * b0
+        delta = k / k0 - 1.0  # the offsets the module docstring names
+        q = np.append(((1 + delta) * (b0 - mid) / np.where(free, half, 1.0) / (1 + e))[free], delta / e)
+        assert np.all(np.abs(q) <= 1 + 1e-9)
+        assert np.allclose(np.ravel(plant.C) + rows.T @ q, target, rtol=1e-12, atol=1e-12)
+
+
+def test_mu_bar_with_a_common_gain_bounds_every_plant_of_the_set_and_costs_less_than_widening():
+    """The claim checked plant by plant (the exact one-plant test of ``validate``): every
+    vertex of a box times either end of the gain stays below the analysis's mu-bar; and one
+    common gain costs less mu-bar than every residue widened independently by it."""
+    from setmem_hil.io.procedure import default_procedure
+    from setmem_hil.model.modal_model import ModalParameters
+    from setmem_hil.robust.analysis import analyze_robust_performance
+    from setmem_hil.robust.validation import box_plants, rp_peak
+    from setmem_hil.sim_backends.beam import beam_parameters
+
+    truth = beam_parameters(3).values
+    spread = np.array([0.2, 0.003, 0.0, 0.04])  # relative half widths of a1, a0, b1, b0
+    model = IntervalModel(truth * (1 - spread), truth * (1 + spread))
+    weights = default_procedure().weights
+    scale = ratio_scale(0.01, 0.01)
+    gain = (1 / scale[1], 1 / scale[0])
+    common = analyze_robust_performance(model, weights, gain=gain)
+    K = common.controller  # one compensator for the three sets (each design would differ)
+    widened = analyze_robust_performance(plant_bounds(model, scale), weights, controller=K)
+    alone = analyze_robust_performance(model, weights, controller=K)
+    assert alone.mu_peak <= common.mu_peak < widened.mu_peak
+    grid = np.geomspace(common.omega.min(), common.omega.max(), 500)
+    plants, _ = box_plants(model, 0)
+    worst = 0.0
+    for values in plants:
+        for k in gain:
+            scaled = values.copy()
+            scaled[:, [B1, B0]] *= k
+            worst = max(worst, rp_peak(ModalParameters(scaled), common.controller, weights, grid, refine=1)[0])
+    assert worst <= common.mu_peak * (1 + 1e-6)
+
+
+def test_validate_checks_the_box_as_measured_at_both_ends_of_the_gain():
+    """``setmem-hil validate`` on an iteration with a common gain: the claimed set is every
+    plant of the box as measured times each end of the gain, not the wider interval hull."""
+    from types import SimpleNamespace
+
+    from setmem_hil.cli.commands.validate import _claimed_set
+
+    lower = np.array([[0.01, 0.9, 0.0, 3.0], [0.1, 39.0, 0.0, 3.5]])
+    upper = np.array([[0.03, 1.1, 0.0, 5.0], [0.2, 40.0, 0.0, 4.5]])
+    record = SimpleNamespace(k=2, lower=lower * 0.5, upper=upper * 2.0,  # the hull is not what is checked
+                             common_gain={"gain": [0.98, 1.02], "lower": lower.tolist(), "upper": upper.tolist()})
+    plants, drawn = _claimed_set(record, 0)
+    assert plants.shape == (2 * 2 ** 6, 2, 4) and "2 gains" in drawn
+    for k, half in zip((0.98, 1.02), np.split(plants, 2)):
+        assert np.all((half[:, :, :2] >= lower[:, :2]) & (half[:, :, :2] <= upper[:, :2]))
+        assert np.allclose(np.sort(np.unique(half[:, :, 3])), np.sort(np.unique(k * np.concatenate([lower[:, 3], upper[:, 3]]))))

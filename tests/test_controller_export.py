@@ -171,6 +171,7 @@ def test_version_2_journals_are_upgraded_and_export_designs_again(run_dir, tmp_p
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_peak_certified")
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_certified_intervals")
     conn.execute("ALTER TABLE iteration DROP COLUMN outputs")
+    conn.execute("ALTER TABLE iteration DROP COLUMN common_gain")
     conn.execute("ALTER TABLE measurement DROP COLUMN others")
     conn.execute("PRAGMA user_version=2")
     conn.commit()

@@ -208,6 +208,7 @@ def test_certificate_round_trips_and_version_3_journals_are_upgraded(tmp_path):
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_peak_certified")
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_certified_intervals")
     conn.execute("ALTER TABLE iteration DROP COLUMN outputs")
+    conn.execute("ALTER TABLE iteration DROP COLUMN common_gain")
     conn.execute("ALTER TABLE measurement DROP COLUMN others")
     conn.execute("PRAGMA user_version=3")
     conn.commit()

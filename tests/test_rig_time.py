@@ -63,6 +63,7 @@ def test_version_1_journals_are_upgraded(tmp_path):
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_peak_certified")
     conn.execute("ALTER TABLE iteration DROP COLUMN mu_certified_intervals")
     conn.execute("ALTER TABLE iteration DROP COLUMN outputs")
+    conn.execute("ALTER TABLE iteration DROP COLUMN common_gain")
     conn.execute("ALTER TABLE measurement DROP COLUMN others")
     conn.execute("PRAGMA user_version=1")
     conn.commit()

@@ -499,8 +499,13 @@ def run_campaign(
     source = _Replay(experiment, journal, emit, total, control)
     replayed_before = len(source.stored)
 
+    # the sensors' calibration: one scale per output, on the residues (calibration_scale); the
+    # analysis holds the control output's as one common gain on the plant
+    scales = tuple(experiment.calibration_scales) if isinstance(experiment, CalibrationScaledExperiment) else None
+    gain = None if scales is None else (1.0 / scales[0][1], 1.0 / scales[0][0])
+
     def analyze(model, controller):
-        return analyze_robust_performance(model, procedure.weights, controller=controller)
+        return analyze_robust_performance(model, procedure.weights, controller=controller, gain=gain)
 
     k, n_added = 1, 0
     if continue_stored and journal is not None:
@@ -516,8 +521,6 @@ def run_campaign(
         measured = measure_batch(source, procedure, procedure.initial_omegas_rad_s, iteration=0, role="initial")
     previous_model = None
     previous_sensor_models = None
-    # the sensors' calibration: one scale per output, on the residues (calibration_scale)
-    scales = tuple(experiment.calibration_scales) if isinstance(experiment, CalibrationScaledExperiment) else None
     plant_procedure = procedure
     if scales is not None:  # identification and input design work on the data as measured
         procedure = replace(procedure, prior=measured_scale_prior(procedure.prior, scales[0]))
@@ -542,9 +545,9 @@ def run_campaign(
             experiment.update_model(model)
         if sensor_models is not None and isinstance(experiment, OutputModelsAwareExperiment):
             experiment.update_output_models(sensor_models)
-        plant = model if scales is None else plant_bounds(model, scales[0])
         with blas_one_thread():
-            outcome = safeguarded_design(plant, previous_outcome, analyze)
+            outcome = safeguarded_design(model, previous_outcome, analyze)
+        plant = model if scales is None else plant_bounds(model, scales[0])  # its interval hull, for the journal
         analysis = outcome.analysis
         emit("iteration", k=k, n_points=len(measured), mu_peak=outcome.mu_peak,
              mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch,
@@ -590,6 +593,7 @@ def run_campaign(
                     mu_peak_certified=bool(outcome.certified),
                     mu_certified_intervals=certified_intervals,
                     outputs=None if sensor_models is None else sensors_document(procedure, sensor_models, scales),
+                    common_gain=None if gain is None else {"gain": list(gain), "lower": model.lower.tolist(), "upper": model.upper.tolist()},
                 ))
                 if choice is not None and np.size(choice.resolved_omega_rad_s):
                     import json

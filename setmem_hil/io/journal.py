@@ -62,8 +62,9 @@ __all__ = ["Journal", "IterationRecord", "JournalError", "JournalSnapshot", "rea
 
 JOURNAL_FILENAME = "journal.sqlite"
 APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
-SCHEMA_VERSION = 5  # 2: measurement.rig_s; 3: iteration.controller; 4: iteration.mu_peak_certified,
-# mu_certified_intervals; 5: measurement.others, iteration.outputs (older journals are upgraded when opened)
+SCHEMA_VERSION = 6  # 2: measurement.rig_s; 3: iteration.controller; 4: iteration.mu_peak_certified,
+# mu_certified_intervals; 5: measurement.others, iteration.outputs; 6: iteration.common_gain (older
+# journals are upgraded when opened)
 ROLES = ("initial", "added")
 
 
@@ -105,6 +106,12 @@ class IterationRecord:
         None in journals written before it was.
     mu_certified_intervals : int or None
         Number of frequency intervals in that certificate.
+    common_gain : dict or None
+        With sampled sensors whose calibration is one scale per output (issue 26:
+        :mod:`setmem_hil.identification.calibration_scale`): ``{"gain": [k_lo, k_hi], "lower":
+        [...], "upper": [...]}``, the plant is ``k`` times the model as measured (``lower``,
+        ``upper``) with one ``k`` in the interval; ``mu_peak`` is of that set, and the
+        iteration's ``lower``/``upper`` are its interval hull. None otherwise.
     outputs : dict or None
         With several sensors (issue 25): ``{"names": [...], "lower": [...], "upper": [...]}``,
         every output's ``(n_modes, 4)`` bounds (shared ``a1, a0``, own ``b1, b0``; the first is
@@ -133,6 +140,7 @@ class IterationRecord:
     mu_peak_certified: bool | None = None
     mu_certified_intervals: int | None = None
     outputs: dict | None = None
+    common_gain: dict | None = None
 
 
 _ARRAY_FIELDS = ("lower", "upper", "omega", "mu", "candidate_omega", "estimated_improvement", "embedding_gamma", "mismatch_ratio")
@@ -184,7 +192,8 @@ CREATE TABLE iteration (
     controller TEXT,
     mu_peak_certified INTEGER,
     mu_certified_intervals INTEGER,
-    outputs TEXT
+    outputs TEXT,
+    common_gain TEXT
 );
 CREATE TABLE discrepancy (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -368,7 +377,8 @@ class Journal:
                     3: "ALTER TABLE iteration ADD COLUMN mu_peak_certified INTEGER;"
                        "ALTER TABLE iteration ADD COLUMN mu_certified_intervals INTEGER",  # NULL: not known
                     4: "ALTER TABLE measurement ADD COLUMN others TEXT;"
-                       "ALTER TABLE iteration ADD COLUMN outputs TEXT"}  # NULL: one sensor
+                       "ALTER TABLE iteration ADD COLUMN outputs TEXT",  # NULL: one sensor
+                    5: "ALTER TABLE iteration ADD COLUMN common_gain TEXT"}  # NULL: no calibration scale
         while version in upgrades:
             try:
                 for statement in upgrades[version].split(";"):
@@ -525,7 +535,7 @@ class Journal:
                 v = None if v is None else _to_json({key: np.asarray(v[key], dtype=float).tolist() for key in "ABCD"})
             elif name in ("mu_peak_certified", "mu_certified_intervals"):
                 v = None if v is None else int(v)
-            elif name == "outputs":
+            elif name in ("outputs", "common_gain"):
                 v = None if v is None else _to_json(v)
             else:
                 v = _opt_float(v)
@@ -554,7 +564,7 @@ class Journal:
                     v = None if v is None else json.loads(v)
                 elif name == "mu_peak_certified":
                     v = None if v is None else bool(v)
-                elif name == "outputs":
+                elif name in ("outputs", "common_gain"):
                     v = None if v is None else json.loads(v)
                 kw[name] = v
             for name in ("lower", "upper"):

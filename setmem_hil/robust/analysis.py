@@ -146,6 +146,7 @@ def analyze_robust_performance(
     weights: Weights = THESIS_WEIGHTS,
     omega_rad_s=None,
     controller=None,
+    gain: tuple[float, float] | None = None,
 ) -> RobustAnalysis:
     """mu-bar peak, its lower bound and the mu-sensitivities of an interval model.
 
@@ -160,6 +161,10 @@ def analyze_robust_performance(
         Frequency grid; default :func:`default_omega_grid`. The grid is refined around its peak.
     controller : control.StateSpace, optional
         Compensator to evaluate (``u = K y``); by default the H2 design for the midpoint.
+    gain : (float, float), optional
+        A common gain interval on the whole plant (the sensors' calibration: the model was
+        identified as measured): one more real uncertainty, ``gain`` among the sensitivities
+        (:func:`~setmem_hil.robust.uncertain_plant.uncertain_plant`).
 
     Returns
     -------
@@ -190,7 +195,7 @@ def analyze_robust_performance(
     if not (math.isfinite(T) and T > 0.0 and math.isfinite(M) and M > 0.0):
         raise ValueError(f"weights: reference frequency {T!r} rad/s (from W2) and magnitude {M!r} (from W1) must be positive")
     if T == 1.0 and M == 1.0:
-        return _analyze_normalised(model, weights, omega_rad_s, controller)
+        return _analyze_normalised(model, weights, omega_rad_s, controller, gain)
     if controller is not None and not hasattr(controller, "A"):
         import control
 
@@ -200,6 +205,7 @@ def analyze_robust_performance(
         weights.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
         None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float) / T,
         None if controller is None else _time_scaled_controller(controller, 1.0 / T, M),
+        gain,  # a gain on the whole plant: the same in any time or magnitude unit
     )
     return RobustAnalysis(
         mu_peak=result.mu_peak,
@@ -236,9 +242,9 @@ def default_grid_for(model: IntervalModel) -> np.ndarray:
     return np.unique(np.concatenate([grid, *extra]))
 
 
-def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, controller) -> RobustAnalysis:
+def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, controller, gain=None) -> RobustAnalysis:
     """:func:`analyze_robust_performance` of a problem already in normalised time."""
-    plant = augmented_plant(uncertain_plant(model), weights, design_w2=True)
+    plant = augmented_plant(uncertain_plant(model, gain), weights, design_w2=True)
     if controller is not None and not hasattr(controller, "A"):
         import control
 

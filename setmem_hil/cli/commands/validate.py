@@ -8,7 +8,10 @@ the exact robust-performance test of one plant (:mod:`setmem_hil.robust.validati
   ``|W2 S| + |W1 K S|``;
 * the **interval set**: every vertex of the final parameter box (up to 2^12, else a Latin
   hypercube of 4096) plus ``--samples`` random points; any plant unstable or with a peak >= 1
-  while mu-bar < 1 was claimed falsifies the claim (exit 3, naming the plant and frequency);
+  while mu-bar < 1 was claimed falsifies the claim (exit 3, naming the plant and frequency).
+  Where the iteration holds a common gain (``common_gain``: sampled sensors' calibration, one
+  scale on the whole plant) the set is the box as measured times that gain: every plant drawn
+  from that box, at each end of the gain interval;
 * a **closed-loop simulation** of the truth under the discrete compensator (Tustin at ``--fs``,
   prewarped at the mu-bar peak), a sinusoidal disturbance at the performance input at the truth's
   peak frequency: the measured weighted performance against the frequency-domain value.
@@ -32,6 +35,24 @@ from pathlib import Path
 import numpy as np
 
 EXIT_FALSIFIED = 3
+
+
+def _claimed_set(record, samples: int):
+    """The plants the iteration's mu-bar claim covers (module docstring): its interval box, or
+    with a common gain the box as measured times each end of the gain."""
+    from setmem_hil.model.modal_model import B0, B1, IntervalModel
+    from setmem_hil.robust.validation import box_plants
+
+    if record.common_gain is None:
+        return box_plants(IntervalModel(record.lower, record.upper), samples, seed=record.k)
+    measured = IntervalModel(np.array(record.common_gain["lower"]), np.array(record.common_gain["upper"]))
+    base, drawn = box_plants(measured, samples, seed=record.k)
+    plants = []
+    for k in record.common_gain["gain"]:
+        scaled = base.copy()
+        scaled[:, :, [B1, B0]] *= float(k)
+        plants.append(scaled)
+    return np.concatenate(plants), f"{drawn} x {len(record.common_gain['gain'])} gains"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -83,8 +104,8 @@ def run(args: argparse.Namespace) -> int:
     from setmem_hil.io.atomic_file import write_json_atomic
     from setmem_hil.io.journal import Journal
     from setmem_hil.io.procedure_file import parse_procedure_text
-    from setmem_hil.model.modal_model import IntervalModel, ModalParameters
-    from setmem_hil.robust.validation import box_plants, closed_loop_simulation, closed_loop_stable, rp_peak
+    from setmem_hil.model.modal_model import ModalParameters
+    from setmem_hil.robust.validation import closed_loop_simulation, closed_loop_stable, rp_peak
 
     if args.samples < 0:
         raise InputFormatError("setmem-hil validate", "arguments", f"--samples {args.samples}: expected >= 0")
@@ -106,8 +127,7 @@ def run(args: argparse.Namespace) -> int:
             if truth_doc["rp_peak_certified"] > peak:  # the certificate found more than the dense grid: report that
                 truth_doc["rp_peak"], truth_doc["rp_peak_omega"] = truth_doc["rp_peak_certified"], truth_doc["rp_certified_omega"]
 
-    model = IntervalModel(record.lower, record.upper)
-    plants, drawn = box_plants(model, args.samples, seed=record.k)
+    plants, drawn = _claimed_set(record, args.samples)
     worst = (-math.inf, math.nan, None)
     violations = []
     for values in plants:
