@@ -211,7 +211,8 @@ class ScopeSensor:
         then (an earlier dwell's mode still ringing). Without a model, or before any record,
         nothing changes. The model is in displacement: a velocity or acceleration channel is
         left to the clipping check."""
-        if self._seen is None or not self.response_models or not self.exciter.drive_steps or not self.exciter.lines[0]:
+        if (self._seen is None or not self.response_models or not self.exciter.drive_steps or not self.exciter.lines[0]
+                or self.exciter.volts <= 0.0):
             return
         origin = self.exciter.drive_origin
         start, end, peaks = self._seen
