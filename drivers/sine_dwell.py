@@ -90,7 +90,7 @@ from setmem_hil.estimation.dwell_estimate import (
     record_duration_s,
     replan_fixed_rate,
 )
-from setmem_hil.estimation.multisine import design_multisine, resolvable_groups
+from setmem_hil.estimation.multisine import design_multisine, line_weights, resolvable_groups
 from setmem_hil.estimation.sine_fit import SineFit
 
 log = logging.getLogger(__name__)
@@ -205,7 +205,8 @@ class SineDwellExperiment:
         lines, so a resumed campaign repeats the record exactly.
         """
         lines = [float(w) for w in omegas_rad_s]
-        groups = self._resolvable_groups(lines)
+        expected = self._expected_gains(lines)  # None: equal amplitudes, one record
+        groups = [list(range(len(lines)))] if expected is None else resolvable_groups(expected, self.rig.sensor.dynamic_range)
         if len(groups) > 1:  # one record per group, the measurements in the order asked
             measured = {}
             for group in groups:
@@ -223,7 +224,7 @@ class SineDwellExperiment:
         plan = plan_multisine(self.settings, self.model, lines)
         longest = record_duration_s(self.settings, plan)
         check_dwell(self.limits, plan.skip_s + plan.window_s)
-        signal = design_multisine(lines, self.settings.amplitude_n, longest)
+        signal = design_multisine(lines, self.settings.amplitude_n, longest, weights=None if expected is None else line_weights(expected))
 
         def start(plan):
             self.safe_exciter.set_multisine(signal, longest)
@@ -235,17 +236,18 @@ class SineDwellExperiment:
         label = f"multisine record at {', '.join(f'{w:g}' for w in lines)} rad/s"
         return self._finish(self._attempts(label, plan, start, estimate))
 
-    def _resolvable_groups(self, lines: list[float]) -> list[list[int]]:
-        """The lines split into records the sensor resolves (a :class:`ResolutionLimitedSensor`:
-        :func:`~setmem_hil.estimation.multisine.resolvable_groups` on the model midpoint's
-        response); one record otherwise, or while the model cannot say (residues unbounded)."""
-        sensor = self.rig.sensor
-        if not isinstance(sensor, ResolutionLimitedSensor) or self.model is None or len(lines) == 1:
-            return [list(range(len(lines)))]
-        with np.errstate(invalid="ignore", over="ignore"):  # the prior's unbounded residues: nan
+    def _expected_gains(self, lines: list[float]) -> np.ndarray | None:
+        """``|G|`` of the model's midpoint at ``lines`` when the sensor's resolution is limited
+        (a :class:`ResolutionLimitedSensor`): its lines are then split into records it resolves
+        and shaped (:func:`~setmem_hil.estimation.multisine.resolvable_groups`,
+        :func:`~setmem_hil.estimation.multisine.line_weights`). None otherwise, or while the
+        model cannot say (the prior's unbounded residues)."""
+        if not isinstance(self.rig.sensor, ResolutionLimitedSensor) or self.model is None or len(lines) == 1:
+            return None
+        with np.errstate(invalid="ignore", over="ignore"):
             nominal = getattr(self.model, "midpoint", self.model)
             expected = np.abs(nominal.frequency_response(np.array(lines)))
-        return resolvable_groups(expected, sensor.dynamic_range)
+        return expected if np.all(np.isfinite(expected)) and np.all(expected > 0) else None
 
     def _finish(self, results: list[DwellResult]) -> list[Measurement]:
         """Count a finished dwell or record, learn its poles, add its device time; each of its

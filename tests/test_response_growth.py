@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from setmem_hil.estimation.multisine import resolvable_groups
+from setmem_hil.estimation.multisine import design_multisine, line_weights, resolvable_groups
 from setmem_hil.estimation.response_growth import predicted_peak, zero_state_response
 from setmem_hil.model.modal_model import ModalParameters
 
@@ -41,18 +41,29 @@ def test_an_unbounded_model_predicts_nothing():
 
 
 @pytest.mark.parametrize("seed", range(20))
-def test_every_record_resolves_each_of_its_lines(seed):
+def test_every_record_resolves_each_of_its_lines_on_both_channels(seed):
+    """Brute force on the shaped record: every line at least 1/16 of the summed force
+    amplitudes and of the summed response amplitudes."""
     rng = np.random.default_rng(seed)
-    amplitudes = 10 ** rng.uniform(-3, 3, rng.integers(1, 12))
-    groups = resolvable_groups(amplitudes, 16.0)
-    assert sorted(i for g in groups for i in g) == list(range(amplitudes.size))
+    gains = 10 ** rng.uniform(-3, 3, rng.integers(1, 12))
+    groups = resolvable_groups(gains, 16.0)
+    assert sorted(i for g in groups for i in g) == list(range(gains.size))
     for g in groups:
-        assert amplitudes[g].min() * 16.0 >= amplitudes[g].sum() * (1 - 1e-12)
-    totals = [amplitudes[g].max() for g in groups]
-    assert totals == sorted(totals)  # the smallest record first (the largest rings on longest)
+        force = line_weights(gains[g])
+        response = force * gains[g]
+        assert force.min() * 16.0 >= force.sum() * (1 - 1e-12)
+        assert response.min() * 16.0 >= response.sum() * (1 - 1e-12)
+    largest = [gains[g].max() for g in groups]
+    assert largest == sorted(largest)  # the smallest record first (the largest rings on longest)
 
 
-def test_lines_of_similar_size_share_a_record_and_an_unknown_model_splits_nothing():
-    assert resolvable_groups([1.0, 1.2, 0.9], 16.0) == [[0, 1, 2]]
-    assert resolvable_groups([181.0, 2.8, 119.0], 16.0) == [[1], [0, 2]]
+def test_shaping_keeps_a_third_mode_line_with_the_second_modes_and_a_designed_record_follows_the_weights():
+    # equal forces would leave the 0.31 line at 4 % of the response's sum: its own record
+    assert resolvable_groups([4.82, 2.84, 0.31], 16.0) == [[0, 1, 2]]
+    assert resolvable_groups([181.0, 0.05, 119.0], 16.0) == [[1], [0, 2]]
     assert resolvable_groups([1.0, float("nan"), 3.0], 16.0) == [[0, 1, 2]]
+    weights = line_weights([4.0, 1.0, 0.25])
+    assert np.allclose(weights, [0.25, 0.5, 1.0])
+    ms = design_multisine([6.3, 6.2, 17.9], 1.0, 60.0, weights=weights)
+    assert np.allclose(np.array(ms.amplitudes_n) / max(ms.amplitudes_n), weights)
+    assert ms.peak_bound(60.0) == pytest.approx(1.0)

@@ -15,7 +15,10 @@ Choices where the literature leaves room (documented, not from the thesis, which
 sines only):
 
 * equal amplitudes: each line gets the same share of the force budget. The response's SNR then
-  follows the structure (high near modes), like the single-sine loop's.
+  follows the structure (high near modes), like the single-sine loop's. On a sensor of few bits
+  (an 8-bit oscilloscope) the lines are shaped instead, ``|G|^(-1/2)`` of the model's expected
+  response (:func:`line_weights`), and split into records both channels resolve
+  (:func:`resolvable_groups`).
 * phases: Schroeder's (``phi_k = -pi k (k - 1) / n``, low crest factor for equally spaced
   lines) and a few seeded random sets; the one with the lowest sampled peak over the record
   wins. Our lines are arbitrary (not on a harmonic grid), so no closed form is optimal; the
@@ -38,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Multisine", "design_multisine", "schroeder_phases", "resolvable_groups"]
+__all__ = ["Multisine", "design_multisine", "schroeder_phases", "resolvable_groups", "line_weights"]
 
 
 @dataclass(frozen=True)
@@ -94,8 +97,9 @@ def schroeder_phases(n: int) -> np.ndarray:
     return -np.pi * k * (k - 1) / int(n)
 
 
-def design_multisine(omegas_rad_s, peak_n: float, duration_s: float, trials: int = 24) -> Multisine:
-    """Equal-amplitude multisine whose guaranteed peak over ``duration_s`` is ``peak_n``.
+def design_multisine(omegas_rad_s, peak_n: float, duration_s: float, trials: int = 24, weights=None) -> Multisine:
+    """Multisine whose guaranteed peak over ``duration_s`` is ``peak_n``: equal amplitudes, or
+    amplitudes in the proportions ``weights`` (:func:`line_weights`).
 
     Parameters
     ----------
@@ -107,6 +111,8 @@ def design_multisine(omegas_rad_s, peak_n: float, duration_s: float, trials: int
         Longest the record may last (settling, windows and possible extensions).
     trials : int
         Seeded random phase sets tried besides Schroeder's.
+    weights : sequence of float, optional
+        Positive relative amplitudes, one per line (default: all equal).
 
     Returns
     -------
@@ -130,33 +136,57 @@ def design_multisine(omegas_rad_s, peak_n: float, duration_s: float, trials: int
     candidates.append(schroeder)
     rng = np.random.default_rng(int.from_bytes(hashlib.sha256(w.tobytes()).digest()[:8], "little"))
     candidates.extend(rng.uniform(0, 2 * np.pi, n) for _ in range(int(trials)))
-    ones = tuple([1.0] * n)
+    shape = np.ones(n) if weights is None else np.asarray(weights, dtype=float).ravel()
+    if shape.size != n or not np.all(np.isfinite(shape)) or np.any(shape <= 0):
+        raise ValueError(f"multisine: expected one positive weight per line, found {weights!r}")
+    ones = tuple(float(v) for v in shape / shape.max())
     best = min(candidates, key=lambda p: sum(_sampled_peak(Multisine(tuple(w), ones, tuple(p)), duration_s)))
     unit = Multisine(tuple(float(v) for v in w), ones, tuple(float(v) for v in np.mod(best, 2 * np.pi)))
     a = float(peak_n) / unit.peak_bound(duration_s)
-    return Multisine(unit.omegas_rad_s, tuple([a] * n), unit.phases_rad)
+    return Multisine(unit.omegas_rad_s, tuple(a * v for v in ones), unit.phases_rad)
 
 
-def resolvable_groups(amplitudes, dynamic_range: float) -> list[list[int]]:
-    """The lines (by index) split into records a channel of limited resolution can hold: the
-    expected response amplitudes largest first, each line joining the current record while it
-    is at least ``1 / dynamic_range`` of the record's summed amplitudes (the channel is ranged
-    for that sum's peak; a smaller line would sit in its quantization and noise), else opening
-    the next. Each record's lines stay in the order given; the records come smallest first (the
-    largest lines ring on longest). Amplitudes not finite: one record.
+def line_weights(gains) -> np.ndarray:
+    """Relative line amplitudes for a channel pair of limited resolution: ``|G|^(-1/2)`` of the
+    expected response (largest 1). The force's lines then span as many decades as the
+    response's, half the spread of ``|G|`` each, instead of the whole spread on the response
+    channel (equal forces) or on the force channel (equal responses). Not finite: equal."""
+    g = np.asarray(gains, dtype=float)
+    if g.size == 0 or not np.all(np.isfinite(g)) or np.any(g <= 0):
+        return np.ones(g.size)
+    w = 1.0 / np.sqrt(g)
+    return w / w.max()
+
+
+def _resolved(gains: np.ndarray, dynamic_range: float) -> bool:
+    """Every line of a record shaped by :func:`line_weights` at least ``1 / dynamic_range`` of
+    the summed amplitudes on the force channel and on the response channel."""
+    w = line_weights(gains)
+    force, response = w / w.sum(), w * gains / np.dot(w, gains)
+    return bool(min(force.min(), response.min()) * dynamic_range >= 1.0 - 1e-12)
+
+
+def resolvable_groups(gains, dynamic_range: float) -> list[list[int]]:
+    """The lines (by index) split into records a channel pair of limited resolution can hold,
+    each record's lines shaped by :func:`line_weights`: the expected response gains ``|G|``
+    largest first, each line joining the current record while every line stays at least
+    ``1 / dynamic_range`` of the record's summed amplitudes on both channels (each channel is
+    ranged for that sum's peak; a smaller line would sit in its quantization and noise), else
+    opening the next. Each record's lines stay in the order given; the records come smallest
+    first (the largest lines ring on longest). Gains not finite: one record.
 
     A choice of this project (the thesis measures single sines): an 8-bit oscilloscope ranged
     for a resonant line of the first mode saw a line near the second mode at 1 % of its
     screen, and that point's bound came out seven times the one a DAQ gives."""
-    a = np.asarray(amplitudes, dtype=float)
-    if a.size == 0 or not np.all(np.isfinite(a)) or not math.isfinite(dynamic_range):
-        return [list(range(a.size))]
+    g = np.asarray(gains, dtype=float)
+    if g.size == 0 or not np.all(np.isfinite(g)) or np.any(g <= 0) or not math.isfinite(dynamic_range):
+        return [list(range(g.size))]
     groups: list[list[int]] = []
-    for i in np.argsort(-a, kind="stable"):
-        if groups and a[i] * dynamic_range >= a[groups[-1]].sum() + a[i]:
+    for i in np.argsort(-g, kind="stable"):
+        if groups and _resolved(g[groups[-1] + [int(i)]], dynamic_range):
             groups[-1].append(int(i))
         else:
             groups.append([int(i)])
     # the smallest first: a record's modes ring on after it, for minutes near a lightly damped
     # mode, and the next record's channels must hold that ringing as well as their own lines
-    return [sorted(g) for g in reversed(groups)]
+    return [sorted(g_) for g_ in reversed(groups)]
