@@ -26,8 +26,9 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 SCREENSHOTS = Path(os.environ.get("SETMEM_SCREENSHOTS", "")) if os.environ.get("SETMEM_SCREENSHOTS") else None
 
 
-def _procedure(tmp_path: Path, max_experiments: int = 3) -> Path:
+def _procedure(tmp_path: Path, max_experiments: int = 3, mu_target: float = 1.0) -> Path:
     text = (REPO / "procedures" / "serial_loopback.toml").read_text().replace("max_experiments = 2", f"max_experiments = {max_experiments}")
+    text = text.replace("mu_target = 1.0", f"mu_target = {mu_target}")
     path = tmp_path / "live.toml"
     path.write_text(text)
     return path
@@ -111,7 +112,9 @@ def test_page_in_a_real_browser_shows_points_and_its_buttons_steer_the_run(tmp_p
 
     shots = SCREENSHOTS or tmp_path
     shots.mkdir(parents=True, exist_ok=True)
-    child, url, base, token = _start(_procedure(tmp_path, max_experiments=20), tmp_path / "live")
+    # a goal the run cannot reach: it is still running when the test clicks abort (with mu_target
+    # 1.0 it sometimes reached the goal between the last screenshot and the click: exit 0, not 130)
+    child, url, base, token = _start(_procedure(tmp_path, max_experiments=20, mu_target=0.01), tmp_path / "live")
     try:
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=CHROMIUM, args=[
