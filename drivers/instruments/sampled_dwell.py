@@ -13,9 +13,17 @@ from setmem_hil.drivers.instruments.phasor_dwell import to_receptance
 from setmem_hil.drivers.sine_dwell import SineDwellExperiment
 from setmem_hil.errors import DataQualityError
 from setmem_hil.estimation.channel_errors import ChannelError, ratio_error_bound
+from setmem_hil.identification.calibration_scale import ratio_scale
 from setmem_hil.model.experiment import Measurement
 
-__all__ = ["SampledDwellExperiment", "with_instrument_terms", "scale_structure_terms"]
+__all__ = ["SampledDwellExperiment", "with_instrument_terms", "scale_structure_terms", "calibration_scales"]
+
+
+def calibration_scales(force, responses) -> tuple[tuple[float, float], ...]:
+    """Each output's calibration scale (control output first) from its sensors' channels (their
+    ``calibration_uncertainty``): one unknown factor on all its points, which the campaign puts
+    on the model (:mod:`~setmem_hil.identification.calibration_scale`), not in each bound."""
+    return tuple(ratio_scale(force.calibration_uncertainty, ch.calibration_uncertainty) for ch in responses)
 
 
 def scale_structure_terms(m: Measurement, scales: Sequence[tuple[float, float]]) -> Measurement:

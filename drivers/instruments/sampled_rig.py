@@ -17,11 +17,10 @@ from __future__ import annotations
 import dataclasses
 
 from setmem_hil.drivers.instruments.drive_level import ForceLeveller, LevelledExciter
-from setmem_hil.drivers.instruments.sampled_dwell import scale_structure_terms, with_instrument_terms
+from setmem_hil.drivers.instruments.sampled_dwell import calibration_scales, scale_structure_terms, with_instrument_terms
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.estimation.channel_errors import ChannelError
-from setmem_hil.identification.calibration_scale import ratio_scale
 from setmem_hil.model.experiment import Measurement
 
 __all__ = ["LevelledDaqSensor", "SampledInstrumentRig", "DaqChannel"]
@@ -81,9 +80,8 @@ class LevelledDaqSensor:
 
     @property
     def calibration_scales(self) -> tuple[tuple[float, float], ...]:
-        """Each output's calibration scale (force and response sensors; control output first),
-        put on the model's residues by the campaign, not in each bound."""
-        return tuple(ratio_scale(self.force.calibration_uncertainty, ch.calibration_uncertainty) for ch in self.responses)
+        """Each output's calibration scale (:func:`~setmem_hil.drivers.instruments.sampled_dwell.calibration_scales`)."""
+        return calibration_scales(self.force, self.responses)
 
     def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
         """``m`` in its calibration scale (:attr:`calibration_scales`), converted to receptance."""

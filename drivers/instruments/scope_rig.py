@@ -41,12 +41,11 @@ from setmem_hil.drivers.instruments.drive_level import FORCE_TRIP, LEVEL_TOLERAN
 from setmem_hil.drivers.instruments.scpi_scope import ClippedChannel, ScopeRecord, ScpiScope
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
-from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, scale_structure_terms, with_instrument_terms
+from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, calibration_scales, scale_structure_terms, with_instrument_terms
 from setmem_hil.errors import DataQualityError
 from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, adc_code, scope_channel_error
 from setmem_hil.estimation.channel_match import DRIFT_ALLOWANCE
 from setmem_hil.estimation.response_growth import predicted_peak
-from setmem_hil.identification.calibration_scale import ratio_scale
 from setmem_hil.model.channel_match import ChannelMatch
 from setmem_hil.model.experiment import Measurement
 
@@ -247,10 +246,8 @@ class ScopeSensor:
 
     @property
     def calibration_scales(self) -> tuple[tuple[float, float], ...]:
-        """Each output's calibration scale (force and response sensors' calibration; control
-        output first): common to all its points, so the campaign puts it on the model's residues
-        (:mod:`~setmem_hil.identification.calibration_scale`), not in each bound."""
-        return tuple(ratio_scale(self.force.calibration_uncertainty, ch.calibration_uncertainty) for ch in self.responses)
+        """Each output's calibration scale (:func:`~setmem_hil.drivers.instruments.sampled_dwell.calibration_scales`)."""
+        return calibration_scales(self.force, self.responses)
 
     def channel_error(self, channel: ScopeChannel, omega_rad_s: float, matched: bool = False) -> ChannelError:
         """The channel's per-point discs (the sensor's calibration is not among them: :attr:`calibration_scales`)."""
