@@ -138,3 +138,48 @@ def test_a_short_record_of_close_lines_is_aligned_where_the_clock_puts_it():
         force = 0.4961 * points[np.floor(t * rate + 1e-9).astype(int) % points.size]
         force = np.round((force + 0.2 * code * rng.standard_normal(t.size)) / code) * code
         assert held_waveform_gain(t, force, points, rate, near_s=start + rng.uniform(-0.01, 0.01)) == pytest.approx(0.4961, rel=0.01)
+
+
+def _dwell_at_half_level(leveller, exciter, source, force_of_volts):
+    """A later dwell (gain measured before): level, then the dwell's own record of the force."""
+    records = []
+
+    def take(length_s, rate_hz):
+        t = np.arange(400) / 100.0
+        records.append(force_of_volts(source.volts))
+        return t, force_of_volts(source.volts) * np.sin(2 * math.pi * t)
+
+    exciter.set_sine(2 * math.pi, 1.0)
+    leveller.level(take)
+    levelling = len(records)
+    t, force = take(120.0, 100.0)  # the dwell's record
+    leveller.force_peak(t, force)
+    leveller.confirm_level()
+    return levelling, records[-1]
+
+
+def test_a_later_dwell_levels_with_one_record_and_its_own_record_confirms_the_level():
+    source = FakeSource()
+    exciter = LevelledExciter(source, newton_per_volt=4.0, max_drive_v=5.0)
+    leveller = ForceLeveller(exciter, max_force_n=1.0, force_room=lambda: 0.02, where="test")
+    linear = lambda volts: 4.4 * volts  # noqa: E731 - the true gain, 10 % above the nominal
+    first, _ = _dwell_at_half_level(leveller, exciter, source, linear)
+    assert first >= 2  # from a quarter of the level at the nominal gain: measured again
+    later, force = _dwell_at_half_level(leveller, exciter, source, linear)
+    assert later == 1  # from half the level at the measured gain: the dwell's record confirms it
+    assert force == pytest.approx(1.0 / 1.02, rel=LEVEL_TOLERANCE)
+
+
+def test_a_level_that_comes_out_high_discards_the_record_and_every_later_level_is_measured():
+    from setmem_hil.errors import DataQualityError
+
+    source = FakeSource()
+    exciter = LevelledExciter(source, newton_per_volt=4.0, max_drive_v=5.0)
+    leveller = ForceLeveller(exciter, max_force_n=1.0, force_room=lambda: 0.06, where="test")
+    # an amplifier whose gain grows with the level: 8 % more at twice the drive
+    growing = lambda volts: 4.0 * volts * (1.0 + 0.08 * volts / 0.125)  # noqa: E731
+    _dwell_at_half_level(leveller, exciter, source, growing)
+    with pytest.raises(DataQualityError, match="above its level"):
+        _dwell_at_half_level(leveller, exciter, source, growing)
+    levelling, force = _dwell_at_half_level(leveller, exciter, source, growing)
+    assert levelling >= 2 and force <= (1 + LEVEL_TOLERANCE) / 1.06

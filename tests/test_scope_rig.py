@@ -102,18 +102,18 @@ def test_closed_loop_level_keeps_the_force_within_the_limit_and_the_output_off_a
     assert bench.peak_force_n <= 1.05 * 1.0
     assert bench.peak_force_n >= 0.8  # the level was closed on the measured force, not left low
     assert not bench.output_on
-    assert counters["level_steps"] >= 2 * len(measurements)
+    assert counters["level_steps"] >= len(measurements)
     assert all(m.rig_s > 0 for m in measurements)
 
 
 def test_ctrl_c_during_a_record_leaves_the_output_off(monkeypatch):
     calls = []
 
-    def interrupted(self, duration_s, min_rate_hz=0.0):
+    def interrupted(self, duration_s, *args):
         calls.append(duration_s)
         if len(calls) == 3:  # inside the first dwell's main record, the output on
             raise KeyboardInterrupt
-        return original(self, duration_s, min_rate_hz)
+        return original(self, duration_s, *args)
 
     original = scope_rig.ScopeSensor._record
     monkeypatch.setattr(scope_rig.ScopeSensor, "_record", interrupted)
@@ -270,3 +270,44 @@ def test_a_campaign_through_the_matched_scope_reaches_the_goal_with_every_truth_
 
     rows = list(csv.DictReader((tmp_path / "csv" / "measurements.csv").open()))
     assert {r["output"] for r in rows} == {"scope.ch2", "scope.ch3", "scope.ch4"} and len(rows) == 3 * len(measurements)
+
+
+def _bare_sensor(noise_div: dict[int, float]):
+    """A ScopeSensor's resolution, without instruments: the DS1000Z profile, four channels."""
+    from types import SimpleNamespace
+
+    from setmem_hil.drivers.instruments.profile import load_profile
+    from setmem_hil.drivers.instruments.scpi_scope import ScpiScope
+
+    sensor = scope_rig.ScopeSensor.__new__(scope_rig.ScopeSensor)
+    sensor.scope = SimpleNamespace(profile=load_profile("rigol-ds1000z"), SCREEN_FILL=ScpiScope.SCREEN_FILL)
+    sensor.force = scope_rig.ScopeChannel(1, 0.0225, quantity="force")
+    sensor.responses = tuple(scope_rig.ScopeChannel(n, 0.04) for n in (2, 3, 4))
+    sensor.noise_div = noise_div
+    return sensor
+
+
+@pytest.mark.parametrize("noise_code", [0.0, 0.4, 0.47, 0.6])
+def test_the_smallest_line_a_scope_resolves_carries_the_chosen_share_of_quantization_in_its_bound(noise_code):
+    """The split criterion against the bound the point then carries: a line at 1 / dynamic_range
+    of a record's summed amplitudes (the sum ranged as the scope ranges it) gets, from
+    :func:`scope_channel_error` (the per-point term), a quantization term of RESOLUTION_SHARE of
+    its amplitude; more dither resolves smaller lines, none leaves a whole code."""
+    from setmem_hil.estimation.channel_errors import adc_code, scope_channel_error
+
+    p = _bare_sensor({}).scope.profile
+    code_div = adc_code(p.divisions, p.adc_bits)
+    sensor = _bare_sensor({ch: noise_code * code_div for ch in (1, 2, 3, 4)} if noise_code else {})
+    scale_v = 0.1
+    summed_v = sensor.scope.SCREEN_FILL / scope_rig.RANGE_HEADROOM * p.divisions / 2 * scale_v  # what ranging fills
+    line_v = summed_v / sensor.dynamic_range
+    error = scope_channel_error(gain_accuracy=p.gain_accuracy, full_scale_v=p.divisions * scale_v, adc_bits=p.adc_bits,
+                                volt_per_unit=1.0, calibration=0.0, omega_rad_s=1.0, trigger_jitter_s=0.0,
+                                noise_v=noise_code * code_div * scale_v)
+    assert error.absolute == pytest.approx(scope_rig.RESOLUTION_SHARE * line_v, rel=1e-9)
+    if not noise_code:
+        assert sensor.dynamic_range < 8  # a whole code of bias: an 8-bit screen resolves little
+    # the least dithered channel decides
+    mixed = _bare_sensor({1: 0.6 * code_div, 2: 0.6 * code_div, 3: 0.6 * code_div})
+    assert mixed.dynamic_range == pytest.approx(_bare_sensor({}).dynamic_range)
+

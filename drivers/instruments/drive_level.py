@@ -11,6 +11,11 @@ applies; the generator's level is set from it, as the lock-in rig does:
   until the force is within ``LEVEL_TOLERANCE`` of a target that leaves room for the force
   channel's own error (so the true force stays at or below ``max_amplitude_n``); any record whose
   force exceeds ``FORCE_TRIP x max_amplitude_n`` switches the output off and stops the run.
+  A correction of at most ``MAX_UNCONFIRMED_STEP`` from a gain measured on the same drive (the
+  half level a later dwell starts at) is not measured again: the dwell's own record confirms it
+  (:meth:`ForceLeveller.confirm_level`; a force above the tolerance discards the record and
+  levels again). A levelling record near the first mode is 12 s; two per record were a sixth
+  of a campaign's rig time through the oscilloscope.
 
 A sine's force is its fitted amplitude; an arbitrary waveform's is the scale of the known
 points, found by aligning the record with them (:func:`held_waveform_gain`). No I/O of its own:
@@ -40,6 +45,10 @@ LEVEL_PERIODS = 1.5  # periods of the drive in a levelling record
 MIN_LEVEL_RECORD_S = 0.02
 MAX_LEVEL_STEPS = 6
 MAX_STEP_UP = 3.0  # the most one levelling step multiplies the drive by
+# a correction up to this factor, from a gain measured on the same drive, is confirmed by the
+# dwell's own record instead of a levelling record (a linear amplifier and shaker: the gain
+# measured at half the level holds at the level; a nonlinear one shows in that record)
+MAX_UNCONFIRMED_STEP = 2.5
 # Points per period of a multisine's highest line in the generator's arbitrary waveform. Held
 # points add images at m f_arb +- f of relative size about f / (m f_arb); a sampling sensor whose
 # rate divides some m f_arb aliases one of them exactly onto its line (the force's phasor, not the
@@ -227,6 +236,9 @@ class ForceLeveller:
     def __init__(self, exciter: LevelledExciter, max_force_n: float, force_room: Callable[[], float], where: str):
         self.exciter, self.max_force_n, self.force_room, self.where = exciter, float(max_force_n), force_room, where
         self.steps = 0
+        self.last_fitted_n = 0.0  # the last record's force as the drive sets it (without the noise's peaks)
+        self.unconfirmed = False  # the level was corrected without a record after it (confirm_level)
+        self.confirm_always = False  # set once such a level came out high: every level is then measured
 
     def target_n(self) -> float:
         return self.exciter.target_n / (1.0 + self.force_room())
@@ -236,12 +248,14 @@ class ForceLeveller:
         waveform's scale (its largest point is 1; ``position_s``: where in the waveform the
         record starts, by the clock); above the trip level the output goes off first."""
         if self.exciter.arbitrary is None:
-            amplitude = abs(fit_sine(t_s, force_n, np.array([self.exciter.omega_rad_s]), t_ref_s=float(t_s[0])).line(0).phasor)
+            amplitude = self.last_fitted_n = abs(fit_sine(t_s, force_n, np.array([self.exciter.omega_rad_s]),
+                                                          t_ref_s=float(t_s[0])).line(0).phasor)
         else:
             points, rate = self.exciter.arbitrary
             # the clock's room, and the done-polling's (a hundredth of the record at most)
             within = ALIGN_WITHIN_S + 0.01 * float(t_s[-1] - t_s[0])
-            amplitude = max(held_waveform_gain(t_s, force_n, points, rate, position_s, within), float(np.max(np.abs(force_n))))
+            self.last_fitted_n = held_waveform_gain(t_s, force_n, points, rate, position_s, within)
+            amplitude = max(self.last_fitted_n, float(np.max(np.abs(force_n))))
         if amplitude > FORCE_TRIP * self.max_force_n:
             self.exciter.stop()
             raise SafetyLimitError(f"{self.where}: measured force {amplitude:.4g} N exceeds max_amplitude_n "
@@ -268,10 +282,32 @@ class ForceLeveller:
             # never more than MAX_STEP_UP times the drive per step, whatever a measurement says
             self.exciter.gain_estimate = max(force_n / self.exciter.volts, self.exciter.gain_estimate / MAX_STEP_UP)
             self.exciter.measured = True
+            self.unconfirmed = False
             if abs(force_n / target - 1.0) <= LEVEL_TOLERANCE:
                 break
+            step = target / force_n
             self.exciter.set_volts(target / self.exciter.gain_estimate)
+            if step <= MAX_UNCONFIRMED_STEP and not self.confirm_always:  # the dwell's record confirms it (confirm_level)
+                self.unconfirmed = True
+                break
         else:
             log.warning("%s: force level not within %.0f %% of %.3g N after %d steps", self.where, 100 * LEVEL_TOLERANCE,
                         target, MAX_LEVEL_STEPS)
         self.exciter.needs_level = False
+
+    def confirm_level(self) -> None:
+        """After a dwell's record (its force through :meth:`force_peak`): a level corrected without
+        a levelling record after it (``MAX_UNCONFIRMED_STEP``) must have come out within
+        ``LEVEL_TOLERANCE`` above its target; otherwise the record is discarded
+        (:class:`~setmem_hil.errors.DataQualityError`: the dwell is taken again) and the next one
+        levels with records until the force is confirmed (an amplifier or shaker whose gain
+        grows with the level)."""
+        if not self.unconfirmed:
+            return
+        self.unconfirmed = False
+        target = self.target_n()
+        if self.last_fitted_n > target * (1.0 + LEVEL_TOLERANCE):
+            self.confirm_always = True
+            raise DataQualityError(f"{self.where}: the force came out at {self.last_fitted_n:.4g} N, "
+                                   f"{100 * (self.last_fitted_n / target - 1):.1f} % above its level {target:.4g} N "
+                                   "(the drive's gain grows with the level); levelled again with a confirming record")

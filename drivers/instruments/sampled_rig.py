@@ -76,6 +76,7 @@ class LevelledDaqSensor:
         self.last_sample_rate_hz = self.inner.sample_rate_hz
         if block.force.size and (self.exciter.omega_rad_s or self.exciter.arbitrary is not None):
             self.leveller.force_peak(block.t_s, block.force)  # the trip
+            self.leveller.confirm_level()
         return block
 
     @property

@@ -43,7 +43,7 @@ from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, calibration_scales, scale_structure_terms, with_instrument_terms
 from setmem_hil.errors import DataQualityError
-from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, adc_code, scope_channel_error
+from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, adc_code, quantization_bias, scope_channel_error
 from setmem_hil.estimation.channel_match import DRIFT_ALLOWANCE
 from setmem_hil.estimation.response_growth import predicted_peak
 from setmem_hil.model.channel_match import ChannelMatch
@@ -55,6 +55,11 @@ log = logging.getLogger(__name__)
 
 MAX_RANGE_STEPS = 6
 RANGE_HEADROOM = 1.15  # a channel is ranged for this much more than the peak it showed (the response still grows)
+# a dwell's record whose channels stay off the ADC's rails for this share of it is cut there and
+# kept (a response growing from rest clips late: the first record, ranged without a model to say
+# how far it grows); the fit uses the length it has
+UNCLIPPED_SHARE = 0.75
+RESOLUTION_SHARE = 0.1  # a multisine line is resolved while the quantization's bias on it is at most this much of it (dynamic_range)
 
 
 @dataclass(frozen=True)
@@ -87,14 +92,29 @@ class ScopeSensor:
         # each response channel's model (the campaign's midpoints; one for all until the outputs
         # have their own) and what the last record saw: (clock start, end, peak volts per channel)
         self.response_models: tuple = ()
-        # a multisine record's lines share the screen: one at least 1/16 of their sum (8 bits) has
-        # about 2 % of it, several codes above the dithered quantization (ResolutionLimitedSensor)
-        self.dynamic_range = 2.0 ** (scope.profile.adc_bits - 4)
         self._seen: tuple[float, float, dict[int, float]] | None = None
 
     @property
     def channels(self) -> tuple[ScopeChannel, ...]:
         return (self.force, *self.responses)
+
+    @property
+    def dynamic_range(self) -> float:
+        """The largest ratio of a multisine record's summed line amplitudes to one line this scope
+        still resolves (:class:`~setmem_hil.drivers.protocols.ResolutionLimitedSensor`): a ranged
+        channel's sum fills ``SCREEN_FILL / RANGE_HEADROOM`` of the half screen, and a line is
+        resolved while the quantization's bias on it (:func:`quantization_bias`, with the noisiest
+        dither of the channels measured, the least dithered) is at most ``RESOLUTION_SHARE`` of
+        it. Without measured noise the bias is a whole code: an 8-bit screen then resolves lines
+        down to about 1/7 of the sum; with the DS1104Z's own noise (about half a code rms) about
+        1/240. The random part of the quantization averages down like the noise it is, in the
+        fit's radius."""
+        p = self.scope.profile
+        code_div = adc_code(p.divisions, p.adc_bits)
+        filled_codes = self.scope.SCREEN_FILL / RANGE_HEADROOM * p.divisions / 2.0 / code_div
+        biases = [quantization_bias(code_div, math.sqrt(max(0.0, self.noise_div[ch.number] ** 2 - code_div**2 / 12.0)))
+                  if ch.number in self.noise_div else code_div for ch in self.channels]
+        return filled_codes * RESOLUTION_SHARE * code_div / max(biases)
 
     def set_sample_rate(self, rate_hz: float) -> None:
         self.sample_rate_hz = float(rate_hz)  # the scope's memory depth and time scale decide the rate it gives
@@ -157,11 +177,15 @@ class ScopeSensor:
             self.scope.range_for(ch.number, RANGE_HEADROOM * ratio * float(np.max(np.abs(record.volts[ch.number]))))
 
     # -- records -----------------------------------------------------------------------------------
-    def _record(self, duration_s: float, min_rate_hz: float = 0.0) -> ScopeRecord:
-        """One record; a clipped channel moves up a scale and the record is taken again."""
+    def _record(self, duration_s: float, min_rate_hz: float = 0.0, min_unclipped_s: float = math.inf) -> ScopeRecord:
+        """One record; a clipped channel moves up a scale and the record is taken again (one
+        clipped only after ``min_unclipped_s`` is cut there and the channel moves up for the next)."""
         for step in range(MAX_RANGE_STEPS + 1):
             try:
-                record = self.scope.record(duration_s, min_rate_hz)
+                record = self.scope.record(duration_s, min_rate_hz, min_unclipped_s)
+                for ch in record.clipped:
+                    self.counters["cut_before_clip"] = self.counters.get("cut_before_clip", 0) + 1
+                    self.scope.range_up(ch)
                 length_s = float(record.t_s[-1] - record.t_s[0] + record.sample_interval_s)
                 self._seen = (record.completed_at_s - length_s, record.completed_at_s,
                               {ch: float(np.max(np.abs(v))) for ch, v in record.volts.items()})
@@ -180,7 +204,8 @@ class ScopeSensor:
         longest = self.scope.profile.time_scales_s[-1] * self.scope.profile.time_divisions
         try:
             self._range_for_growth(min(duration_s, longest))
-            record = self._record(min(duration_s, longest), self.sample_rate_hz)
+            asked = min(duration_s, longest)
+            record = self._record(asked, self.sample_rate_hz, UNCLIPPED_SHARE * asked)
         finally:  # records refused (clipped) took rig time too
             self.last_acquire_s = self.clock.now() - start
         self.last_scales_v = dict(record.scales_v)
@@ -195,6 +220,7 @@ class ScopeSensor:
                                        f"({points.size / rate:.0f} s); the record is taken again on a waveform twice as long")
         if self.exciter.omega_rad_s or self.exciter.arbitrary is not None:
             self.leveller.force_peak(*self._force_of(record))  # the trip
+            self.leveller.confirm_level()
             drift = self.exciter.omega_rad_s * self.scope.profile.timebase_ppm * 1e-6 * length_s
             if drift > MAX_CLOCK_PHASE_RAD:
                 raise DataQualityError(f"{self.scope.where}: a {length_s:.4g} s record at {self.exciter.omega_rad_s:g} rad/s: the "
@@ -208,7 +234,8 @@ class ScopeSensor:
         driven near resonance grows for several of its decay times, and a clipped record costs
         the whole record again) plus what the last record showed beyond that drive's response
         then (an earlier dwell's mode still ringing). Without a model, or before any record,
-        nothing changes. The model is in displacement: a velocity or acceleration channel is
+        nothing changes (the first record: a channel that clips late in it is cut there,
+        ``UNCLIPPED_SHARE``). The model is in displacement: a velocity or acceleration channel is
         left to the clipping check."""
         if (self._seen is None or not self.response_models or not self.exciter.drive_steps or not self.exciter.lines[0]
                 or self.exciter.volts <= 0.0):
