@@ -55,10 +55,6 @@ log = logging.getLogger(__name__)
 
 MAX_RANGE_STEPS = 6
 RANGE_HEADROOM = 1.15  # a channel is ranged for this much more than the peak it showed (the response still grows)
-# a dwell's record whose channels stay off the ADC's rails for this share of it is cut there and
-# kept (a response growing from rest clips late: the first record, ranged without a model to say
-# how far it grows); the fit uses the length it has
-UNCLIPPED_SHARE = 0.75
 RESOLUTION_SHARE = 0.1  # a multisine line is resolved while the quantization's bias on it is at most this much of it (dynamic_range)
 
 
@@ -106,8 +102,8 @@ class ScopeSensor:
         resolved while the quantization's bias on it (:func:`quantization_bias`, with the noisiest
         dither of the channels measured, the least dithered) is at most ``RESOLUTION_SHARE`` of
         it. Without measured noise the bias is a whole code: an 8-bit screen then resolves lines
-        down to about 1/7 of the sum; with the DS1104Z's own noise (about half a code rms) about
-        1/240. The random part of the quantization averages down like the noise it is, in the
+        down to about 1/6 of the sum; with the emulated DS1104Z's noise (0.47 of a code rms) about
+        1/210. The random part of the quantization averages down like the noise it is, in the
         fit's radius."""
         p = self.scope.profile
         code_div = adc_code(p.divisions, p.adc_bits)
@@ -177,15 +173,11 @@ class ScopeSensor:
             self.scope.range_for(ch.number, RANGE_HEADROOM * ratio * float(np.max(np.abs(record.volts[ch.number]))))
 
     # -- records -----------------------------------------------------------------------------------
-    def _record(self, duration_s: float, min_rate_hz: float = 0.0, min_unclipped_s: float = math.inf) -> ScopeRecord:
-        """One record; a clipped channel moves up a scale and the record is taken again (one
-        clipped only after ``min_unclipped_s`` is cut there and the channel moves up for the next)."""
+    def _record(self, duration_s: float, min_rate_hz: float = 0.0) -> ScopeRecord:
+        """One record; a clipped channel moves up a scale and the record is taken again."""
         for step in range(MAX_RANGE_STEPS + 1):
             try:
-                record = self.scope.record(duration_s, min_rate_hz, min_unclipped_s)
-                for ch in record.clipped:
-                    self.counters["cut_before_clip"] = self.counters.get("cut_before_clip", 0) + 1
-                    self.scope.range_up(ch)
+                record = self.scope.record(duration_s, min_rate_hz)
                 length_s = float(record.t_s[-1] - record.t_s[0] + record.sample_interval_s)
                 self._seen = (record.completed_at_s - length_s, record.completed_at_s,
                               {ch: float(np.max(np.abs(v))) for ch, v in record.volts.items()})
@@ -204,8 +196,7 @@ class ScopeSensor:
         longest = self.scope.profile.time_scales_s[-1] * self.scope.profile.time_divisions
         try:
             self._range_for_growth(min(duration_s, longest))
-            asked = min(duration_s, longest)
-            record = self._record(asked, self.sample_rate_hz, UNCLIPPED_SHARE * asked)
+            record = self._record(min(duration_s, longest), self.sample_rate_hz)
         finally:  # records refused (clipped) took rig time too
             self.last_acquire_s = self.clock.now() - start
         self.last_scales_v = dict(record.scales_v)
@@ -234,8 +225,7 @@ class ScopeSensor:
         driven near resonance grows for several of its decay times, and a clipped record costs
         the whole record again) plus what the last record showed beyond that drive's response
         then (an earlier dwell's mode still ringing). Without a model, or before any record,
-        nothing changes (the first record: a channel that clips late in it is cut there,
-        ``UNCLIPPED_SHARE``). The model is in displacement: a velocity or acceleration channel is
+        nothing changes. The model is in displacement: a velocity or acceleration channel is
         left to the clipping check."""
         if (self._seen is None or not self.response_models or not self.exciter.drive_steps or not self.exciter.lines[0]
                 or self.exciter.volts <= 0.0):

@@ -15,10 +15,7 @@
    refused naming the scope;
 4. refuses a record with a code at the ADC's rails (``clip_codes``: clipped, or a hole) naming
    the channel; the caller moves that channel's vertical scale up and records again
-   (:class:`ClippedChannel`). With ``min_unclipped_s``, a record whose every channel stays off
-   the rails for that long from its start is cut before its first sample at the rails instead
-   (``ScopeRecord.clipped`` names the channels): a response growing from rest clips late in its
-   record, and what came before is as good as any record of that length.
+   (:class:`ClippedChannel`).
 
 Volts: ``(code - yorigin - yreference) * yincrement`` where the profile's ``y_origin`` is
 ``"codes"`` (Rigol), ``(code - yreference) * yincrement + yorigin`` where it is ``"volts"``
@@ -97,7 +94,6 @@ class ScopeRecord:
     scales_v: dict[int, float]  # V/div of each channel when recorded
     sample_interval_s: float
     completed_at_s: float = math.nan  # the clock when the scope said the record was complete (before the transfer)
-    clipped: tuple[int, ...] = ()  # channels that reached the rails after the record was cut (ScpiScope.record)
 
 
 class ScpiScope(ScpiInstrument):
@@ -224,34 +220,23 @@ class ScpiScope(ScpiInstrument):
         return length
 
     # -- one record -----------------------------------------------------------------------------
-    def record(self, duration_s: float, min_rate_hz: float = 0.0, min_unclipped_s: float = math.inf) -> ScopeRecord:
-        """Arm, wait for the trigger and the record, read every channel (module docstring); a
-        channel at the ADC's rails within ``min_unclipped_s`` of the start refuses the record,
-        one at the rails only later cuts it before that sample."""
+    def record(self, duration_s: float, min_rate_hz: float = 0.0) -> ScopeRecord:
+        """Arm, wait for the trigger and the record, read every channel (module docstring)."""
         length = self.set_record_length(duration_s, min_rate_hz)
         self._command("arm")
         self._wait_done(length)
         completed = self.clock.now()
         volts, t, dt = {}, None, 0.0
-        cut, clipped = None, []
         for ch in self.channels:
             pre, codes = self._read_channel(ch)
-            at_rails = np.flatnonzero(np.isin(codes, self.profile.clip_codes))
-            if at_rails.size:
-                if at_rails[0] * pre.xincrement < min_unclipped_s:
-                    raise ClippedChannel(self.where, ch, int(at_rails.size), self.scales_v[ch])
-                cut = int(at_rails[0]) if cut is None else min(cut, int(at_rails[0]))
-                clipped.append(ch)
+            clipped = int(np.isin(codes, self.profile.clip_codes).sum())
+            if clipped:
+                raise ClippedChannel(self.where, ch, clipped, self.scales_v[ch])
             volts[ch] = volts_from_codes(codes, pre, self.profile.y_origin)
             if t is None:
                 t = (np.arange(pre.points) - pre.xreference) * pre.xincrement + pre.xorigin
                 dt = pre.xincrement
-        if cut is not None:
-            log.info("%s: channel(s) %s at the ADC's rails after %.4g s of a %.4g s record: cut there", self.where,
-                     ", ".join(map(str, clipped)), cut * dt, length)
-            completed -= (t.size - cut) * dt  # where the kept part ended, by the clock (the waveform alignment uses it)
-            t, volts = t[:cut], {ch: v[:cut] for ch, v in volts.items()}
-        return ScopeRecord(t, volts, dict(self.scales_v), dt, completed, tuple(clipped))
+        return ScopeRecord(t, volts, dict(self.scales_v), dt, completed)
 
     NOISE_RECORD_S = 0.05
     NOISE_POINTS = 2000
