@@ -99,8 +99,8 @@ class ScopeSensor:
         """The largest ratio of a multisine record's summed line amplitudes to one line this scope
         still resolves (:class:`~setmem_hil.drivers.protocols.ResolutionLimitedSensor`): a ranged
         channel's sum fills ``SCREEN_FILL / RANGE_HEADROOM`` of the half screen, and a line is
-        resolved while the quantization's bias on it (:func:`quantization_bias`, with the noisiest
-        dither of the channels measured, the least dithered) is at most ``RESOLUTION_SHARE`` of
+        resolved while the quantization's bias on it (:func:`quantization_bias`, on the least dithered
+        of the channels: the one with the least measured noise) is at most ``RESOLUTION_SHARE`` of
         it. Without measured noise the bias is a whole code: an 8-bit screen then resolves lines
         down to about 1/6 of the sum; with the emulated DS1104Z's noise (0.47 of a code rms) about
         1/210. The random part of the quantization averages down like the noise it is, in the
