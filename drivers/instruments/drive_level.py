@@ -90,7 +90,10 @@ def held_waveform_gain(t_s: np.ndarray, force_n: np.ndarray, points: np.ndarray,
         raise DataQualityError(f"a levelling record of {r.size} points on a waveform of {n}: cannot align them")
     corr = np.fft.irfft(np.conj(np.fft.rfft(r, n)) * np.fft.rfft(points, n), n)
     # normalised by each window's energy: the least-squares fit's quality at every alignment
-    energy = np.convolve(np.concatenate([points, points[: r.size - 1]]) ** 2, np.ones(r.size), "valid")
+    # (a running sum: a convolution with a window as long as the record is quadratic in its
+    # length, and a 120 s record of a long waveform took minutes)
+    running = np.concatenate([[0.0], np.cumsum(np.concatenate([points, points[: r.size - 1]]) ** 2)])
+    energy = running[r.size:] - running[: running.size - r.size]
     score = corr * np.abs(corr) / np.maximum(energy, 1e-300)
     if near_s is not None:  # only the shifts within within_s of where the clock puts the record
         centre, half = int(round(near_s * rate_hz)), int(math.ceil(within_s * rate_hz))
