@@ -311,3 +311,45 @@ def test_the_smallest_line_a_scope_resolves_carries_the_chosen_share_of_quantiza
     mixed = _bare_sensor({1: 0.6 * code_div, 2: 0.6 * code_div, 3: 0.6 * code_div})
     assert mixed.dynamic_range == pytest.approx(_bare_sensor({}).dynamic_range)
 
+
+
+def test_before_any_model_the_outputs_other_than_the_control_output_get_room_for_a_mode_growing_from_rest():
+    """The first record's ranging: the levelling record's peaks times the level ratio, with
+    FIRST_RECORD_ROOM on the non-control outputs while no model can predict the growth; once the
+    campaign has models, every channel gets the same room (the model then ranges for growth)."""
+    from types import SimpleNamespace
+
+    asked: dict[int, float] = {}
+    sensor = _bare_sensor({})
+    sensor.scope.range_for = lambda channel, peak_v: asked.__setitem__(channel, peak_v)
+    peaks = {1: 0.2, 2: 0.3, 3: 0.3, 4: 0.05}
+    record = SimpleNamespace(volts={ch: v * np.sin(np.linspace(0.0, 20.0, 400)) for ch, v in peaks.items()})
+    peak_of = {ch: float(np.max(np.abs(record.volts[ch]))) for ch in peaks}
+
+    sensor.response_models = ()
+    sensor._range_from(record, 1.0)
+    per_unit = {ch: asked[ch] / peak_of[ch] for ch in peaks}
+    assert per_unit[1] == pytest.approx(per_unit[2])  # force and control output: the same room
+    assert per_unit[3] == pytest.approx(scope_rig.FIRST_RECORD_ROOM * per_unit[2])
+    assert per_unit[4] == pytest.approx(scope_rig.FIRST_RECORD_ROOM * per_unit[2])
+    assert per_unit[2] >= scope_rig.RANGE_HEADROOM  # never less than the peak with its room
+
+    sensor.response_models = (object(),)
+    sensor._range_from(record, 1.0)
+    assert {ch: asked[ch] / peak_of[ch] for ch in peaks} == pytest.approx({ch: per_unit[2] for ch in peaks})
+
+
+def test_a_line_near_a_lightly_damped_mode_driven_from_rest_beats_up_to_twice_its_steady_amplitude():
+    """Why FIRST_RECORD_ROOM is 2 (the closed-form response from rest, not our ranging code): a
+    line at 0.05 rad/s from a mode with zeta = 0.001 reaches, within a 150 s record, close to
+    twice its steady amplitude (the free response started at rest is the forced one's size, up to
+    the ratio of the frequencies)."""
+    from setmem_hil.estimation.response_growth import zero_state_response
+    from setmem_hil.model.modal_model import ModalParameters
+
+    omega_n, zeta, line = 1.0, 0.001, 1.05
+    model = ModalParameters.from_modal(omega_n, zeta, 1.0)
+    t = np.linspace(0.0, 150.0, 30001)
+    y = zero_state_response(model, [line], [1.0], [(0.0, 1.0)], t)
+    steady = abs(1.0 / (omega_n**2 - line**2 + 2j * zeta * omega_n * line))
+    assert 1.9 * steady < np.max(np.abs(y)) <= (1.0 + line / omega_n) * steady

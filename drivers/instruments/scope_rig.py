@@ -12,8 +12,10 @@ fit), with three things the scope adds:
   wrong by tens of percent; a record whose force exceeds ``1.05 x max_amplitude_n`` switches
   the output off and stops the run;
 * **vertical ranging**: every channel starts on the largest V/div; the levelling records set
-  each channel to the smallest scale holding its peak with room; a clipped record moves that
-  channel up and is taken again;
+  each channel to the smallest scale holding its peak with room (before the campaign has a
+  model, the outputs other than the control output with ``FIRST_RECORD_ROOM``; later, each
+  response channel also holds what the model says the response will grow to); a clipped record
+  moves that channel up and is taken again;
 * **instrument terms in the bound** (:meth:`ScopeSensor.corrected`,
   :mod:`setmem_hil.estimation.channel_errors`): gain accuracy, quantization, calibration and
   timing for every channel used, then the ratio converted to receptance (velocity and
@@ -43,7 +45,7 @@ from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, calibration_scales, scale_structure_terms, with_instrument_terms
 from setmem_hil.errors import DataQualityError
-from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, adc_code, quantization_bias, scope_channel_error
+from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, adc_code, measured_quantization_bias, scope_channel_error
 from setmem_hil.estimation.channel_match import DRIFT_ALLOWANCE
 from setmem_hil.estimation.response_growth import predicted_peak
 from setmem_hil.model.channel_match import ChannelMatch
@@ -55,6 +57,16 @@ log = logging.getLogger(__name__)
 
 MAX_RANGE_STEPS = 6
 RANGE_HEADROOM = 1.15  # a channel is ranged for this much more than the peak it showed (the response still grows)
+# Before the campaign has a model (the first record), how a mode grows from rest over the record
+# is unknown: a line near a lightly damped mode beats with the free response it starts, up to
+# twice its steady amplitude, long after the levelling records saw it. The outputs other than the
+# control output are ranged for this much more than their levelling peak: their points narrow the
+# shared poles, not the residues mu-bar depends on, so a coarser first record costs them little,
+# while a clip on any channel costs the whole record again (on the emulated rig the channel at
+# 0.7 of the beam, mostly the first mode, clipped half way into every first record). The control
+# output stays tightly ranged: ranging it twice as coarse left the design a first record too
+# coarse between the second and third modes (4 of 10 tuning campaigns then stalled there).
+FIRST_RECORD_ROOM = 2.0
 RESOLUTION_SHARE = 0.1  # a multisine line is resolved while the quantization's bias on it is at most this much of it (dynamic_range)
 
 
@@ -99,7 +111,7 @@ class ScopeSensor:
         """The largest ratio of a multisine record's summed line amplitudes to one line this scope
         still resolves (:class:`~setmem_hil.drivers.protocols.ResolutionLimitedSensor`): a ranged
         channel's sum fills ``SCREEN_FILL / RANGE_HEADROOM`` of the half screen, and a line is
-        resolved while the quantization's bias on it (:func:`quantization_bias`, on the least dithered
+        resolved while the quantization's bias on it (:func:`measured_quantization_bias`, on the least dithered
         of the channels: the one with the least measured noise) is at most ``RESOLUTION_SHARE`` of
         it. Without measured noise the bias is a whole code: an 8-bit screen then resolves lines
         down to about 1/6 of the sum; with the emulated DS1104Z's noise (0.47 of a code rms) about
@@ -108,8 +120,8 @@ class ScopeSensor:
         p = self.scope.profile
         code_div = adc_code(p.divisions, p.adc_bits)
         filled_codes = self.scope.SCREEN_FILL / RANGE_HEADROOM * p.divisions / 2.0 / code_div
-        biases = [quantization_bias(code_div, math.sqrt(max(0.0, self.noise_div[ch.number] ** 2 - code_div**2 / 12.0)))
-                  if ch.number in self.noise_div else code_div for ch in self.channels]
+        biases = [measured_quantization_bias(code_div, self.noise_div[ch.number]) if ch.number in self.noise_div else code_div
+                  for ch in self.channels]
         return filled_codes * RESOLUTION_SHARE * code_div / max(biases)
 
     def set_sample_rate(self, rate_hz: float) -> None:
@@ -167,10 +179,12 @@ class ScopeSensor:
 
     def _range_from(self, record: ScopeRecord, level_ratio: float) -> None:
         """Every channel ranged for what it will show once the force is on target (the record's
-        peaks times ``level_ratio``, the force at most ``1 + LEVEL_TOLERANCE`` of its target)."""
+        peaks times ``level_ratio``, the force at most ``1 + LEVEL_TOLERANCE`` of its target);
+        before any model, the outputs other than the control output with ``FIRST_RECORD_ROOM``."""
         ratio = min(max(level_ratio, 1.0 / MAX_STEP_UP), MAX_STEP_UP) * (1 + LEVEL_TOLERANCE)
         for ch in self.channels:
-            self.scope.range_for(ch.number, RANGE_HEADROOM * ratio * float(np.max(np.abs(record.volts[ch.number]))))
+            room = FIRST_RECORD_ROOM if not self.response_models and ch in self.responses[1:] else 1.0
+            self.scope.range_for(ch.number, room * RANGE_HEADROOM * ratio * float(np.max(np.abs(record.volts[ch.number]))))
 
     # -- records -----------------------------------------------------------------------------------
     def _record(self, duration_s: float, min_rate_hz: float = 0.0) -> ScopeRecord:

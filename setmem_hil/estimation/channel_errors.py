@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["ChannelError", "ratio_error_bound", "scope_channel_error", "quantization_bias", "adc_code", "MAX_CLOCK_PHASE_RAD", "GAIN_TEST_SPAN"]
+__all__ = ["ChannelError", "ratio_error_bound", "scope_channel_error", "quantization_bias", "measured_quantization_bias", "adc_code", "MAX_CLOCK_PHASE_RAD", "GAIN_TEST_SPAN"]
 
 GAIN_TEST_SPAN = 0.75  # of full scale: the span over which the gain accuracy is verified (module docstring)
 MAX_CLOCK_PHASE_RAD = 0.5  # omega x clock error x record length above this: the record is refused (the sinc attenuation, common to every channel, would pass 1 %)
@@ -76,6 +76,12 @@ def quantization_bias(q: float, noise_rms: float) -> float:
     return min(q, 4 / math.pi * q / math.pi * terms)
 
 
+def measured_quantization_bias(q: float, measured_noise_rms: float) -> float:
+    """:func:`quantization_bias` dithered by a channel's noise as measured through its ADC:
+    the measurement holds the quantization's own ``q^2 / 12``, which is no dither and comes off."""
+    return quantization_bias(q, math.sqrt(max(0.0, measured_noise_rms**2 - q * q / 12.0)))
+
+
 def scope_channel_error(*, gain_accuracy: float, full_scale_v: float, adc_bits: int, volt_per_unit: float, calibration: float,
                         omega_rad_s: float, trigger_jitter_s: float, noise_v: float = 0.0, matched_gain: tuple[float, float] | None = None) -> ChannelError:
     """A scope channel's discs from its datasheet figures, the vertical scale it recorded at and
@@ -85,9 +91,8 @@ def scope_channel_error(*, gain_accuracy: float, full_scale_v: float, adc_bits: 
     by ``gain``; :mod:`setmem_hil.estimation.channel_match`): the gain term is then ``bound``
     instead of the datasheet's accuracy, and the quantization is in the divided signal's units."""
     q = adc_code(full_scale_v, adc_bits)
-    analog = math.sqrt(max(0.0, noise_v**2 - q * q / 12.0))
     gain, gain_term = (1.0, gain_accuracy / GAIN_TEST_SPAN) if matched_gain is None else matched_gain
-    return ChannelError(quantization_bias(q, analog) / volt_per_unit / gain, calibration + gain_term + omega_rad_s * trigger_jitter_s)
+    return ChannelError(measured_quantization_bias(q, noise_v) / volt_per_unit / gain, calibration + gain_term + omega_rad_s * trigger_jitter_s)
 
 
 def ratio_error_bound(g_hat: complex, force_amplitude: float, force: ChannelError, response: ChannelError) -> float:

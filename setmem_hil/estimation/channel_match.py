@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from setmem_hil.estimation.channel_errors import quantization_bias
+from setmem_hil.estimation.channel_errors import measured_quantization_bias
 from setmem_hil.model.channel_match import ChannelGain, scale_key
 
 __all__ = ["MatchRecord", "solve_channel_match", "amplitude_error_bound", "fit_amplitude",
@@ -64,8 +64,7 @@ def amplitude_error_bound(amplitude_v: float, n_samples: int, noise_v: float, co
     """Relative bound on a fitted amplitude: the quantization's bias (dithered by the channel's
     own noise ``noise_v``, rms volts measured with nothing connected; ``code_v`` one ADC code)
     and ``NOISE_SIGMAS`` standard deviations of the fit (``noise_v sqrt(2 / N)``)."""
-    analog = math.sqrt(max(0.0, noise_v**2 - code_v**2 / 12.0))
-    absolute = quantization_bias(code_v, analog) + NOISE_SIGMAS * noise_v * math.sqrt(2.0 / n_samples)
+    absolute = measured_quantization_bias(code_v, noise_v) + NOISE_SIGMAS * noise_v * math.sqrt(2.0 / n_samples)
     return absolute / amplitude_v
 
 
