@@ -10,6 +10,12 @@
 5-7. choose the next frequency with the procedure's strategy (:mod:`setmem_hil.design.strategies`;
    ``"mu"`` is eq. 5.3 via :func:`setmem_hil.design.input_design.choose_input`), measure it, and go on.
 
+**A region that keeps disappointing** (section 6.3.4's trap): after three consecutive
+single-frequency iterations in one region that each lowered mu-bar by less than a quarter of
+the improvement predicted for them, that region is left out of the candidates for the rest of
+the campaign (:mod:`setmem_hil.design.unproductive_region`; journal event ``left-out``). It
+depends only on the mu-bar values and choices, so a replay leaves out the same regions.
+
 **Journal and resume (REPLAY).** Every measurement is written to the journal as soon as it is
 taken, every iteration's bounds, mu-bar, sensitivities and candidate scores after it is
 computed. A campaign resumed from its journal reruns the loop from the start: whenever it needs
@@ -66,6 +72,7 @@ from setmem_hil.model.experiment import (
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.identification.calibration_scale import measured_scale_prior, plant_bounds
 from setmem_hil.design.input_design import InputChoice, candidate_frequencies, choose_input, sensitivity_matrix, uniform_weights
+from setmem_hil.design.unproductive_region import RUN, Outcome, describe, outside_regions, predicted_improvement, unproductive_region
 from setmem_hil.io.procedure import Procedure
 from setmem_hil.design.safeguard import SafeguardOutcome, safeguarded_design
 from setmem_hil.design.strategies import check_strategy, log_sweep_frequency, random_frequency
@@ -317,10 +324,12 @@ def next_frequency(
     measured: list[Measurement],
     seed: int | None,
     sensor_models=None,
+    left_out: tuple[tuple[float, float], ...] = (),
 ) -> InputChoice:
     """Algorithm 5.1 steps 5-7 for one strategy (see :mod:`setmem_hil.design.strategies`);
     ``sensor_models`` (several sensors): every output's model, so the exact re-solves predict
-    every sensor's point (:class:`~setmem_hil.design.input_design.OtherOutputs`)."""
+    every sensor's point (:class:`~setmem_hil.design.input_design.OtherOutputs`); ``left_out``:
+    regions (rad/s) no candidate is taken from (:mod:`setmem_hil.design.unproductive_region`)."""
     settings = procedure.input_design.resolved(procedure.weights.reference_frequency_rad_s(), procedure.safety)
     empty = np.zeros(0)
     if strategy == "log-sweep":
@@ -329,6 +338,7 @@ def next_frequency(
         return InputChoice(random_frequency(seed, k, settings), empty, empty, "random")
     model = result.model
     omega = candidate_frequencies(k, settings)
+    omega = omega[outside_regions(omega, left_out)]
     R = candidate_noise_bound(experiment, omega, measured)
     cost = dwell_seconds(experiment, model, omega) if settings.ranking == "per_rig_second" else None
     if strategy == "mu":
@@ -383,7 +393,8 @@ def dwell_seconds(experiment: Any, model, omega_rad_s: np.ndarray) -> np.ndarray
 
 
 def batch_frequencies(first: float, strategy: str, k: int, n_added: int, procedure: Procedure, result, data: FrequencyData,
-                      outcome: SafeguardOutcome, experiment: Any, measured: list[Measurement], seed: int | None, count: int) -> list[float]:
+                      outcome: SafeguardOutcome, experiment: Any, measured: list[Measurement], seed: int | None, count: int,
+                      left_out: tuple[tuple[float, float], ...] = ()) -> list[float]:
     """``count`` frequencies for one iteration (``[input_design] per_iteration``), ``first`` first.
 
     Each further choice is made on the data plus the frequencies already chosen, as the
@@ -416,7 +427,7 @@ def batch_frequencies(first: float, strategy: str, k: int, n_added: int, procedu
             else:
                 break
         choice = next_frequency(strategy, k * 1000 + j if strategy == "random" else k, n_added + j, procedure, trial,
-                                augmented, outcome, experiment, measured, seed)
+                                augmented, outcome, experiment, measured, seed, left_out=left_out)
         if any(math.isclose(choice.next_omega_rad_s, c, rel_tol=1e-9) for c in chosen):
             break
         chosen.append(float(choice.next_omega_rad_s))
@@ -458,7 +469,9 @@ def run_campaign(
         ``progress(event, **info)`` with events ``"measure"`` (index, total, omega_rad_s,
         replayed), ``"iteration"`` (k, n_points, mu_peak, mu_peak_omega, safeguard, outputs: every
         sensor's bounds with several sensors, else None),
-        ``"chosen"`` (k, next_omega) and ``"finished"`` (summary).
+        ``"left-out"`` (k, region, message: a region left out of the candidates,
+        :mod:`setmem_hil.design.unproductive_region`), ``"chosen"`` (k, next_omega) and
+        ``"finished"`` (summary).
     continue_stored : bool, optional
         Continue a stopped run with a changed procedure (``run --resume DIR --procedure FILE``):
         every measurement stored in ``journal`` is data from the start (none is measured again,
@@ -527,6 +540,10 @@ def run_campaign(
     sensor_models = None
     previous_outcome: SafeguardOutcome | None = None
     rows: list[IterationSummary] = []
+    # what each iteration's experiment was predicted to do and did (section 6.3.4's trap)
+    outcomes: list[Outcome] = []
+    left_out: list[tuple[float, float]] = []
+    last_experiment: tuple[float | None, float] | None = None  # (frequency or None for several, predicted)
     while True:
         t_it, cpu_it = time.perf_counter(), time.process_time()
         data = FrequencyData.from_measurements(measured)
@@ -553,6 +570,16 @@ def run_campaign(
              mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch,
              rig_s=float(sum(m.rig_s for m in measured)), mu_peak_certified=outcome.certified,
              outputs=None if sensor_models is None else sensors_document(procedure, sensor_models, scales))
+        if last_experiment is not None and previous_outcome is not None:
+            outcomes.append(Outcome(last_experiment[0], last_experiment[1], previous_outcome.mu_peak - outcome.mu_peak))
+            region = unproductive_region(outcomes)
+            if region is not None:
+                left_out.append(region)
+                message = f"iteration {k}: {describe(region, outcomes[-RUN:])}"
+                if journal is not None and k not in stored_iterations:
+                    journal.add_event(UNPRODUCTIVE_REGION_EVENT, message)
+                emit("left-out", k=k, region=region, message=message)
+                outcomes.clear()
         reached = goal_certified(outcome, goal)
         certified_intervals = int(getattr(analysis, "mu_certified_intervals", 0))
         budget_spent = n_added >= goal.max_experiments
@@ -560,7 +587,7 @@ def run_campaign(
         if not (reached or budget_spent):
             with blas_one_thread():
                 choice = next_frequency(strategy, k, n_added, procedure, result, data, outcome, experiment, measured, seed,
-                                        sensor_models=sensor_models)
+                                        sensor_models=sensor_models, left_out=tuple(left_out))
         next_omega = None if choice is None else choice.next_omega_rad_s
         compute_s = time.perf_counter() - t_it
         compute_cpu_s = time.process_time() - cpu_it
@@ -621,9 +648,10 @@ def run_campaign(
         per_iteration = min(procedure.input_design.per_iteration, goal.max_experiments - n_added)
         if per_iteration > 1:
             batch = batch_frequencies(next_omega, strategy, k, n_added, procedure, result, data, outcome, experiment,
-                                      measured, seed, per_iteration)
+                                      measured, seed, per_iteration, tuple(left_out))
             if journal is not None and k not in stored_iterations:
                 journal.add_event(BATCH_EVENT, f"iteration {k}: " + ", ".join(f"{w:.9g}" for w in batch) + " rad/s")
+        last_experiment = (batch[0] if len(batch) == 1 else None, predicted_improvement(choice))
         for w in batch:
             emit("chosen", k=k, next_omega=w)
         added = measure_batch(source, procedure, batch, iteration=k, role="added")
@@ -653,6 +681,9 @@ def run_campaign(
     emit("finished", summary=summary)
     return summary
 
+
+UNPRODUCTIVE_REGION_EVENT = "left-out"
+"""Journal event of a frequency region left out of the candidates (:mod:`setmem_hil.design.unproductive_region`)."""
 
 BATCH_EVENT = "batch"
 """Journal event of an iteration that chose several frequencies (``[input_design] per_iteration``)."""

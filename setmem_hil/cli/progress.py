@@ -187,6 +187,8 @@ class CampaignProgress:
             )
             for line in output_lines(info.get("outputs")):
                 self._line(line)
+        elif event == "left-out":
+            self._line(str(info.get("message", "")))
         elif event == "chosen":
             self.next_omega = float(info["next_omega"])
             self._show_status()
