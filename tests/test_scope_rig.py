@@ -312,7 +312,6 @@ def test_the_smallest_line_a_scope_resolves_carries_the_chosen_share_of_quantiza
     assert mixed.dynamic_range == pytest.approx(_bare_sensor({}).dynamic_range)
 
 
-
 def test_before_any_model_the_outputs_other_than_the_control_output_get_room_for_a_mode_growing_from_rest():
     """The first record's ranging: the levelling record's peaks times the level ratio, with
     FIRST_RECORD_ROOM on the non-control outputs while no model can predict the growth; once the

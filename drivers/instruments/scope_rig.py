@@ -119,10 +119,15 @@ class ScopeSensor:
         fit's radius."""
         p = self.scope.profile
         code_div = adc_code(p.divisions, p.adc_bits)
-        filled_codes = self.scope.SCREEN_FILL / RANGE_HEADROOM * p.divisions / 2.0 / code_div
         biases = [measured_quantization_bias(code_div, self.noise_div[ch.number]) if ch.number in self.noise_div else code_div
                   for ch in self.channels]
-        return filled_codes * RESOLUTION_SHARE * code_div / max(biases)
+        return self._ranged_peak_div * RESOLUTION_SHARE / max(biases)
+
+    @property
+    def _ranged_peak_div(self) -> float:
+        """Where a ranged channel's peak sits, in divisions from the centre (``SCREEN_FILL`` of
+        the half screen, less the room ``RANGE_HEADROOM`` leaves)."""
+        return self.scope.SCREEN_FILL / RANGE_HEADROOM * self.scope.profile.divisions / 2.0
 
     def set_sample_rate(self, rate_hz: float) -> None:
         self.sample_rate_hz = float(rate_hz)  # the scope's memory depth and time scale decide the rate it gives
@@ -145,9 +150,8 @@ class ScopeSensor:
         signal filling ``SCREEN_FILL / RANGE_HEADROOM`` of the half screen): the level's target
         leaves this much room."""
         p = self.scope.profile
-        filled_div = self.scope.SCREEN_FILL / RANGE_HEADROOM * p.divisions / 2.0
         code_div = adc_code(p.divisions, p.adc_bits)
-        return self.force.calibration_uncertainty + p.gain_accuracy / GAIN_TEST_SPAN + code_div / filled_div
+        return self.force.calibration_uncertainty + p.gain_accuracy / GAIN_TEST_SPAN + code_div / self._ranged_peak_div
 
     def _force_of(self, record: ScopeRecord) -> tuple[np.ndarray, np.ndarray, float]:
         """The record's force and where in the generator's arbitrary waveform it starts, by the

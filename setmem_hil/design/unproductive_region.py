@@ -4,9 +4,11 @@ The effect estimate (eq. 5.3) assumes the point measured at a candidate will car
 expected there and cut the intervals the way the certainty-equivalent point does. Where that
 is wrong the loop can be "caught in a trap of continuing to try the same frequency region when
 there is little information available" (section 6.3.4: the model mismatch dominated the noise
-the analysis assumed). The thesis diagnoses the trap and leaves it; on the emulated
-oscilloscope rig it spent a campaign's whole budget on single sines at 13.5-13.9 rad/s, each
-predicted to lower mu-bar by about 0.01 and each lowering it by less than 0.002.
+the analysis assumed). The thesis diagnoses the trap and leaves it. On the emulated
+oscilloscope rig, with the first record's control output ranged twice as coarse as shipped, it
+spent four of ten campaigns' budgets on single sines a few percent apart (13.5-13.9 or near
+16 rad/s), where mu-bar stopped improving; the rule below freed one of them. Where the exact
+re-solve's own prediction is already tiny and is met, the rule rightly waits.
 
 This project's choice (not the thesis's): after ``RUN`` consecutive iterations that each
 measured one frequency, all within ``REGION`` (relative) of one another, each lowering mu-bar
