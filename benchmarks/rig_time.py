@@ -23,12 +23,15 @@ arbitrary waveform, a DS1104Z sampling the force and three responses, the channe
 measured on the emulated tee first; seed = the procedure's seed), for ``single-sine`` and the
 shipped fast configuration ``multisine/batch-5``; rig time is what the instruments' clock
 counted (levelling records, re-records after clipping, 1-2-5 time bases included) and
-coverage is over every output's points.
+coverage is over every output's points. ``--generator`` plays them through another shipped
+generator profile's emulator (``rigol-dg800``: 14-bit binary packages; ``siglent-sdg2000x``:
+16-bit TrueArb).
 
 Usage::
 
     .venv/bin/python benchmarks/rig_time.py --seeds 1-10 --workers 2
     .venv/bin/python benchmarks/rig_time.py --seeds 101-120 --backend scope --only single-sine,multisine/batch-5
+    .venv/bin/python benchmarks/rig_time.py --seeds 101-120 --backend scope --only multisine/batch-5 --generator rigol-dg800
 """
 
 from __future__ import annotations
@@ -55,7 +58,7 @@ CONFIGS = {
 }
 
 
-def run_scope(config: str, seed: int) -> dict:
+def run_scope(config: str, seed: int, generator: str = "keysight-33500b") -> dict:
     """One campaign through the emulated generator + oscilloscope (module docstring)."""
     import tempfile
     from pathlib import Path
@@ -73,8 +76,10 @@ def run_scope(config: str, seed: int) -> dict:
     signal = options.pop("signal", "sine")
     options.pop("max_window_s", None)
     with tempfile.TemporaryDirectory() as where:  # no match file there: measured on the emulated tee
+        fgen = dataclasses.replace(base.instruments["fgen"], profile=generator)
         procedure = dataclasses.replace(base, seed=seed, dwell_signal=signal, source_path=str(Path(where) / "scope.toml"),
-                                        input_design=dataclasses.replace(base.input_design, **options))
+                                        input_design=dataclasses.replace(base.input_design, **options),
+                                        instruments={**base.instruments, "fgen": fgen})
         t0 = time.perf_counter()
         measured = []
         with open_experiment(procedure, seed) as exp:
@@ -98,10 +103,10 @@ def run_scope(config: str, seed: int) -> dict:
     }
 
 
-def run_one(config: str, seed: int, backend: str = "time-domain") -> dict:
+def run_one(config: str, seed: int, backend: str = "time-domain", generator: str = "keysight-33500b") -> dict:
     if backend == "scope":
         try:
-            return run_scope(config, seed)
+            return run_scope(config, seed, generator)
         except Exception as exc:  # noqa: BLE001 - a campaign that stops is a row of the table, not the end of it
             print(f"{config} seed {seed}: stopped: {exc}"[:300], flush=True)
             return {"config": config, "seed": seed, "reached": False, "rig_s": float("nan"), "experiments": 0, "iterations": 0,
@@ -160,13 +165,14 @@ def main() -> None:
     parser.add_argument("--only", help="comma-separated configurations")
     parser.add_argument("--backend", choices=("time-domain", "scope"), default="time-domain",
                         help="the in-process time-domain rig, or the emulated generator + oscilloscope")
+    parser.add_argument("--generator", default="keysight-33500b", help="with --backend scope: the generator's shipped profile")
     args = parser.parse_args()
     configs = args.only.split(",") if args.only else list(CONFIGS)
     first, _, last = args.seeds.partition("-")
     seeds = range(1, int(first) + 1) if not last else range(int(first), int(last) + 1)
     jobs = [(c, s) for c in configs for s in seeds]
     with ProcessPoolExecutor(args.workers) as pool:
-        results = list(pool.map(run_one, *zip(*jobs), [args.backend] * len(jobs)))
+        results = list(pool.map(run_one, *zip(*jobs), [args.backend] * len(jobs), [args.generator] * len(jobs)))
     baseline = statistics.median(r["rig_s"] for r in results if r["config"] == "single-sine") if "single-sine" in configs else None
     print("| configuration | rig time to goal, median (s) | max (s) | ratio to single-sine | reached | experiments (median) | iterations (median) | coverage (min) |")
     print("|---|---|---|---|---|---|---|---|")

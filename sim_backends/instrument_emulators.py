@@ -5,11 +5,18 @@ terminated, what PyVISA opens as ``TCPIP::127.0.0.1::<port>::SOCKET``), so a cam
 end through the real-instrument drivers in CI:
 
 * :class:`GeneratorEmulator`: Keysight/Agilent 33500B series (``SOURce<n>:FREQuency``,
-  ``SOURce<n>:VOLTage`` in Vpp, ``OUTPut<n>``, ``OUTPut<n>:LOAD``, ``SYSTem:ERRor?``) and Rigol
-  DG800 (the same tree, commands with a leading colon, ``OUTPut<n>:IMPedance``);
+  ``SOURce<n>:VOLTage`` in Vpp, ``OUTPut<n>``, ``OUTPut<n>:LOAD``, ``SYSTem:ERRor?``, arbitrary
+  waveforms as ASCII ``SOURce<n>:DATA:ARBitrary``) and Rigol DG800 (the same tree, commands with a
+  leading colon, ``OUTPut<n>:IMPedance``, ``OUTPut<n>?`` answering ON/OFF, arbitrary waveforms as
+  binary ``:DATA:DAC16`` packages);
+* :class:`SiglentGeneratorEmulator`: Siglent SDG1000X/2000X (``C<n>:BSWV``, ``C<n>:OUTP``,
+  ``*ESR?``; TrueArb waveforms: ``WVDT`` with raw 16-bit data, ``ARWV``, ``SRATE``);
 * :class:`LockInEmulator`: Stanford Research SR830 (``FMOD``, ``OFLT``, ``OFSL``, ``SENS``,
   ``SNAP? 1,2``, ``LIAS?``, ``ERRS?``) and SR860 (``RSRC``, ``OFLT``, ``OFSL``, ``SCAL``,
   ``SNAP? 0,1``, ``CUROVLDSTAT?``, ``*ESR?``).
+
+Binary data (an IEEE 488.2 definite-length block, or Siglent's bare ``WAVEDATA`` bytes) is read
+by its length, as the instruments' parsers do: its bytes may hold the terminator.
 
 SCPI headers are matched in their canonical short form (long and short forms, any case), as the
 instruments do. An unknown command or a value out of the instrument's range is not executed and
@@ -60,7 +67,23 @@ class _Emulator:
         self.errors: list[str] = []
         self.commands: list[str] = []  # every command received (tests read the transcript)
 
-    def handle_line(self, line: str) -> str | bytes | None:
+    # binary data without a block header follows this text (None: the command set has none)
+    raw_payload_marker: bytes | None = None
+
+    def raw_payload_length(self, head: bytes) -> int | None:
+        """Bytes of binary data after ``head`` (the message up to ``raw_payload_marker``); None:
+        it does not say, the data runs to the message's terminator."""
+        return None
+
+    def handle_line(self, line: str, payload: bytes | None = None) -> str | bytes | None:
+        if payload is not None:  # a command carrying binary data is the whole message
+            self.commands.append(line)
+            try:
+                return self.handle_upload(line, payload)
+            except ValueError:
+                self.errors.append(OUT_OF_RANGE)
+                self.esr |= 1 << 4
+                return None
         replies = []
         for command in (c.strip() for c in line.split(";")):
             if not command:
@@ -81,6 +104,48 @@ class _Emulator:
     def handle(self, command: str) -> str | None:  # pragma: no cover - overridden
         raise NotImplementedError
 
+    def handle_upload(self, command: str, payload: bytes) -> None:
+        """A command followed by binary data; instruments without one answer a command error."""
+        self.errors.append(UNDEFINED_HEADER)
+        self.esr |= 1 << 5
+        return None
+
+
+def read_message(rfile, emulator: "_Emulator") -> tuple[str, bytes | None] | None:
+    """One message from the client: its text and the binary data it carries (None: none), or
+    None at the end of the connection. Binary data comes as an IEEE 488.2 definite-length block
+    (``#<n><length><bytes>``: the instruments' parsers read exactly ``length`` bytes, whatever
+    they hold) or, after the emulator's ``raw_payload_marker``, as bare bytes (as many as the
+    text before says, else to the terminator). The message's terminator follows the data."""
+    raw = rfile.readline()
+    if not raw:
+        return None
+    block = re.search(rb"#([1-9])", raw)
+    if block is not None:
+        digits = int(block.group(1))
+        length = raw[block.end(): block.end() + digits]
+        if len(length) == digits and length.isdigit():  # else not a block: text the parser refuses
+            return _with_payload(rfile, raw, block.start(), block.end() + digits, int(length))
+    marker = emulator.raw_payload_marker
+    if marker is not None and marker in raw:
+        start = raw.index(marker) + len(marker)
+        length = emulator.raw_payload_length(raw[:start])
+        if length is None:  # to the terminator: what a parser without a length can do
+            length = len(raw.rstrip(b"\n")) - start
+        return _with_payload(rfile, raw, start, start, length)
+    return raw.decode("ascii", errors="replace").strip(), None
+
+
+def _with_payload(rfile, raw: bytes, text_end: int, start: int, length: int) -> tuple[str, bytes]:
+    """Read the rest of a ``length``-byte payload starting at ``start`` and the terminator after it."""
+    missing = start + length - len(raw)
+    if missing > 0:
+        raw += rfile.read(missing)
+    rest = raw[start + length:]
+    if not rest.endswith(b"\n"):
+        raw += rfile.readline()  # the terminator (and anything else in the message)
+    return raw[:text_end].decode("ascii", errors="replace").strip(), raw[start: start + length]
+
 
 def _split(command: str) -> tuple[str, str]:
     head, _, args = command.strip().partition(" ")
@@ -98,7 +163,9 @@ class GeneratorEmulator(_Emulator):
     """A 33500B (``model = "33500B"``) or DG800 (``model = "DG800"``) two-channel generator.
 
     Only the channel wired to the amplifier (``channel``) drives the bench; the other channel's
-    settings are kept but go nowhere.
+    settings are kept but go nowhere. Arbitrary waveforms: the 33500B's named volatile waveforms
+    (``SOURce:DATA:ARBitrary``, ASCII) and the DG800's one volatile waveform (``:DATA:DAC16``,
+    binary); both play each point held one sample period (``FUNCtion:ARBitrary:SRATe``).
     """
 
     def __init__(self, bench: EmulatedBench, model: str = "33500B", channel: int = 1):
@@ -113,6 +180,7 @@ class GeneratorEmulator(_Emulator):
         self.volatile: dict[int, dict[str, np.ndarray]] = {1: {}, 2: {}}  # arbitrary waveforms downloaded (33500B)
         self.uploads, self.generation = 0, {}  # which download each (channel, name) holds
         self.playing: tuple | None = None  # what the bench plays: (points id, rate)
+        self.pending: dict[int, list[np.ndarray]] = {}  # DG800: packages received before END
 
     def handle(self, command: str) -> str | None:
         head, args = _split(command)
@@ -149,7 +217,48 @@ class GeneratorEmulator(_Emulator):
         }
         return table.get((root, rest))
 
-    MAX_ARB_POINTS = 1_000_000  # the standard 1 MSa a channel
+    MAX_ARB_POINTS = 1_000_000  # the standard 1 MSa a channel (33500B)
+    DG800_PACKAGE_BYTES = (16, 32768)  # 8 pts .. 16 kpts a package (DG800 guide, :DATA:DAC16)
+    DG800_MAX_POINTS = 2_000_000  # the DG800's arbitrary waveform memory (2 Mpts)
+
+    def handle_upload(self, command: str, payload: bytes) -> None:
+        """The DG800's ``[:SOURce[<n>]][:TRACe]:DATA:DAC16 VOLATILE,<flag>,<block>`` (DG800
+        programming guide): 14-bit DAC codes 0000-3FFF (0000 the waveform's minimum, 3FFF its
+        maximum), two bytes a point, 8 pts to 16 kpts a package; ``CON``: more packages follow,
+        ``END``: the last, after which the channel plays the waveform (arbitrary function) on its
+        own. The guide does not state the byte order: little-endian, as public code driving
+        DG800/DG900/DG1000Z hardware packs it."""
+        head, args = _split(command)
+        nodes = canonical_header(head)
+        m = re.fullmatch(r"SOUR(\d?)", nodes[0]) if nodes else None
+        ch = int(m.group(1) or 1) if m else 1
+        rest = nodes[1:] if m else nodes
+        rest = rest[1:] if rest[:1] == ("TRAC",) else rest
+        if self.model != "DG800" or rest != ("DATA", "DAC16") or ch not in (1, 2):
+            return self._undefined(False)
+        parts = [a.strip().upper() for a in args.split(",")]
+        lo, hi = self.DG800_PACKAGE_BYTES
+        if len(parts) != 3 or parts[0] != "VOLATILE" or parts[1] not in ("CON", "END") or parts[2] \
+                or not lo <= len(payload) <= hi or len(payload) % 2:
+            raise ValueError(args)
+        codes = np.frombuffer(payload, dtype="<u2")
+        pending = self.pending.setdefault(ch, [])
+        if np.any(codes > 0x3FFF) or sum(c.size for c in pending) + codes.size > self.DG800_MAX_POINTS:
+            pending.clear()
+            raise ValueError(args)
+        pending.append(codes)
+        if parts[1] == "END":
+            points = np.concatenate(pending) / 0x3FFF * 2.0 - 1.0
+            pending.clear()
+            self._store(ch, "VOLATILE", points)
+            self.settings[ch].update(FUNC="ARB", ARB="VOLATILE")
+            self._drive()
+        return None
+
+    def _store(self, ch: int, name: str, points: np.ndarray) -> None:
+        self.volatile[ch][name] = points
+        self.uploads += 1  # each download is a new waveform, even one equal to the last
+        self.generation[(ch, name)] = self.uploads
 
     def _data(self, ch: int, rest: tuple[str, ...], args: str, query: bool) -> None:
         """``SOURce:DATA:VOLatile:CLEar`` and ``SOURce:DATA:ARBitrary <name>, <value>, ...`` (the
@@ -165,9 +274,7 @@ class GeneratorEmulator(_Emulator):
             if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,11}", name.strip()) or not 8 <= points.size <= self.MAX_ARB_POINTS \
                     or np.max(np.abs(points)) > 1.0:
                 raise ValueError(args[:40])
-            self.volatile[ch][name.strip().upper()] = points
-            self.uploads += 1  # each download is a new waveform, even one equal to the last
-            self.generation[(ch, name.strip().upper())] = self.uploads
+            self._store(ch, name.strip().upper(), points)
             return None
         return self._undefined(query)
 
@@ -187,7 +294,7 @@ class GeneratorEmulator(_Emulator):
                 raise ValueError(args)
             return value
         if key == "FUNC":
-            if a not in ("SIN", "SINUSOID", "SQU", "RAMP", "DC", "NOIS") + (("ARB",) if self.model == "33500B" else ()):
+            if a not in ("SIN", "SINUSOID", "SQU", "RAMP", "DC", "NOIS", "ARB"):
                 raise ValueError(args)
             return a[:3]
         if key == "ARB":
@@ -209,10 +316,9 @@ class GeneratorEmulator(_Emulator):
             raise ValueError(args)
         return value
 
-    @staticmethod
-    def _format(key: str, value) -> str:
-        if key == "OUTP":
-            return "1" if value else "0"
+    def _format(self, key: str, value) -> str:
+        if key == "OUTP":  # the 33500B answers 1/0, the DG800 ON/OFF (its guide's :OUTPut<n>[:STATe]?)
+            return ("ON" if value else "OFF") if self.model == "DG800" else ("1" if value else "0")
         if key in ("FUNC", "UNIT", "FILT"):
             return str(value)
         if key == "ARB":
@@ -272,13 +378,47 @@ class SiglentGeneratorEmulator(_Emulator):
            "SDG1000X": "Siglent Technologies,SDG1032X,SDG1XCAD2R3456,1.01.01.33R1B6"}
     FREQUENCY_HZ = {"SDG2000X": (1e-6, 40e6), "SDG1000X": (1e-6, 30e6)}
 
+    MAX_POINTS = {"SDG2000X": 8_000_000, "SDG1000X": 16_384}  # TrueArb waveform length
+    SAMPLE_RATE = {"SDG2000X": (1e-6, 300e6), "SDG1000X": (1e-6, 30e6)}  # TrueArb, Sa/s
+    raw_payload_marker = b"WAVEDATA,"
+
     def __init__(self, bench: EmulatedBench, model: str = "SDG2000X", channel: int = 1):
         super().__init__(bench)
         if model not in self.IDN:
             raise ValueError(f"unknown Siglent model {model!r}")
         self.model, self.channel, self.idn = model, channel, self.IDN[model]
         self.channels = {ch: {"WVTP": "SINE", "FRQ": 1000.0, "AMP": 4.0, "OFST": 0.0, "PHSE": 0.0,
-                              "OUTP": False, "LOAD": "HZ", "PLRT": "NOR", "SYNC": False} for ch in (1, 2)}
+                              "OUTP": False, "LOAD": "HZ", "PLRT": "NOR", "SYNC": False,
+                              "ARWV": "", "SRATE": ("DDS", 1e6, "LINE")} for ch in (1, 2)}
+        self.user_waves: dict[str, np.ndarray] = {}  # WVDT uploads, by name
+        self.uploads, self.playing = 0, None
+
+    def raw_payload_length(self, head: bytes) -> int | None:
+        """``WVDT``'s ``LENGTH,<n>B`` (bytes of wave data), when the header gives it."""
+        m = re.search(rb"LENGTH,(\d+)B?,", head, re.IGNORECASE)
+        return int(m.group(1)) if m else None
+
+    def handle_upload(self, command: str, payload: bytes) -> None:
+        """``C<n>:WVDT WVNM,<name>[,LENGTH,<n>B][,FREQ,..][,AMPL,..][,OFST,..][,PHASE,..],WAVEDATA,<data>``
+        (SDG programming guide): stores user waveform ``<name>``; the data are 16-bit two's
+        complement points, little-endian, full scale +-32767. The channel header is required but
+        does not choose a channel (``ARWV`` does)."""
+        head, args = _split(command)
+        if not re.fullmatch(r"C[12]:(WVDT|WAVEDATA)", head.upper()):
+            return self._command_error()
+        parts = [p.strip() for p in args.split(",")]
+        if parts[-1:] != [""] or len(parts) % 2 or parts[-2].upper() != "WAVEDATA":  # pairs, then WAVEDATA,
+            return self._command_error()
+        fields = {k.upper(): v for k, v in zip(parts[:-2:2], parts[1:-2:2])}
+        name = fields.get("WVNM", "")
+        length = fields.get("LENGTH", "").upper().rstrip("B")
+        points = len(payload) // 2
+        if not re.fullmatch(r"[A-Za-z0-9_]{1,20}", name) or len(payload) % 2 or not 8 <= points <= self.MAX_POINTS[self.model] \
+                or (length and int(length) != len(payload)):
+            raise ValueError(args)
+        self.user_waves[name] = np.clip(np.frombuffer(payload, dtype="<i2") / 32767.0, -1.0, 1.0)
+        self.uploads += 1
+        return None
 
     def handle(self, command: str) -> str | None:
         head, args = _split(command)
@@ -287,15 +427,20 @@ class SiglentGeneratorEmulator(_Emulator):
         name = up.rstrip("?")
         if name in ("*IDN", "*OPC", "*ESR", "*CLS", "*RST", "SYST:ERR", "SYSTEM:ERROR"):
             return self._common(name, query)
-        m = re.fullmatch(r"C([12]):(BSWV|BASIC_WAVE|OUTP|OUTPUT|SYNC)", name)
+        m = re.fullmatch(r"C([12]):(BSWV|BASIC_WAVE|OUTP|OUTPUT|SYNC|ARWV|ARBWAVE|SRATE|SAMPLERATE)", name)
         if not m:
             return self._command_error()
-        ch, group = int(m.group(1)), {"BASIC_WAVE": "BSWV", "OUTPUT": "OUTP"}.get(m.group(2), m.group(2))
+        ch = int(m.group(1))
+        group = {"BASIC_WAVE": "BSWV", "OUTPUT": "OUTP", "ARBWAVE": "ARWV", "SAMPLERATE": "SRATE"}.get(m.group(2), m.group(2))
         s = self.channels[ch]
         if query:
             return self._describe(ch, group)
         parts = [p.strip() for p in args.split(",") if p.strip()]
-        if group == "BSWV":
+        if group == "ARWV":
+            self._select_wave(s, parts)
+        elif group == "SRATE":
+            self._set_sample_rate(s, parts)
+        elif group == "BSWV":
             if len(parts) % 2:
                 return self._command_error()
             for key, value in zip(parts[::2], parts[1::2]):
@@ -324,6 +469,33 @@ class SiglentGeneratorEmulator(_Emulator):
             raise ValueError(value)
         s[key] = round(number, 6) if key == "FRQ" else number  # 1 uHz frequency resolution
 
+    def _select_wave(self, s: dict, parts: list[str]) -> None:
+        """``C<n>:ARWV NAME,<name>``: the user waveform the arbitrary function plays."""
+        if len(parts) != 2 or parts[0].upper() != "NAME" or parts[1] not in self.user_waves:
+            raise ValueError(",".join(parts))
+        s["ARWV"] = parts[1]
+
+    def _set_sample_rate(self, s: dict, parts: list[str]) -> None:
+        """``C<n>:SRATE MODE,<DDS|TARB>[,VALUE,<Sa/s>][,INTER,<HOLD|LINE>]``: TrueArb plays each
+        point at the sample rate, held (HOLD) or joined by lines (LINE)."""
+        mode, value, inter = s["SRATE"]
+        for key, word in zip(parts[::2], parts[1::2]):
+            key, word = key.upper(), word.upper()
+            if key == "MODE" and word in ("DDS", "TARB"):
+                mode = word
+            elif key == "VALUE":
+                value = _number(re.sub(r"SA/S$", "", word))
+                lo, hi = self.SAMPLE_RATE[self.model]
+                if not lo <= value <= hi:
+                    raise ValueError(word)
+            elif key == "INTER" and word in ("HOLD", "LINE"):
+                inter = word
+            else:
+                raise ValueError(key)
+        if len(parts) % 2:
+            raise ValueError(",".join(parts))
+        s["SRATE"] = (mode, value, inter)
+
     @staticmethod
     def _set_output(s: dict, parts: list[str]) -> None:
         i = 0
@@ -350,14 +522,27 @@ class SiglentGeneratorEmulator(_Emulator):
             return f"C{ch}:OUTP {'ON' if s['OUTP'] else 'OFF'},LOAD,{s['LOAD']},PLRT,{s['PLRT']}"
         if group == "SYNC":
             return f"C{ch}:SYNC {'ON' if s['SYNC'] else 'OFF'}"
+        if group == "ARWV":
+            return f"C{ch}:ARWV NAME,{s['ARWV']}"
+        if group == "SRATE":
+            mode, value, inter = s["SRATE"]
+            return f"C{ch}:SRATE MODE,{mode},VALUE,{value:.10g}Sa/s,INTER,{inter}"
         f, amp, off = s["FRQ"], s["AMP"], s["OFST"]
         return (f"C{ch}:BSWV WVTP,{s['WVTP']},FRQ,{f:.12g}HZ,PERI,{1.0 / f:.6g}S,AMP,{amp:.5g}V,"
                 f"AMPVRMS,{amp / (2 * math.sqrt(2.0)):.4g}V,OFST,{off:.5g}V,HLEV,{off + amp / 2:.5g}V,"
                 f"LLEV,{off - amp / 2:.5g}V,PHSE,{s['PHSE']:.4g}")
 
     def _drive(self) -> None:
+        """The wired channel's output on the bench: its sine, or its TrueArb waveform held at the
+        sample rate (LINE interpolation and DDS arbitrary output are not emulated: silent)."""
         s = self.channels[self.channel]
-        on = s["OUTP"] and s["WVTP"] == "SINE" and s["OFST"] == 0.0
+        mode, rate, inter = s["SRATE"]
+        arb = s["WVTP"] == "ARB" and s["ARWV"] in self.user_waves and mode == "TARB" and inter == "HOLD"
+        on = s["OUTP"] and (s["WVTP"] == "SINE" or arb) and s["OFST"] == 0.0
+        playing = (self.uploads, s["ARWV"], rate) if arb else None
+        if playing != self.playing:
+            self.bench.set_arbitrary(self.user_waves[s["ARWV"]] if arb else None, rate)
+            self.playing = playing
         self.bench.set_generator(frequency_hz=s["FRQ"], amplitude_v=s["AMP"] / 2.0, output_on=on)
 
     def _common(self, name: str, query: bool) -> str | None:
@@ -548,14 +733,14 @@ class InstrumentServer:
                     self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                     if server._link_down:
                         return
-                    for raw in self.rfile:
-                        line = raw.decode("ascii", errors="replace").strip()
+                    while (message := read_message(self.rfile, emu)) is not None:
+                        line, payload = message
                         if not line:
                             continue
                         if server._dropping_now():
                             return  # the command is lost with the link
                         with lock:
-                            reply = emu.handle_line(line)
+                            reply = emu.handle_line(line, payload)
                         if reply is not None:
                             if server._garble > 0:
                                 server._garble -= 1

@@ -139,11 +139,15 @@ def test_a_keysight_triggers_on_its_ext_input():
 MULTISINE_TEXT = DATASHEET_TEXT.replace("[safety]", '[dwell]\nsignal = "multisine"\n\n[safety]', 1)
 
 
-def test_a_multisine_record_through_the_arbitrary_waveform_holds_every_lines_truth():
-    """The 33500B plays the record as an arbitrary waveform (held points), the DS1104Z samples
-    force and three responses; every line of every output holds its truth; the level is closed
-    on the force (drive gain 10 % high); a sine after it is the generator's own again."""
-    with open_experiment(_procedure(MULTISINE_TEXT), 3) as exp:
+@pytest.mark.parametrize("generator", ["keysight-33500b", "rigol-dg800", "siglent-sdg2000x"])
+def test_a_multisine_record_through_the_arbitrary_waveform_holds_every_lines_truth(generator):
+    """The generator plays the record as an arbitrary waveform (held points: the 33500B's ASCII
+    floats, the DG800's 14-bit codes in CON/END packages, the SDG's 16-bit TrueArb codes), the
+    DS1104Z samples force and three responses; every line of every output holds its truth; the
+    level is closed on the force (drive gain 10 % high); a sine after it is the generator's own
+    again."""
+    text = MULTISINE_TEXT.replace('profile = "keysight-33500b"', f'profile = "{generator}"')
+    with open_experiment(_procedure(text), 3) as exp:
         lines = [5.0, 6.0, 17.0, 18.5]
         measurements = exp.measure_multisine(lines)
         assert [m.omega_rad_s for m in measurements] == lines
@@ -154,18 +158,23 @@ def test_a_multisine_record_through_the_arbitrary_waveform_holds_every_lines_tru
         assert exp.bench.peak_force_n >= 0.85
         assert not exp.bench.output_on
         m = exp.measure(6.2)
-        assert exp.bench.arb_points is None  # FUNC SIN again
+        assert exp.bench.arb_points is None  # the generator's own sine again
         assert abs(m.response - _truth(1.0, 6.2)) <= m.bound
     assert not exp.bench.output_on
 
 
-def test_multisine_without_an_arbitrary_waveform_generator_names_the_exciter():
-    text = MULTISINE_TEXT.replace('profile = "keysight-33500b"', 'profile = "rigol-dg800"')
+def test_multisine_without_an_arbitrary_waveform_generator_names_the_exciter(tmp_path):
+    """A generator profile without an [arbitrary] table (here the DG800's with it cut off)."""
+    shipped = (REPO / "drivers" / "instruments" / "profiles" / "rigol-dg800.toml").read_text()
+    cut = tmp_path / "dg800-sine-only.toml"
+    cut.write_text(shipped[: shipped.index("\n# Arbitrary waveforms")])
+    text = MULTISINE_TEXT.replace('profile = "keysight-33500b"', f'profile = "{cut}"')
     from setmem_hil.drivers.instruments.instrument_set import check_instruments
 
     with pytest.raises(ProcedureError, match=r"\[dwell\] key 'signal'.*\[instruments.fgen\].*\[arbitrary\]"):
         check_instruments(_procedure(text))
-    check_instruments(_procedure(MULTISINE_TEXT))  # the 33500B has one: accepted
+    for generator in ("keysight-33500b", "rigol-dg800", "siglent-sdg2000x", "siglent-sdg1000x"):  # the shipped ones: accepted
+        check_instruments(_procedure(MULTISINE_TEXT.replace('profile = "keysight-33500b"', f'profile = "{generator}"')))
 
 
 def _faulty_run(tmp_path, monkeypatch, capsys, fault):

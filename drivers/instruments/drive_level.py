@@ -57,6 +57,12 @@ MAX_UNCONFIRMED_STEP = 2.5
 POINTS_PER_PERIOD = 32 * 1.0618
 
 
+def _six_digits_down(x: float) -> float:
+    """``x`` rounded down to six significant digits."""
+    step = 10.0 ** (math.floor(math.log10(x)) - 5)
+    return float(f"{math.floor(x / step) * step:.6g}")
+
+
 def level_record_s(omega_rad_s: float) -> float:
     """A levelling record: ``LEVEL_PERIODS`` periods of the (lowest) drive frequency."""
     return max(LEVEL_PERIODS * 2 * math.pi / omega_rad_s, MIN_LEVEL_RECORD_S)
@@ -167,9 +173,9 @@ class LevelledExciter:
         top_hz = max(multisine.omegas_rad_s) / (2 * math.pi)
         # the scope's records may come out longer than asked (1-2-5 time base): room for that too
         length = self.waveform_room * (1.5 * duration_s + levelling_allowance_s(min(multisine.omegas_rad_s)))
-        rate = POINTS_PER_PERIOD * top_hz
+        rate = float(f"{POINTS_PER_PERIOD * top_hz:.6g}")  # six digits: a rate every generator reads back as sent
         if length * rate > arb.max_points:
-            rate = arb.max_points / length
+            rate = _six_digits_down(arb.max_points / length)  # within the memory
             if rate < self.MIN_POINTS_PER_PERIOD * top_hz:
                 raise DeviceRejectedError("range", f"{self.source.name}: a {length:.0f} s multisine record with lines up to "
                                                    f"{top_hz:.4g} Hz needs {self.MIN_POINTS_PER_PERIOD * top_hz * length:.0f} points; "
@@ -182,10 +188,11 @@ class LevelledExciter:
         self._check_drive(target_n, top_hz)
         if self.on:
             self.stop()
-        self.source.play_arbitrary(force / peak_n, rate)
+        played = self.source.play_arbitrary(force / peak_n, rate)
         if self.clock is not None:  # it plays from the function's selection on
             self.arbitrary_started = self.clock.now()
-        self.arbitrary = (force / peak_n, rate)
+        # what the generator plays (its DAC's codes, decoded): the levelling fits the force to it
+        self.arbitrary = (force / peak_n if played is None else np.asarray(played, dtype=float), rate)
         self.omega_rad_s, self.target_n, self.lowest_rad_s = 0.0, target_n, min(multisine.omegas_rad_s)
         # a_k sin(w_k t + phi_k) = Re a_k e^{j (phi_k - pi/2)} e^{j w_k t}, t from the waveform's start
         self.lines = (tuple(multisine.omegas_rad_s),

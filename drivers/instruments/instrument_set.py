@@ -121,7 +121,7 @@ def _multisine_refusal(procedure: Procedure, found: dict) -> str | None:
     exciter = found[backend.exciter][1]
     if not isinstance(exciter, ScpiGeneratorProfile) or exciter.arbitrary is None:
         return (f"multisine needs an exciter that plays arbitrary waveforms; [instruments.{backend.exciter}] ({exciter.model}) "
-                "has no [arbitrary] table in its profile (the 33500B's has one)")
+                "has no [arbitrary] table in its profile (the shipped 33500B, DG800 and SDG profiles have one)")
     return None
 
 

@@ -102,13 +102,20 @@ class ScpiGeneratorProfile:
 class ArbitraryWaveform:
     """A generator's ``[arbitrary]`` table (issue 26): how to upload a waveform and play it.
 
-    Templates take ``{ch}``, ``{name}``, ``{values}`` (comma-separated floats in [-1, 1]) and
-    ``{value}`` (a number). ``select`` may hold several commands separated by ``;``; it must
-    switch the generator's interpolation filter off, so the played waveform holds each point for
-    one sample period: its peak is then exactly the largest point, which the safety check needs."""
+    Templates take ``{ch}``, ``{name}``, ``{value}`` (a number) and, for the upload, either
+    ``{values}`` (``data = "ascii"``: comma-separated floats in [-1, 1]) or, with
+    ``data = "binary"``, ``{flag}`` (the package flag), ``{points}`` and ``{bytes}`` (this
+    package's size): the points go as 16-bit DAC codes (``codes``: the codes of -1 and +1, in
+    ``byte_order``) after the upload text, in an IEEE 488.2 definite-length block
+    (``block = "ieee"``) or alone (``"raw"``), at most ``package_points`` to a command (the
+    flags of ``package_flags``: more to come, the last).
 
-    clear: str  # free the volatile memory
-    upload: str  # {name}, {values}
+    ``select`` may hold several commands separated by ``;``; it must leave the generator
+    holding each point for one sample period (its interpolation filter off): the played peak is
+    then exactly the largest point, which the safety check needs."""
+
+    clear: str  # free the volatile memory ("": nothing to free)
+    upload: str  # {name}, {values} | {flag}, {points}, {bytes}
     select: str  # play waveform {name} ({name}; the filter, the function)
     sample_rate: Setting  # {value} Sa/s, read back
     function_query: str  # what the function query answers once the arbitrary waveform plays
@@ -117,6 +124,12 @@ class ArbitraryWaveform:
     max_points: int
     sample_rate_limits: tuple[float, float]
     name: str = "SETMEM"
+    data: str = "ascii"  # "ascii" | "binary"
+    codes: tuple[int, int] = (0, 0)  # binary: the DAC codes of -1 and +1
+    byte_order: str = "lsb"  # binary: "lsb" (little-endian) | "msb"
+    block: str = "ieee"  # binary: "ieee" (a definite-length block) | "raw" (the bytes alone)
+    package_points: int = 0  # binary: the most points one upload command carries
+    package_flags: tuple[str, str] = ("", "")  # binary: {flag} of a package with more to come, of the last
 
 
 @dataclass(frozen=True)
@@ -331,7 +344,7 @@ _TABLE_KEYS = {
     "scope-waveform": {"format", "byte_order", "y_origin", "clip_codes"},
     "scope-trigger-sources": {"ext", "channel"},
     "arbitrary": {"clear", "upload", "select", "sample_rate", "function_query", "function_expect", "sine", "max_points",
-                  "sample_rate_limits", "name"},
+                  "sample_rate_limits", "name", "data", "codes", "byte_order", "block", "package_points", "package_flags"},
 }
 
 
@@ -490,13 +503,35 @@ def _generator(name: str, source: str, top: _Reader) -> ScpiGeneratorProfile:
 
 def _arbitrary(top: _Reader) -> ArbitraryWaveform:
     a = top.sub("arbitrary", "arbitrary")
-    fields = {"ch", "name", "values", "value"}
+    data = a.string("data", "ascii")
+    if data not in ("ascii", "binary"):
+        raise a.error(f"data: \"ascii\" (floats in the upload text) or \"binary\" (16-bit DAC codes), found {data!r}")
+    fields = {"ch", "name", "value"} | ({"values"} if data == "ascii" else {"flag", "points", "bytes"})
     rate = a.pair("sample_rate_limits", (0.0, math.inf))
+    max_points = a.integer("max_points", None, 8, 2**31)
+    binary = _binary_upload(a, max_points) if data == "binary" else {}
     return ArbitraryWaveform(
-        clear=a.template("clear", fields), upload=a.template("upload", fields), select=a.template("select", fields),
+        clear=a.template("clear", fields, ""), upload=a.template("upload", fields), select=a.template("select", fields),
         sample_rate=_setting(a, "sample_rate", fields), function_query=a.template("function_query", fields),
         function_expect=a.regex("function_expect"), sine=a.template("sine", fields),
-        max_points=a.integer("max_points", None, 8, 2**31), sample_rate_limits=rate, name=a.string("name", "SETMEM"))
+        max_points=max_points, sample_rate_limits=rate, name=a.string("name", "SETMEM"), data=data, **binary)
+
+
+def _binary_upload(a: _Reader, max_points: int) -> dict:
+    """The binary upload's keys: the codes of -1 and +1 (16-bit, signed or not), byte order,
+    block framing, the package size and its flags."""
+    codes = a.mapping.get("codes")
+    if (not isinstance(codes, list) or len(codes) != 2 or any(isinstance(c, bool) or not isinstance(c, int) for c in codes)
+            or not codes[0] < codes[1] or not (0 <= codes[0] and codes[1] <= 0xFFFF or -0x8000 <= codes[0] and codes[1] <= 0x7FFF)):
+        raise a.error(f"codes: expected [code of -1, code of +1], 16-bit integers (0..65535 or -32768..32767), found {codes!r}")
+    order, block = a.string("byte_order", "lsb"), a.string("block", "ieee")
+    if order not in ("lsb", "msb") or block not in ("ieee", "raw"):
+        raise a.error(f"byte_order: \"lsb\" or \"msb\"; block: \"ieee\" or \"raw\"; found {order!r}, {block!r}")
+    flags = a.strings("package_flags") or ("", "")
+    if len(flags) != 2:
+        raise a.error(f"package_flags: expected [flag of a package with more to come, flag of the last], found {list(flags)!r}")
+    return {"codes": (codes[0], codes[1]), "byte_order": order, "block": block,
+            "package_points": a.integer("package_points", max_points, 8, max_points), "package_flags": tuple(flags)}
 
 
 def _high_z(top: _Reader) -> str:

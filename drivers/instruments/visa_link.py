@@ -85,6 +85,18 @@ class VisaLink:
         self.answered = True
         return reply
 
+    def write_binary(self, command: str, values, datatype: str, *, big_endian: bool, header: str = "ieee") -> None:
+        """``command`` followed by ``values`` packed as ``datatype`` (``"H"``, ``"h"``, ...) in one
+        message: after an IEEE 488.2 definite-length block header (``header = "ieee"``) or none
+        (``"empty"``: the bytes alone, for instruments that take a length in the command text)."""
+        self.transcript.append(f"{command}<{len(values)} x {datatype}>")
+        self._refuse_if_closed(command)
+        try:
+            self._inst.write_binary_values(command, values, datatype=datatype, is_big_endian=big_endian, header_fmt=header)
+        except Exception as exc:  # noqa: BLE001
+            raise self._error(command, exc) from None
+        self.answered = True
+
     def query_block(self, command: str, datatype: str = "B", big_endian: bool = True):
         """An IEEE 488.2 definite-length block (``#<n><length><data>``) as a numpy array of
         ``datatype`` (``"B"`` bytes, ``"H"`` 16-bit words); a reply that is not such a block is a
