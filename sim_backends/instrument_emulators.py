@@ -81,9 +81,7 @@ class _Emulator:
             try:
                 return self.handle_upload(line, payload)
             except ValueError:
-                self.errors.append(OUT_OF_RANGE)
-                self.esr |= 1 << 4
-                return None
+                return self._execution_error()
         replies = []
         for command in (c.strip() for c in line.split(";")):
             if not command:
@@ -92,9 +90,7 @@ class _Emulator:
             try:
                 reply = self.handle(command)
             except ValueError:
-                self.errors.append(OUT_OF_RANGE)
-                self.esr |= 1 << 4  # execution error
-                reply = None
+                reply = self._execution_error()
             if isinstance(reply, bytes):  # a binary block ends the answer (an IEEE 488.2 definite-length block)
                 return reply
             if reply is not None:
@@ -106,6 +102,16 @@ class _Emulator:
 
     def handle_upload(self, command: str, payload: bytes) -> None:
         """A command followed by binary data; instruments without one answer a command error."""
+        return self._command_error()
+
+    def _execution_error(self) -> None:
+        """A value out of range: not executed, SCPI -222 and the execution-error bit of ``*ESR?``."""
+        self.errors.append(OUT_OF_RANGE)
+        self.esr |= 1 << 4
+        return None
+
+    def _command_error(self) -> None:
+        """An unknown header: SCPI -113 and the command-error bit of ``*ESR?``."""
         self.errors.append(UNDEFINED_HEADER)
         self.esr |= 1 << 5
         return None
@@ -566,11 +572,6 @@ class SiglentGeneratorEmulator(_Emulator):
             return None
         return self._command_error()
 
-    def _command_error(self) -> None:
-        self.errors.append(UNDEFINED_HEADER)
-        self.esr |= 1 << 5  # command error
-        return None
-
 
 class LockInEmulator(_Emulator):
     """An SR830 (``model = "SR830"``) or SR860 (``model = "SR860"``) reading one bench signal.
@@ -657,7 +658,7 @@ class LockInEmulator(_Emulator):
         if name in ("OFLT", "OFSL", "SENS", "SCAL"):
             attr = {"OFLT": "tau_index", "OFSL": "slope_index", "SENS": "sens_index", "SCAL": "sens_index"}[name]
             if (name == "SENS") != (self.model == "SR830") and name in ("SENS", "SCAL"):
-                return self._bad(query)
+                return self._command_error()
             if query:
                 return str(getattr(self, attr))
             index = int(_number(args))
@@ -695,13 +696,7 @@ class LockInEmulator(_Emulator):
         if name == "CUROVLDSTAT" and query and self.model == "SR860":
             status = (1 << 4 if self._overloaded() else 0) | (0 if self.locked else 1 << 3)
             return str(status)
-        return self._bad(query)
-
-    def _bad(self, query: bool) -> None:
-        self.errors.append(UNDEFINED_HEADER)
-        self.esr |= 1 << 5  # command error
-        return None
-
+        return self._command_error()
 
 class InstrumentServer:
     """A newline-terminated text instrument on ``127.0.0.1:port`` (0: a free port), in a thread.

@@ -107,6 +107,7 @@ def test_a_waveform_longer_than_its_record_is_levelled_to_the_designed_peak():
 
         def play_arbitrary(self, points, rate):
             self.points, self.rate = np.asarray(points), rate
+            return self.points  # what it plays (a generator returns its decoded codes)
 
     lines = [0.996458, 1.0107, 5.95715, 6.3051]
     duration = 240.0

@@ -192,7 +192,7 @@ class LevelledExciter:
         if self.clock is not None:  # it plays from the function's selection on
             self.arbitrary_started = self.clock.now()
         # what the generator plays (its DAC's codes, decoded): the levelling fits the force to it
-        self.arbitrary = (force / peak_n if played is None else np.asarray(played, dtype=float), rate)
+        self.arbitrary = (np.asarray(played, dtype=float), rate)
         self.omega_rad_s, self.target_n, self.lowest_rad_s = 0.0, target_n, min(multisine.omegas_rad_s)
         # a_k sin(w_k t + phi_k) = Re a_k e^{j (phi_k - pi/2)} e^{j w_k t}, t from the waveform's start
         self.lines = (tuple(multisine.omegas_rad_s),
