@@ -163,6 +163,22 @@ def test_a_multisine_record_through_the_arbitrary_waveform_holds_every_lines_tru
     assert not exp.bench.output_on
 
 
+def test_the_first_record_through_the_sdg_holds_every_points_truth_on_seed_105(tmp_path):
+    """Found by the rig-time benchmark: in seed 105's first record through the SDG2000X the tip
+    channel's search for an unmodelled transient refined its pole into the line at 0.9 rad/s
+    (undamped, 0.9000 rad/s), the scan's own exclusion, and the line came out at 3x its truth
+    under a bound a thirtieth of the error. Every point of the first record holds its truth.
+    (As the benchmark runs it: the channel match measured on the emulated tee.)"""
+    text = SCOPE_PROCEDURE.read_text().replace("[safety]", '[dwell]\nsignal = "multisine"\n\n[safety]', 1)
+    text = text.replace('profile = "keysight-33500b"', 'profile = "siglent-sdg2000x"').replace("\nseed = 1\n", "\nseed = 105\n")
+    procedure = parse_procedure_text(text, str(tmp_path / "scope.toml"))  # no match file there: measured first
+    with open_experiment(procedure, 105) as exp:
+        measurements = exp.measure_multisine(list(procedure.initial_omegas_rad_s))
+    for m in measurements:
+        for x, (g, bound) in zip(POSITIONS, [(m.response, m.bound), *m.others]):
+            assert abs(g - _truth(x, m.omega_rad_s)) <= bound, (x, m.omega_rad_s)
+
+
 def test_multisine_without_an_arbitrary_waveform_generator_names_the_exciter(tmp_path):
     """A generator profile without an [arbitrary] table (here the DG800's with it cut off)."""
     shipped = (REPO / "drivers" / "instruments" / "profiles" / "rigol-dg800.toml").read_text()

@@ -538,7 +538,8 @@ def fit_sine_with_transients(t_s, y, omega_rad_s, bands: tuple[PoleSearchBand, .
         s2 = best[0] / max(1, t.size - n_par)
         if rss - best[0] > significance * s2:
             kept.append(best[1])
-            kept_bands.append((w_lo, w_hi, band.sigma_min_per_s, band.sigma_max_per_s))
+            kept_bands.append((*_allowed_segment(best[1].omega_d_rad_s, w_lo, w_hi, band.exclude),
+                               band.sigma_min_per_s, band.sigma_max_per_s))
             kept_idx.append(band_index)
             kept_priors.append(None)
             rss = best[0]
@@ -555,6 +556,21 @@ def fit_sine_with_transients(t_s, y, omega_rad_s, bands: tuple[PoleSearchBand, .
     fit = fit_sine(t, v, omega_rad_s, fixed + tuple(kept), t_ref_s=t_ref, refined_poles=mask,
                    pole_prior_covariance=fixed_covariance, refined_prior_information=prior_info)
     return dataclasses.replace(fit, pole_sources=tuple(kept_idx))
+
+
+def _allowed_segment(omega_rad_s: float, w_lo: float, w_hi: float, exclude) -> tuple[float, float]:
+    """The part of ``[w_lo, w_hi]`` between the band's exclusions that holds ``omega_rad_s`` (a
+    scanned pole, never inside one): where its refinement may move it. The exclusions are the
+    scan's: another mode's band, or a line's own frequency, where a pole cannot be told from the
+    steady state. Refined into one, an unmodelled pole became undamped at a line's frequency
+    (0.9000 rad/s against the line at 0.9, decay 1e-6 /s) and took most of the line with it,
+    leaving a point three times its truth under a bound a thirtieth of the error."""
+    for a, b in exclude:
+        if b < omega_rad_s:
+            w_lo = max(w_lo, b)
+        elif a > omega_rad_s:
+            w_hi = min(w_hi, a)
+    return w_lo, w_hi
 
 
 def _real_matrix(c: complex) -> np.ndarray:
