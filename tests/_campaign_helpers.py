@@ -61,8 +61,10 @@ def cheap_procedure_text(max_experiments: int = 3) -> str:
     return CHEAP_PROCEDURE.replace("{max_experiments}", str(int(max_experiments)))
 
 
-def fast_analysis(model, weights=None, omega_rad_s=None, controller=None, gain=None):
-    """Deterministic stand-in for ``analyze_robust_performance`` (same attributes)."""
+def fast_analysis(model, weights=None, omega_rad_s=None, controller=None, gain=None, design="h2", warm_start=None,
+                  tuning=None, certificate_rtol=None):
+    """Deterministic stand-in for ``analyze_robust_performance`` (same attributes; the design
+    method and its warm start change nothing here)."""
     rel = np.where(model.fixed, 0.0, model.width / np.maximum(np.abs(model.upper) + np.abs(model.lower), 1e-12))
     mu_peak = 0.5 + float(rel.sum())
     w = np.geomspace(0.1, 100.0, 50)

@@ -210,12 +210,22 @@ def test_certificate_round_trips_and_version_3_journals_are_upgraded(tmp_path):
     conn.execute("ALTER TABLE iteration DROP COLUMN outputs")
     conn.execute("ALTER TABLE iteration DROP COLUMN common_gain")
     conn.execute("ALTER TABLE measurement DROP COLUMN others")
+    conn.execute("ALTER TABLE iteration DROP COLUMN design")  # version 7 (issue 38)
+    conn.execute("ALTER TABLE iteration DROP COLUMN floor_modes")
+    conn.execute("ALTER TABLE run DROP COLUMN design")
     conn.execute("PRAGMA user_version=3")
     conn.commit()
     conn.close()
     with Journal.open(tmp_path / "run") as old:
         got = old.iterations()
     assert [g.k for g in got] == [1, 2] and all(g.mu_peak_certified is None and g.mu_certified_intervals is None for g in got)
+    # every compensator of a journal from before issue 38 was an H2 design; the floor is a
+    # function of the stored box
+    assert all(g.design == "h2" for g in got)
+    from setmem_hil.model.modal_model import IntervalModel
+    from setmem_hil.model.mu_floor import floor_modes
+
+    assert [g.floor_modes for g in got] == [floor_modes(IntervalModel(g.lower, g.upper)) for g in got]
 
 
 def test_other_sensors_round_trip(tmp_path):

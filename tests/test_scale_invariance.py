@@ -95,10 +95,10 @@ def test_scaled_simulated_beam_measures_the_thesis_beam_at_omega_over_S():
         assert b.bound == pytest.approx(a.bound, rel=1e-9)
 
 
-def _campaign(S: float):
+def _campaign(S: float, design: str = "h2"):
     procedure = default_procedure() if S == 1.0 else default_procedure().time_scaled(S)
     with open_experiment(procedure, procedure.seed) as experiment:
-        return run_campaign(procedure, experiment)
+        return run_campaign(procedure, experiment, design=design)
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +110,9 @@ def reference_campaign():
 @pytest.mark.parametrize("S", [1e-2, 314.159, 1e4])
 def test_campaign_makes_the_same_experiments_times_S(reference_campaign, S):
     """Issue 18's done-when: the 6.3.2 campaign at 50 Hz (and far beyond) reaches mu-bar < 1 with
-    the same inputs x S and the same mu-bar per iteration."""
+    the same inputs x S and the same mu-bar per iteration. The H2 loop: the analysis it runs on
+    is scale-invariant to rounding; the robust design's tuning (a long nonconvex descent) turns
+    rounding into percent-level differences, so it gets the weaker test below."""
     ref, scaled = reference_campaign, _campaign(S)
     assert scaled.reached_goal and ref.reached_goal
     assert scaled.experiments_added == ref.experiments_added
@@ -119,6 +121,17 @@ def test_campaign_makes_the_same_experiments_times_S(reference_campaign, S):
     assert [w is None for w in chosen] == [w is None for w in expected]
     np.testing.assert_allclose([w for w in chosen if w is not None], [w for w in expected if w is not None], rtol=1e-9)
     np.testing.assert_allclose([it.mu_peak for it in scaled.iterations], [it.mu_peak for it in ref.iterations], rtol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("S", [314.159])
+def test_the_robust_design_reaches_the_goal_at_any_frequency_scale(S):
+    """Issue 38: the robust default keeps reaching mu-bar < 1 when the structure and weights are
+    time-scaled (311 rad/s ~ 50 Hz): the tuning works in the analysis's normalised time."""
+    scaled = _campaign(S, design="robust")
+    assert scaled.reached_goal and scaled.final_mu_peak < 1.0
+    assert scaled.experiments_added <= 3  # the thesis-scale robust loop needs 2 (docs/robust-design.md)
+    assert all(it.design in ("robust", "h2") for it in scaled.iterations)
 
 
 def test_first_mode_key_is_read_and_refused_for_loopback_fakes(tmp_path):

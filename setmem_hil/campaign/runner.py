@@ -69,12 +69,14 @@ from setmem_hil.model.experiment import (
     OutputConfirmingExperiment,
     ResumableExperiment,
 )
+from setmem_hil.model.mu_floor import floor_message, floor_modes
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.identification.calibration_scale import measured_scale_prior, plant_bounds
 from setmem_hil.design.input_design import InputChoice, candidate_frequencies, choose_input, sensitivity_matrix, uniform_weights
 from setmem_hil.design.unproductive_region import RUN, Outcome, describe, outside_regions, predicted_improvement, unproductive_region
 from setmem_hil.io.procedure import Procedure
-from setmem_hil.design.safeguard import SafeguardOutcome, safeguarded_design
+from setmem_hil.design.safeguard import SafeguardOutcome, certified_value, safeguarded_design
+from setmem_hil.robust.robust_design import FINAL_TUNING
 from setmem_hil.design.strategies import check_strategy, log_sweep_frequency, random_frequency
 
 ProgressFn = Callable[..., None]
@@ -103,6 +105,8 @@ class IterationSummary:
     rig_s: float = 0.0  # device seconds of the dwells this iteration asked for (measured after it)
     mu_peak_certified: bool = False  # mu_peak bounds mu-bar on the whole band, not only the grid
     mu_certified_intervals: int = 0
+    design: str = "h2"  # the design that made the kept compensator: "robust" or "h2" (issue 38)
+    floor_modes: tuple[int, ...] = ()  # modes whose box blocks every compensator (setmem_hil.model.mu_floor)
 
     def to_document(self) -> dict:
         return {
@@ -118,6 +122,8 @@ class IterationSummary:
             "compute_s": self.compute_s,
             "compute_cpu_s": self.compute_cpu_s,
             "rig_s": float(self.rig_s),
+            "design": self.design,
+            "floor_modes": [int(m) for m in self.floor_modes],
         }
 
 
@@ -444,6 +450,7 @@ def run_campaign(
     progress: ProgressFn | None = None,
     continue_stored: bool = False,
     control=None,
+    design: str | None = None,
 ) -> CampaignSummary:
     """Run Algorithm 5.1 on ``experiment`` until mu-bar < goal or the budget is spent.
 
@@ -479,6 +486,9 @@ def run_campaign(
         intersected with the old ones (the prior may have changed).
     control : setmem_hil.model.experiment.CampaignControl, optional
         ``checkpoint()`` before every new dwell (pause, abort; the live view).
+    design : str, optional
+        Overrides ``procedure.design_method``: ``"robust"`` (the compensator tuned to the mixed-mu
+        bound, warm-started from the previous iteration's) or ``"h2"`` (the thesis).
 
     Returns
     -------
@@ -495,7 +505,7 @@ def run_campaign(
     """
     from setmem_hil.errors import InconsistentDataError
     from setmem_hil.identification.algorithm import identify
-    from setmem_hil.robust.analysis import analyze_robust_performance
+    from setmem_hil.robust.analysis import ROBUST_CERTIFICATE_RTOL, analyze_robust_performance
 
     strategy = check_strategy(strategy or procedure.input_design.strategy)
     seed = procedure.seed if seed is None else int(seed)
@@ -517,8 +527,18 @@ def run_campaign(
     scales = tuple(experiment.calibration_scales) if isinstance(experiment, CalibrationScaledExperiment) else None
     gain = None if scales is None else (1.0 / scales[0][1], 1.0 / scales[0][0])
 
+    method = design or procedure.design_method
+
     def analyze(model, controller):
-        return analyze_robust_performance(model, procedure.weights, controller=controller, gain=gain)
+        if method == "h2":
+            return analyze_robust_performance(model, procedure.weights, controller=controller, gain=gain)
+        if controller is not None:
+            return analyze_robust_performance(model, procedure.weights, controller=controller, gain=gain,
+                                              certificate_rtol=ROBUST_CERTIFICATE_RTOL)
+        # the robust design starts from the H2 design or the compensator kept last, the better
+        warm = None if previous_outcome is None else (previous_outcome.analysis.controller, rows[-1].design)
+        return analyze_robust_performance(model, procedure.weights, gain=gain, design="robust", warm_start=warm,
+                                          certificate_rtol=ROBUST_CERTIFICATE_RTOL)
 
     k, n_added = 1, 0
     if continue_stored and journal is not None:
@@ -564,10 +584,16 @@ def run_campaign(
             experiment.update_output_models(sensor_models)
         with blas_one_thread():
             outcome = safeguarded_design(model, previous_outcome, analyze)
+            if method == "robust" and goal_certified(outcome, goal):  # the delivered compensator: more margin
+                outcome = polished(outcome, lambda box, warm: analyze_robust_performance(
+                    box, procedure.weights, gain=gain, design="robust", warm_start=warm, tuning=FINAL_TUNING,
+                    certificate_rtol=ROBUST_CERTIFICATE_RTOL), rows[-1].design if rows else "h2")
         plant = model if scales is None else plant_bounds(model, scales[0])  # its interval hull, for the journal
         analysis = outcome.analysis
+        kept_design = kept_design_of(outcome, rows[-1].design if rows else "h2")
+        floor = floor_modes(model)
         emit("iteration", k=k, n_points=len(measured), mu_peak=outcome.mu_peak,
-             mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch,
+             mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch, design=kept_design, floor_modes=floor,
              rig_s=float(sum(m.rig_s for m in measured)), mu_peak_certified=outcome.certified,
              outputs=None if sensor_models is None else sensors_document(procedure, sensor_models, scales))
         if last_experiment is not None and previous_outcome is not None:
@@ -621,7 +647,11 @@ def run_campaign(
                     mu_certified_intervals=certified_intervals,
                     outputs=None if sensor_models is None else sensors_document(procedure, sensor_models, scales),
                     common_gain=None if gain is None else {"gain": list(gain), "lower": model.lower.tolist(), "upper": model.upper.tolist()},
+                    design=kept_design,
+                    floor_modes=floor,
                 ))
+                if floor:
+                    journal.add_event(FLOOR_EVENT, f"iteration {k}: {floor_message(floor)}")
                 if choice is not None and np.size(choice.resolved_omega_rad_s):
                     import json
 
@@ -640,7 +670,7 @@ def run_campaign(
             k=k, n_points=len(measured), mu_peak=float(outcome.mu_peak), mu_peak_omega=float(analysis.mu_peak_omega),
             next_omega=next_omega, safeguard=outcome.branch, basis="" if choice is None else choice.basis,
             compute_s=float(compute_s), compute_cpu_s=float(compute_cpu_s), mu_peak_certified=bool(outcome.certified),
-            mu_certified_intervals=certified_intervals,
+            mu_certified_intervals=certified_intervals, design=kept_design, floor_modes=floor,
         ))
         if choice is None:
             break
@@ -649,7 +679,7 @@ def run_campaign(
         if per_iteration > 1:
             batch = batch_frequencies(next_omega, strategy, k, n_added, procedure, result, data, outcome, experiment,
                                       measured, seed, per_iteration, tuple(left_out))
-            if journal is not None and k not in stored_iterations:
+            if journal is not None and k not in stored_iterations and len(batch) > 1:
                 journal.add_event(BATCH_EVENT, f"iteration {k}: " + ", ".join(f"{w:.9g}" for w in batch) + " rad/s")
         last_experiment = (batch[0] if len(batch) == 1 else None, predicted_improvement(choice))
         for w in batch:
@@ -682,6 +712,29 @@ def run_campaign(
     return summary
 
 
+FLOOR_EVENT = "floor"
+"""Journal event of an iteration whose box blocks every compensator (:mod:`setmem_hil.model.mu_floor`)."""
+
+
+def polished(outcome: SafeguardOutcome, tune, previous_design: str) -> SafeguardOutcome:
+    """The goal is reached: tune the kept compensator further on the box it was analysed on
+    (``tune(box, warm_start)``) and keep the result only if its certified mu-bar is lower."""
+    analysis = tune(outcome.analysis_model, (outcome.analysis.controller, kept_design_of(outcome, previous_design)))
+    if not certified_value(analysis) < outcome.certified_mu:
+        return outcome
+    branch = "new-design" if outcome.branch == "new-design" else "expanded"
+    tried = {**outcome.tried, "final-tuning": float(analysis.mu_peak)}
+    return replace(outcome, analysis=analysis, branch=branch, mu_peak=float(analysis.mu_peak), tried=tried,
+                   certified_mu=certified_value(analysis))
+
+
+def kept_design_of(outcome: SafeguardOutcome, previous_design: str) -> str:
+    """The design that made the compensator eq. 5.12 kept: the previous one's when it kept that."""
+    if outcome.branch == "previous-controller":
+        return previous_design
+    return "robust" if getattr(outcome.analysis, "design", "h2") == "robust" else "h2"
+
+
 UNPRODUCTIVE_REGION_EVENT = "left-out"
 """Journal event of a frequency region left out of the candidates (:mod:`setmem_hil.design.unproductive_region`)."""
 
@@ -701,6 +754,7 @@ __all__ = [
     "EXACT_RESOLVE_OUTER_ITERATIONS",
     "IterationSummary",
     "candidate_noise_bound",
+    "kept_design_of",
     "next_frequency",
     "run_campaign",
 ]

@@ -21,7 +21,7 @@ import signal
 import sys
 import threading
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, ContextManager, Iterator, Sequence
@@ -34,7 +34,7 @@ from setmem_hil.campaign.runner import CampaignSummary, run_campaign
 from setmem_hil.errors import CampaignAborted, DeviceError, InconsistentDataError, InputFormatError, RunInterrupted, SetmemError
 from setmem_hil.io.atomic_file import write_json_atomic, write_text_atomic
 from setmem_hil.io.journal import JOURNAL_FILENAME, Journal
-from setmem_hil.io.procedure import STRATEGIES, Procedure
+from setmem_hil.io.procedure import DESIGN_METHODS, STRATEGIES, Procedure
 from setmem_hil.io.procedure_file import format_procedure, parse_procedure_text
 
 __all__ = [
@@ -184,6 +184,7 @@ def start_run(
     quiet_report_hint: bool = False,
     control=None,
     observers: Sequence[Observer] = (),
+    design: str | None = None,
 ) -> RunOutcome:
     """Create ``run_dir`` with a new journal and run the campaign (see the module docstring).
 
@@ -191,10 +192,15 @@ def start_run(
     for a programmatic procedure) is stored in the journal with the seed, strategy, backend and
     software version, so the run can be resumed and reported later. ``opener(procedure, seed)``
     builds the experiment (:func:`setmem_hil.experiment_factory.open_experiment`); ``display``
-    adds a view of the campaign (terminal progress, live view).
+    adds a view of the campaign (terminal progress, live view). ``design`` overrides the
+    procedure's ``[design] method`` (``--design``); the journal keeps it for a resume.
     """
     console = console or Console()
     run_dir = Path(run_dir)
+    if design is not None:
+        if design not in DESIGN_METHODS:
+            raise _arguments_error(f"design {design!r} is not one of {', '.join(DESIGN_METHODS)}")
+        procedure = replace(procedure, design_method=design)
     seed = procedure.seed if seed is None else int(seed)
     if seed < 0:
         raise _arguments_error(f"--seed {seed} must be >= 0")
@@ -219,6 +225,7 @@ def start_run(
             software_version=__version__,
             backend=procedure.backend.kind,
             strategy=strategy,
+            design=procedure.design_method,
         )
     except BaseException:
         experiment.close()
@@ -257,6 +264,8 @@ def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, op
 
             procedure = load_procedure(procedure_path)
             preflight(procedure)
+        if procedure_path is None and changed is None:  # the design the run started with (--design)
+            procedure = replace(procedure, design_method=str(info.get("design") or "h2"))
         if procedure.backend.kind != info["backend"]:
             raise InputFormatError(source, "[backend]", f"kind {procedure.backend.kind!r} differs from the run's backend {info['backend']!r}")
     except BaseException:

@@ -2,7 +2,7 @@
 
 Events (see :func:`setmem_hil.campaign.runner.run_campaign`): ``"measure"`` (index, total, omega_rad_s,
 replayed) just before a dwell starts (or a stored measurement is replayed), ``"iteration"``
-(k, n_points, mu_peak, mu_peak_omega, safeguard) after each identification and analysis
+(k, n_points, mu_peak, mu_peak_omega, safeguard, design, floor_modes) after each identification and analysis
 (Algorithm 5.1 steps 2-3), ``"chosen"`` (k, next_omega) after the input design (steps 5-7),
 ``"finished"`` (summary).
 
@@ -181,10 +181,17 @@ class CampaignProgress:
                 extra += " (not certified between grid points: the goal cannot be claimed)"
             rig = info.get("rig_s")
             rig_text = f", rig time {format_duration(float(rig))}" if rig else ""
+            design = info.get("design")
+            design_text = f", {design} design" if design else ""
             self._line(
                 f"iteration {self.k}: {info.get('n_points')} points, mu-bar peak {format_mu(self.mu_peak)}"
-                f" at {format_frequency(float(info.get('mu_peak_omega', math.nan)))}{rig_text}{extra}"
+                f" at {format_frequency(float(info.get('mu_peak_omega', math.nan)))}{design_text}{rig_text}{extra}"
             )
+            floor = tuple(info.get("floor_modes") or ())
+            if floor:
+                from setmem_hil.model.mu_floor import floor_message
+
+                self._line(f"iteration {self.k}: {floor_message(floor)}")
             for line in output_lines(info.get("outputs")):
                 self._line(line)
         elif event == "left-out":

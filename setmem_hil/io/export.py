@@ -18,7 +18,9 @@ empty cell for "none", ``inf``/``nan`` spelled so):
     ``k, omega_rad_s, mu``: mu-bar (upper bound) on the analysis grid per iteration (figure 6-13).
 ``iterations.csv``
     ``k, n_points, mu_peak, mu_peak_omega, mu_lower_peak, next_omega, safeguard,
-    controller_order, wall_s``: one row per iteration (figure 6-12).
+    controller_order, wall_s, design, floor_modes``: one row per iteration (figure 6-12);
+    ``design`` is ``robust`` or ``h2`` (the design that made the kept compensator, issue 38),
+    ``floor_modes`` the modes whose box blocks every compensator, joined by ``;`` (empty: none).
 ``sensitivities.csv``
     ``k, parameter, sensitivity``: mu-sensitivities per iteration (appendix B).
 ``candidates.csv``
@@ -140,10 +142,12 @@ def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[P
         ((rec.k, float(w), float(m)) for rec in iterations for w, m in zip(rec.omega, rec.mu)),
     )
     files["iterations.csv"] = _csv_text(
-        ("k", "n_points", "mu_peak", "mu_peak_omega", "mu_lower_peak", "next_omega", "safeguard", "controller_order", "wall_s"),
+        ("k", "n_points", "mu_peak", "mu_peak_omega", "mu_lower_peak", "next_omega", "safeguard", "controller_order", "wall_s",
+         "design", "floor_modes"),
         (
             (rec.k, rec.n_points, float(rec.mu_peak), float(rec.mu_peak_omega), float(rec.mu_lower_peak),
-             None if rec.next_omega is None else float(rec.next_omega), rec.safeguard, rec.controller_order, float(rec.wall_s))
+             None if rec.next_omega is None else float(rec.next_omega), rec.safeguard, rec.controller_order, float(rec.wall_s),
+             rec.design, ";".join(str(m) for m in rec.floor_modes or ()))
             for rec in iterations
         ),
     )

@@ -57,14 +57,16 @@ import numpy as np
 
 from setmem_hil.errors import InputFormatError, JournalError
 from setmem_hil.model.experiment import Measurement
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.model.mu_floor import floor_modes
 
 __all__ = ["Journal", "IterationRecord", "JournalError", "JournalSnapshot", "read_snapshot", "JOURNAL_FILENAME", "journal_path", "ROLES"]
 
 JOURNAL_FILENAME = "journal.sqlite"
 APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
-SCHEMA_VERSION = 6  # 2: measurement.rig_s; 3: iteration.controller; 4: iteration.mu_peak_certified,
-# mu_certified_intervals; 5: measurement.others, iteration.outputs; 6: iteration.common_gain (older
-# journals are upgraded when opened)
+SCHEMA_VERSION = 7  # 2: measurement.rig_s; 3: iteration.controller; 4: iteration.mu_peak_certified,
+# mu_certified_intervals; 5: measurement.others, iteration.outputs; 6: iteration.common_gain; 7:
+# run.design, iteration.design, floor_modes (older journals are upgraded when opened)
 ROLES = ("initial", "added")
 
 
@@ -116,6 +118,12 @@ class IterationRecord:
         With several sensors (issue 25): ``{"names": [...], "lower": [...], "upper": [...]}``,
         every output's ``(n_modes, 4)`` bounds (shared ``a1, a0``, own ``b1, b0``; the first is
         the control output, whose bounds are also ``lower``/``upper``); None with one sensor.
+    design : str or None
+        The design that made the compensator the safeguard kept: ``"robust"`` or ``"h2"``
+        (issue 38). Journals from before it read ``"h2"`` (every compensator then was H2).
+    floor_modes : tuple of int or None
+        1-based modes whose box holds an undamped, zero-residue plant
+        (:mod:`setmem_hil.model.mu_floor`); computed from ``lower``/``upper`` for older journals.
     """
 
     k: int
@@ -141,6 +149,8 @@ class IterationRecord:
     mu_certified_intervals: int | None = None
     outputs: dict | None = None
     common_gain: dict | None = None
+    design: str | None = None
+    floor_modes: tuple[int, ...] | None = None
 
 
 _ARRAY_FIELDS = ("lower", "upper", "omega", "mu", "candidate_omega", "estimated_improvement", "embedding_gamma", "mismatch_ratio")
@@ -155,7 +165,8 @@ CREATE TABLE run (
     software_version TEXT NOT NULL,
     backend TEXT NOT NULL,
     strategy TEXT NOT NULL,
-    created_utc TEXT NOT NULL
+    created_utc TEXT NOT NULL,
+    design TEXT NOT NULL DEFAULT 'h2'
 );
 CREATE TABLE measurement (
     seq INTEGER PRIMARY KEY CHECK (seq >= 1),
@@ -193,7 +204,9 @@ CREATE TABLE iteration (
     mu_peak_certified INTEGER,
     mu_certified_intervals INTEGER,
     outputs TEXT,
-    common_gain TEXT
+    common_gain TEXT,
+    design TEXT,
+    floor_modes TEXT
 );
 CREATE TABLE discrepancy (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -296,6 +309,7 @@ class Journal:
         software_version: str,
         backend: str,
         strategy: str,
+        design: str = "robust",
     ) -> "Journal":
         """Create the journal of a new run; refuses to overwrite an existing one.
 
@@ -326,9 +340,10 @@ class Journal:
             for stmt in _append_only_triggers().splitlines():
                 conn.execute(stmt)
             conn.execute(
-                "INSERT INTO run (id, procedure_text, procedure_name, seed, software_version, backend, strategy, created_utc)"
-                " VALUES (1, ?, ?, ?, ?, ?, ?, ?)",
-                (str(procedure_text), str(procedure_name), int(seed), str(software_version), str(backend), str(strategy), _utc_now()),
+                "INSERT INTO run (id, procedure_text, procedure_name, seed, software_version, backend, strategy, created_utc, design)"
+                " VALUES (1, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (str(procedure_text), str(procedure_name), int(seed), str(software_version), str(backend), str(strategy), _utc_now(),
+                 str(design)),
             )
             conn.execute(f"PRAGMA application_id={APPLICATION_ID}")
             conn.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
@@ -378,7 +393,10 @@ class Journal:
                        "ALTER TABLE iteration ADD COLUMN mu_certified_intervals INTEGER",  # NULL: not known
                     4: "ALTER TABLE measurement ADD COLUMN others TEXT;"
                        "ALTER TABLE iteration ADD COLUMN outputs TEXT",  # NULL: one sensor
-                    5: "ALTER TABLE iteration ADD COLUMN common_gain TEXT"}  # NULL: no calibration scale
+                    5: "ALTER TABLE iteration ADD COLUMN common_gain TEXT",  # NULL: no calibration scale
+                    6: "ALTER TABLE run ADD COLUMN design TEXT NOT NULL DEFAULT 'h2';"  # every earlier run designed with H2
+                       "ALTER TABLE iteration ADD COLUMN design TEXT;"
+                       "ALTER TABLE iteration ADD COLUMN floor_modes TEXT"}
         while version in upgrades:
             try:
                 for statement in upgrades[version].split(";"):
@@ -537,6 +555,10 @@ class Journal:
                 v = None if v is None else int(v)
             elif name in ("outputs", "common_gain"):
                 v = None if v is None else _to_json(v)
+            elif name == "design":
+                v = None if v is None else str(v)
+            elif name == "floor_modes":
+                v = None if v is None else _to_json([int(m) for m in v])
             else:
                 v = _opt_float(v)
             values.append(v)
@@ -566,9 +588,15 @@ class Journal:
                     v = None if v is None else bool(v)
                 elif name in ("outputs", "common_gain"):
                     v = None if v is None else json.loads(v)
+                elif name == "floor_modes":
+                    v = None if v is None else tuple(int(m) for m in json.loads(v))
                 kw[name] = v
             for name in ("lower", "upper"):
                 kw[name] = kw[name].reshape(-1, 4)
+            if kw["design"] is None:  # written before issue 38: every compensator was an H2 design
+                kw["design"] = "h2"
+            if kw["floor_modes"] is None:
+                kw["floor_modes"] = floor_modes(IntervalModel(kw["lower"], kw["upper"]))
             out.append(IterationRecord(**kw))
         return out
 

@@ -26,6 +26,7 @@ MULTISINE_BACKENDS = ("sim", *IN_PROCESS_BACKENDS)  # exciters that can play a s
 SENSOR_QUANTITIES = ("force", "displacement", "velocity", "acceleration")
 UNMODELLED_BOUNDS = ("w1", "none")
 STRATEGIES = ("mu", "log-sweep", "random", "max-reduction")
+DESIGN_METHODS = ("robust", "h2")  # the compensator: tuned to the mixed-mu bound (issue 38), or the thesis's H2
 RANKINGS = ("thesis", "per_rig_second")
 NOISE_PROFILES = ("fully_damped", "snr10", "resonance", "none")
 
@@ -198,6 +199,7 @@ class Procedure:
     instruments: Mapping[str, InstrumentSettings] = field(default_factory=dict)
     unmodelled_bound: str | None = None  # "w1" | "none"; None: the backend's default (see procedure_file)
     dwell_signal: str = "sine"  # "multisine": initial points and each iteration's batch in one record
+    design_method: str = "robust"  # [design] method: "robust" (issue 38) or "h2" (thesis 6.3.1)
     description: str = ""
     source_text: str = ""  # the file's text, stored in the journal with the run
     source_path: str = ""

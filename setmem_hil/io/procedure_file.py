@@ -55,6 +55,7 @@ from setmem_hil.io.procedure import (
     InstrumentSettings,
     NOISE_PROFILES,
     STRATEGIES,
+    DESIGN_METHODS,
     BackendSettings,
     Goal,
     InputDesignSettings,
@@ -111,6 +112,7 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("", "goal", "table", "", "", "When the campaign stops."),
     KeySpec("", "input_design", "table", "", "", "How the next frequency is chosen (chapter 5)."),
     KeySpec("", "weights", "table", "", "", "Control-design weights W1 (unmodelled dynamics bound) and W2 (performance)."),
+    KeySpec("", "design", "table", "", "", "How each iteration's compensator is designed."),
     KeySpec("", "discrepancy", "table", "", "", "Model-discrepancy checks."),
     KeySpec("", "dwell", "table", "", "", "How each measurement excites the structure."),
     KeySpec("", "instruments", "instrument-tables", "", "{}", "The real instruments, one [instruments.<name>] table each (kind = \"instruments\"); the names are what [backend] exciter, force and response refer to."),
@@ -210,6 +212,8 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("input_design", "exact_resolve_top", "integer", "", _ID.exact_resolve_top, "The best candidates re-identified exactly before choosing.", ge=0, le=10**6),
     KeySpec("input_design", "per_iteration", "integer", "", _ID.per_iteration, "Frequencies added per iteration (batch design: each further choice re-estimated with the ones already chosen as predicted data, chapter 4).", ge=1, le=100),
     KeySpec("input_design", "ranking", "choice", "", _ID.ranking, "thesis: rank candidates by expected mu-bar improvement (eq. 5.3); per_rig_second: by expected improvement per second of rig time (the dwell the rig would plan at that frequency with the current pole intervals).", choices=RANKINGS),
+    # [design]
+    KeySpec("design", "method", "choice", "", "robust", "robust: the H2 design (or the previous iteration's compensator) tuned, at the same order, to minimise the certified mixed-mu peak of the current box (issue 38); h2: the thesis's H2 design (section 6.3.1), for comparison. Command line: --design.", choices=DESIGN_METHODS),
     # [weights]
     KeySpec("weights", "w1_num", "numbers", "", "thesis eq. 6.1", "W1 numerator coefficients, highest power of s first."),
     KeySpec("weights", "w1_den", "numbers", "", "thesis eq. 6.1", "W1 denominator coefficients (stable, degree >= numerator's)."),
@@ -728,6 +732,7 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
     backend = _with_channel_outputs(backend, instruments)
     unmodelled_bound = top.sub("identification").get("unmodelled_bound")
     dwell_signal = top.sub("dwell").get("signal", "sine")
+    design_method = top.sub("design").get("method", "robust")
     # instruments: check_instruments decides, from the profiles (lock-ins or sampled sensors)
     if dwell_signal == "multisine" and backend.kind not in (*MULTISINE_BACKENDS, "instruments"):
         raise ProcedureError(top.source, "[dwell] key 'signal'", f"multisine needs an exciter that plays a sum of sines "
@@ -746,6 +751,7 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
         instruments=instruments,
         unmodelled_bound=unmodelled_bound,
         dwell_signal=dwell_signal,
+        design_method=design_method,
         description=description,
         source_text=text,
     )

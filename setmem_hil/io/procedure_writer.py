@@ -132,5 +132,7 @@ def format_procedure(procedure: Procedure) -> str:
     out += [f"w2_extra_pole_rad_s = {_toml_value(float(w.w2_extra_pole_rad_s or 0.0))}", ""]
     if p.dwell_signal != "sine":
         out += ["[dwell]", f"signal = {_toml_value(p.dwell_signal)}", ""]
+    if p.design_method != "robust":
+        out += ["[design]", f"method = {_toml_value(p.design_method)}", ""]
     out += ["[discrepancy]", f"check_each_iteration = {_toml_value(bool(p.discrepancy_check))}", ""]
     return "\n".join(out)

@@ -14,8 +14,9 @@ Public entry point :func:`analyze_robust_performance` (see ARCHITECTURE.md, issu
    so the peak is the precise maximum over the grid. The peak is then refined with 2 x 6 extra
    frequencies between its neighbours. Every value reported is ``sqrt(lambda_max)`` at explicit
    scalings, hence a true upper bound; pass-1 values are within ~1e-4 of optimal in our tests.
-   The lower bound searches real-block vertices only at the 8 highest frequencies (elsewhere
-   the real blocks are left at zero, still a valid lower bound). Then the whole band of the
+   The lower bound searches real-block vertices at the 8 highest frequencies and the real
+   blocks' interior at the 2 highest (elsewhere the real blocks are left at zero, still a valid
+   lower bound). Then the whole band of the
    grid is **certified** (:mod:`~setmem_hil.robust.mu_certificate`, issue 27): the scalings of
    the grid points, each tested on whole frequency intervals with a Hamiltonian eigenvalue test,
    prove ``mu-bar(w) <= mu_peak (1 + 1e-4)`` at every frequency of the band; where they cannot,
@@ -30,7 +31,7 @@ Sign convention: positive feedback ``u = K y`` (thesis footnote 3 of 6.3.2).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -39,10 +40,11 @@ from setmem_hil.io.atomic_file import json_safe
 from setmem_hil.robust.augmented_plant import augmented_plant
 from setmem_hil.robust.h2_design import design_h2_controller, h2_controller_for_plant
 from setmem_hil.robust.mixed_mu import MixedMuBound, MuStructure, mixed_mu_upper
-from setmem_hil.robust.mu_certificate import certify_band
+from setmem_hil.robust.mu_certificate import CERTIFICATE_RTOL, certify_band
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.robust.mu_lower_bound import mixed_mu_lower
 from setmem_hil.robust.mu_sensitivity import beta_derivatives
+from setmem_hil.robust.robust_design import DESIGN_METHODS
 from setmem_hil.robust.uncertain_plant import uncertain_plant
 from setmem_hil.model.weights import THESIS_WEIGHTS, Weights
 
@@ -51,8 +53,10 @@ __all__ = ["RobustAnalysis", "analyze_robust_performance", "design_h2_controller
 PEAK_TIE_RTOL = 1e-6  # frequencies within this of the peak count as attaining it (4.2.2)
 FAST_TOL, FAST_MAX_ITER = 1e-4, 60  # pass 1 over the grid
 PRECISE_TOL, PRECISE_MAX_ITER = 1e-7, 100  # pass 2 near the peak and the refinement points
-LOWER_SEARCH_POINTS = 8  # frequencies (highest upper bound) given the full lower-bound search
+LOWER_SEARCH_POINTS = 8  # frequencies (highest upper bound) given the vertex lower-bound search
+LOWER_INTERIOR_POINTS = 2  # ... and of those, the highest given the interior search too (issue 38)
 PEAK_WINDOW = 0.03  # pass-1 values within 3 % of the pass-1 maximum are solved precisely
+ROBUST_CERTIFICATE_RTOL = 3e-3  # the robust design's certificate level over its peak (flat peaks: see the parameter)
 
 
 def _merge(bound: MixedMuBound, idx: np.ndarray, better: MixedMuBound) -> MixedMuBound:
@@ -93,6 +97,9 @@ class RobustAnalysis:
     controller : control.StateSpace
         Compensator, positive feedback ``u = K y``.
     controller_order : int
+    design : str
+        Which design made ``controller``: ``"h2"`` (section 6.3.1), ``"robust"`` (tuned to the
+        mixed-mu bound, :mod:`~setmem_hil.robust.robust_design`) or ``"given"`` (passed in).
     """
 
     mu_peak: float
@@ -108,6 +115,7 @@ class RobustAnalysis:
     mu_certified_level: float = math.inf
     mu_certified_intervals: int = 0
     mu_peak_grid: float = math.nan
+    design: str = "h2"
 
     @property
     def certified_mu(self) -> float:
@@ -147,6 +155,10 @@ def analyze_robust_performance(
     omega_rad_s=None,
     controller=None,
     gain: tuple[float, float] | None = None,
+    design: str = "h2",
+    warm_start=None,
+    tuning=None,
+    certificate_rtol: float = CERTIFICATE_RTOL,
 ) -> RobustAnalysis:
     """mu-bar peak, its lower bound and the mu-sensitivities of an interval model.
 
@@ -165,6 +177,22 @@ def analyze_robust_performance(
         A common gain interval on the whole plant (the sensors' calibration: the model was
         identified as measured): one more real uncertainty, ``gain`` among the sensitivities
         (:func:`~setmem_hil.robust.uncertain_plant.uncertain_plant`).
+    design : {"h2", "robust"}
+        Without ``controller``: ``"h2"`` analyses the H2 design (the thesis); ``"robust"`` tunes a
+        compensator of the same order to the mixed-mu bound (issue 38,
+        :mod:`~setmem_hil.robust.robust_design`), starting from the H2 design or ``warm_start``,
+        whichever has the lower peak, and keeps the tuned one only if its certified peak is no
+        higher than its start's.
+    warm_start : (controller, str), optional
+        With ``design="robust"``: the previous iteration's compensator (rad/s) and the design that
+        made it, a second start for the tuning.
+    tuning : TuningSettings, optional
+        Effort of the robust design.
+    certificate_rtol : float
+        The band certificate's level over the largest evaluated bound
+        (:func:`~setmem_hil.robust.mu_certificate.certify_band`). A compensator tuned to the bound
+        flattens mu-bar at its peaks, where ``1e-4`` can take seconds of solves or not close at
+        all; the campaign's robust design certifies at :data:`ROBUST_CERTIFICATE_RTOL`.
 
     Returns
     -------
@@ -194,18 +222,25 @@ def analyze_robust_performance(
     M = weights.reference_magnitude()
     if not (math.isfinite(T) and T > 0.0 and math.isfinite(M) and M > 0.0):
         raise ValueError(f"weights: reference frequency {T!r} rad/s (from W2) and magnitude {M!r} (from W1) must be positive")
+    if design not in DESIGN_METHODS:
+        raise ValueError(f"design: expected one of {', '.join(DESIGN_METHODS)}, found {design!r}")
+    robust = None if controller is not None or design != "robust" else (warm_start, tuning)
     if T == 1.0 and M == 1.0:
-        return _analyze_normalised(model, weights, omega_rad_s, controller, gain)
+        return _analyze_normalised(model, weights, omega_rad_s, controller, gain, robust, certificate_rtol)
     if controller is not None and not hasattr(controller, "A"):
         import control
 
         controller = control.ss(controller)
+    if robust is not None and robust[0] is not None:
+        robust = ((_time_scaled_controller(robust[0][0], 1.0 / T, M), robust[0][1]), tuning)
     result = _analyze_normalised(
         model.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
         weights.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
         None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float) / T,
         None if controller is None else _time_scaled_controller(controller, 1.0 / T, M),
         gain,  # a gain on the whole plant: the same in any time or magnitude unit
+        robust,
+        certificate_rtol,
     )
     return RobustAnalysis(
         mu_peak=result.mu_peak,
@@ -221,6 +256,7 @@ def analyze_robust_performance(
         mu_certified_level=result.mu_certified_level,
         mu_certified_intervals=result.mu_certified_intervals,
         mu_peak_grid=result.mu_peak_grid,
+        design=result.design,
     )
 
 
@@ -242,18 +278,52 @@ def default_grid_for(model: IntervalModel) -> np.ndarray:
     return np.unique(np.concatenate([grid, *extra]))
 
 
-def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, controller, gain=None) -> RobustAnalysis:
-    """:func:`analyze_robust_performance` of a problem already in normalised time."""
+def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, controller, gain=None, robust=None,
+                        certificate_rtol: float = CERTIFICATE_RTOL) -> RobustAnalysis:
+    """:func:`analyze_robust_performance` of a problem already in normalised time; ``robust``:
+    ``(warm_start, tuning)`` for the robust design, None otherwise."""
     plant = augmented_plant(uncertain_plant(model, gain), weights, design_w2=True)
     if controller is not None and not hasattr(controller, "A"):
         import control
 
         controller = control.ss(controller)  # e.g. a TransferFunction
-    K = h2_controller_for_plant(plant) if controller is None else controller
-    order = int(np.asarray(K.A).shape[0]) if np.asarray(K.A).size else 0
     omega = default_grid_for(model) if omega_rad_s is None else np.sort(np.asarray(omega_rad_s, dtype=float).ravel())
     if omega.size == 0 or np.any(~np.isfinite(omega)) or np.any(omega < 0):
         raise ValueError("omega_rad_s: expected finite non-negative frequencies")
+    if robust is not None:
+        return _robust_design_analysis(plant, omega, *robust, certificate_rtol)
+    K = h2_controller_for_plant(plant) if controller is None else controller
+    result = _analyze_controller(plant, K, omega, certificate_rtol)
+    return result if controller is None else replace(result, design="given")
+
+
+def _robust_design_analysis(plant, omega: np.ndarray, warm_start, tuning, rtol: float) -> RobustAnalysis:
+    """Tune from the H2 design (and the warm start), analyse, keep the better certified design."""
+    from setmem_hil.robust.robust_design import TuningSettings, tune_compensator
+
+    K_h2 = h2_controller_for_plant(plant)
+    starts, labels = [K_h2], ["h2"]
+    if warm_start is not None and np.asarray(warm_start[0].A).shape == np.asarray(K_h2.A).shape:
+        starts.append(warm_start[0])
+        labels.append(str(warm_start[1]))
+    try:
+        tuned = tune_compensator(plant, starts, omega, tuning or TuningSettings())
+    except ValueError:  # no start stabilises the nominal loop: the H2 analysis says so (mu-bar inf)
+        return _analyze_controller(plant, K_h2, omega, rtol)
+    start_label = labels[tuned.start_index]
+    if not tuned.improved:
+        return replace(_analyze_controller(plant, starts[tuned.start_index], omega, rtol), design=start_label)
+    result = replace(_analyze_controller(plant, tuned.controller.to_statespace(), omega, rtol), design="robust")
+    if result.mu_peak <= tuned.start_peak * (1.0 + 1e-9):
+        return result
+    # the certificate found a peak between the tuning's frequencies: keep the start if it is better
+    fallback = replace(_analyze_controller(plant, starts[tuned.start_index], omega, rtol), design=start_label)
+    return result if result.mu_peak <= fallback.mu_peak else fallback
+
+
+def _analyze_controller(plant, K, omega: np.ndarray, certificate_rtol: float = CERTIFICATE_RTOL) -> RobustAnalysis:
+    """Grid, refinement, certificate, lower bound and sensitivities of one compensator."""
+    order = int(np.asarray(K.A).shape[0]) if np.asarray(K.A).size else 0
     structure = MuStructure(plant.n_real, plant.n_complex)
     cl = plant.closed_loop(K)
     if np.max(np.linalg.eigvals(cl.A).real) >= 0.0:
@@ -302,7 +372,7 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
             order_idx = np.argsort(w_all)
             w_all, mu = w_all[order_idx], mu[order_idx]
     peak_grid = float(max(b.beta.max() for b in bounds))
-    certificate = _certify(cl, structure, omegas, bounds)
+    certificate = _certify(cl, structure, omegas, bounds, certificate_rtol)
     n_grid = sum(b.beta.size for b in bounds)  # the grid and its refinement, before the certificate's points
     omegas.extend(certificate.omegas)
     mats.extend(certificate.matrices)
@@ -315,6 +385,8 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
     # lower bound: real blocks at zero everywhere (cheap); the full search near the peak
     lower = mixed_mu_lower(M_all, structure, search_real=False).beta
     top = np.argsort(all_mu)[-LOWER_SEARCH_POINTS:]
+    lower[top] = np.maximum(lower[top], mixed_mu_lower(M_all[top], structure, interior=False).beta)
+    top = top[-LOWER_INTERIOR_POINTS:]  # the real blocks' interior too, where the gap matters most
     lower[top] = np.maximum(lower[top], mixed_mu_lower(M_all[top], structure).beta)
     peak = float(all_mu.max())
     attaining = np.flatnonzero(all_mu >= peak * (1.0 - PEAK_TIE_RTOL))
@@ -349,7 +421,7 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
     )
 
 
-def _certify(cl, structure: MuStructure, omegas: list, bounds: list):
+def _certify(cl, structure: MuStructure, omegas: list, bounds: list, rtol: float = CERTIFICATE_RTOL):
     """:func:`certify_band` over the band of the grid, from every solved point's scalings."""
     from setmem_hil.robust.mu_certificate import BandCertificate
 
@@ -359,4 +431,4 @@ def _certify(cl, structure: MuStructure, omegas: list, bounds: list):
         return BandCertificate(certified=True, level=peak, peak=peak, n_intervals=0, n_scalings=0)
     merged = MixedMuBound(**{name: np.concatenate([getattr(b, name) for b in bounds])
                              for name in ("beta", "d", "g", "eigenvalues", "eigenvectors")})
-    return certify_band(cl, structure, (float(w.min()), float(w.max())), w, merged)
+    return certify_band(cl, structure, (float(w.min()), float(w.max())), w, merged, rtol=rtol)

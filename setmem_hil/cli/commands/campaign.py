@@ -1,4 +1,4 @@
-"""``setmem-hil campaign --procedure FILE.toml --backend sim --out DIR [--seed N] [--strategy S]``.
+"""``setmem-hil campaign --procedure FILE.toml --backend sim --out DIR [--seed N] [--strategy S] [--design D]``.
 
 Runs the iterative identification / control / experiment loop (thesis Algorithm 5.1) of a
 procedure file and writes ``DIR/summary.json`` (``reached_goal``, ``final_mu_peak``,
@@ -21,7 +21,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from setmem_hil.io.procedure import BACKENDS, STRATEGIES
+from setmem_hil.io.procedure import BACKENDS, DESIGN_METHODS, STRATEGIES
 from setmem_hil.cli.main import SAFE_STOP
 
 __all__ = ["register", "campaign", "print_iteration_table"]
@@ -33,6 +33,10 @@ CAMPAIGN_HELP = (
 )
 
 
+DESIGN_HELP = ("override the procedure's [design] method: robust (the compensator tuned to the mixed-mu bound, "
+               "the default) or h2 (the thesis's H2 design)")
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("campaign", help="run a procedure's campaign into DIR, with a backend override (scripts)",
                               description=CAMPAIGN_HELP)
@@ -41,6 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created; must not hold a journal)")
     p.add_argument("--seed", type=int, help="override the procedure's seed")
     p.add_argument("--strategy", choices=STRATEGIES, help="override the procedure's input-design strategy")
+    p.add_argument("--design", choices=DESIGN_METHODS, help=DESIGN_HELP)
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=campaign, interrupted=SAFE_STOP)
 
@@ -57,7 +62,7 @@ def campaign(args: argparse.Namespace) -> int:
             procedure, backend=dataclasses.replace(procedure.backend, kind=args.backend), source_text="",
         )
     console = Console(quiet=bool(args.quiet))
-    outcome = start_run(procedure, out, seed=args.seed, strategy=args.strategy, console=console)
+    outcome = start_run(procedure, out, seed=args.seed, strategy=args.strategy, console=console, design=args.design)
     print_iteration_table(outcome.summary, console)
     return 0
 

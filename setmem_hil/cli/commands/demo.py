@@ -17,6 +17,8 @@ from pathlib import Path
 from rich.console import Console
 from setmem_hil.cli.live_options import add_live_options, live_view
 from setmem_hil.cli.main import SAFE_STOP
+from setmem_hil.cli.commands.campaign import DESIGN_HELP
+from setmem_hil.io.procedure import DESIGN_METHODS
 
 
 __all__ = ["register", "demo", "default_demo_dir"]
@@ -28,6 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "and write the journal, summary.json and report.html into DIR."))
     p.add_argument("--out", metavar="DIR", help="output directory (default ./setmem-hil-demo-<UTC time>)")
     p.add_argument("--seed", type=int, help="seed of the simulated noise (default: the procedure's)")
+    p.add_argument("--design", choices=DESIGN_METHODS, help=DESIGN_HELP)
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_live_options(p)
     p.set_defaults(func=demo, interrupted=SAFE_STOP)
@@ -60,7 +63,7 @@ def demo(args: argparse.Namespace) -> int:
         procedure = dataclasses.replace(procedure, seed=int(args.seed))
     console.print("setmem-hil demo: thesis section 6.3.2 on the simulated cantilever beam", highlight=False)
     with live_view(args, out) as live:
-        outcome = start_run(procedure, out, seed=args.seed, console=console, report_follows=True, **live)
+        outcome = start_run(procedure, out, seed=args.seed, console=console, report_follows=True, design=args.design, **live)
     from setmem_hil.report.document import write_report
 
     console.print(f"report: {write_report(outcome.run_dir)}", highlight=False)

@@ -23,7 +23,8 @@ from setmem_hil.cli.live_options import add_live_options, live_view
 from setmem_hil.cli.progress import terminal_display
 from setmem_hil.errors import InputFormatError
 from setmem_hil.experiment_factory import open_experiment
-from setmem_hil.io.procedure import STRATEGIES, Procedure
+from setmem_hil.io.procedure import DESIGN_METHODS, STRATEGIES, Procedure
+from setmem_hil.cli.commands.campaign import DESIGN_HELP
 from setmem_hil.io.procedure_file import load_procedure
 from setmem_hil.cli.main import SAFE_STOP
 
@@ -47,6 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="with --resume: continue with this corrected procedure, reusing every stored measurement (journaled)")
     p.add_argument("--seed", type=int, help="override the procedure's seed (stored with the run)")
     p.add_argument("--strategy", choices=STRATEGIES, help="override the procedure's input-design strategy")
+    p.add_argument("--design", choices=DESIGN_METHODS, help=DESIGN_HELP)
     p.add_argument("--check", action="store_true", help="validate the procedure and exit")
     p.add_argument("--report", action="store_true", help="write DIR/report.html when the run finishes")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -61,8 +63,8 @@ def _arguments_error(problem: str) -> InputFormatError:
 def run(args: argparse.Namespace) -> int:
     console = Console(stderr=False, quiet=bool(args.quiet), soft_wrap=True)
     if args.resume:
-        if args.procedure or args.out or args.seed is not None or args.strategy or args.check:
-            raise _arguments_error("--resume DIR takes no procedure argument, --out, --seed, --strategy or --check: the run's own "
+        if args.procedure or args.out or args.seed is not None or args.strategy or args.design or args.check:
+            raise _arguments_error("--resume DIR takes no procedure argument, --out, --seed, --strategy, --design or --check: the run's own "
                                    "are stored in its journal (a corrected procedure goes in --procedure FIXED.toml)")
         with live_view(args, Path(args.resume)) as live:
             outcome = resume_run(args.resume, console=console, procedure_path=args.fixed_procedure, **live)
@@ -85,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.out) if args.out else default_run_dir(procedure)
         with live_view(args, out) as live:
             outcome = start_run(procedure, out, seed=args.seed, strategy=args.strategy, console=console,
-                                report_follows=bool(args.report), **live)
+                                report_follows=bool(args.report), design=args.design, **live)
     if args.report:
         from setmem_hil.report.document import write_report
 
@@ -100,13 +102,13 @@ def open_backend(procedure: Procedure, seed: int):
 
 
 def start_run(procedure: Procedure, run_dir: str | os.PathLike, *, seed: int | None = None, strategy: str | None = None,
-              console: Console | None = None, report_follows: bool = False, **live) -> RunOutcome:
+              console: Console | None = None, report_follows: bool = False, design: str | None = None, **live) -> RunOutcome:
     """:func:`setmem_hil.campaign.session.start_run` with the terminal display (``report_follows``:
     the caller writes the report, so no hint how to)."""
     console = console or Console()
     return session.start_run(procedure, run_dir, seed=seed, strategy=strategy, console=console,
                              opener=lambda p, s: open_backend(p, s), display=terminal_display(console),
-                             quiet_report_hint=report_follows, **live)
+                             quiet_report_hint=report_follows, design=design, **live)
 
 
 def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, procedure_path=None, **live) -> RunOutcome:
