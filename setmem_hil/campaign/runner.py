@@ -331,11 +331,13 @@ def next_frequency(
     seed: int | None,
     sensor_models=None,
     left_out: tuple[tuple[float, float], ...] = (),
+    floor_modes: tuple[int, ...] = (),
 ) -> InputChoice:
     """Algorithm 5.1 steps 5-7 for one strategy (see :mod:`setmem_hil.design.strategies`);
     ``sensor_models`` (several sensors): every output's model, so the exact re-solves predict
     every sensor's point (:class:`~setmem_hil.design.input_design.OtherOutputs`); ``left_out``:
-    regions (rad/s) no candidate is taken from (:mod:`setmem_hil.design.unproductive_region`)."""
+    regions (rad/s) no candidate is taken from (:mod:`setmem_hil.design.unproductive_region`);
+    ``floor_modes``: the floor's modes, whose removal ranks first (the ``"mu"`` strategy)."""
     settings = procedure.input_design.resolved(procedure.weights.reference_frequency_rad_s(), procedure.safety)
     empty = np.zeros(0)
     if strategy == "log-sweep":
@@ -368,6 +370,7 @@ def next_frequency(
         identify_settings=_identify_settings(exact_resolve=True),
         cost_s=cost,
         other_outputs=None if sensor_models is None else other_outputs(procedure, measured, sensor_models, omega, R),
+        floor_modes=floor_modes if strategy == "mu" else (),
     )
 
 
@@ -451,6 +454,7 @@ def run_campaign(
     continue_stored: bool = False,
     control=None,
     design: str | None = None,
+    floor_aware: bool | None = None,
 ) -> CampaignSummary:
     """Run Algorithm 5.1 on ``experiment`` until mu-bar < goal or the budget is spent.
 
@@ -489,6 +493,9 @@ def run_campaign(
     design : str, optional
         Overrides ``procedure.design_method``: ``"robust"`` (the compensator tuned to the mixed-mu
         bound, warm-started from the previous iteration's) or ``"h2"`` (the thesis).
+    floor_aware : bool, optional
+        Rank the candidates that remove a floor (:mod:`setmem_hil.model.mu_floor`) first; default:
+        with the robust design only (``--design h2`` stays the thesis's loop, bit for bit).
 
     Returns
     -------
@@ -528,6 +535,7 @@ def run_campaign(
     gain = None if scales is None else (1.0 / scales[0][1], 1.0 / scales[0][0])
 
     method = design or procedure.design_method
+    floor_aware = (method == "robust") if floor_aware is None else bool(floor_aware)
 
     def analyze(model, controller):
         if method == "h2":
@@ -613,7 +621,8 @@ def run_campaign(
         if not (reached or budget_spent):
             with blas_one_thread():
                 choice = next_frequency(strategy, k, n_added, procedure, result, data, outcome, experiment, measured, seed,
-                                        sensor_models=sensor_models, left_out=tuple(left_out))
+                                        sensor_models=sensor_models, left_out=tuple(left_out),
+                                        floor_modes=floor if floor_aware else ())
         next_omega = None if choice is None else choice.next_omega_rad_s
         compute_s = time.perf_counter() - t_it
         compute_cpu_s = time.process_time() - cpu_it

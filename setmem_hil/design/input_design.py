@@ -18,6 +18,12 @@ those inputs which have the best improvements") and the choice is made on that. 
 that reports the predicted point inconsistent (the box midpoint need not be feasible) keeps its
 approximate score.
 
+**The floor (issue 38).** While a mode's box holds an undamped, zero-residue plant
+(:mod:`setmem_hil.model.mu_floor`) no compensator reaches mu-bar < 1, whatever the sensitivities
+of today's peak promise. Given ``floor_modes``, a candidate is weighed by the floors it removes
+first (its predicted box, and its exact re-solve, no longer hold them), by its improvement
+second: the candidates that bound a floor's mode rank ahead of every one that does not.
+
 **Fallback (section 5.4.2).** When every estimate is zero (the nominal point would cut no
 bound at any candidate), candidates are ranked by how close they come to cutting one: the
 sensitivity-weighted sum over parameters of the larger of the two sides' ``|r(x_b)| / C``.
@@ -35,6 +41,7 @@ from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.identification.algorithm import IdentifySettings, identify, identify_outputs
 from setmem_hil.design.input_effects import InputEffects, estimate_input_effects
 from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel
+from setmem_hil.model.mu_floor import floor_mask
 from setmem_hil.io.procedure import InputDesignSettings
 
 SCORING = ("mu", "max-reduction")
@@ -195,6 +202,7 @@ def choose_input(
     identify_settings=None,
     cost_s: np.ndarray | None = None,
     other_outputs: OtherOutputs | None = None,
+    floor_modes: tuple[int, ...] = (),
 ) -> InputChoice:
     """Algorithm 5.1 steps 6-7: rank the candidates and pick the next input.
 
@@ -222,6 +230,8 @@ def choose_input(
         then the exact improvements); ``estimated_improvement`` stays the improvement itself.
     other_outputs : OtherOutputs, optional
         Several sensors: the exact re-solves predict every output's point (see there).
+    floor_modes : tuple of int
+        1-based modes whose box holds the floor: candidates removing it rank first (module doc).
 
     Returns
     -------
@@ -230,10 +240,14 @@ def choose_input(
     model = result.model
     omega = np.asarray(omega_rad_s, dtype=float)
     R = np.asarray(noise_bound, dtype=float)
-    estimate, score, basis, _ = approximate_scores(model, result.optimizers, omega, R, weights, scoring)
+    estimate, score, basis, effects = approximate_scores(model, result.optimizers, omega, R, weights, scoring)
     per_second = np.ones_like(omega) if cost_s is None else 1.0 / np.maximum(np.asarray(cost_s, dtype=float), 1e-9)
-    top = top_indices(score * per_second, exact_resolve_top)
+    floors = np.asarray(floor_modes, dtype=int) - 1
+    removed = _floors_removed(effects.lower, effects.upper, floors)
+    ranking = _with_floors_first(score * per_second, removed)
+    top = top_indices(ranking, exact_resolve_top)
     resolved = np.full(top.size, np.nan)
+    removed_exactly = removed[top].copy()
     if top.size:
         settings = identify_settings if identify_settings is not None else IdentifySettings()
         g_nominal = model.midpoint.frequency_response(omega[top])  # certainty equivalence, eq. 4.53
@@ -248,12 +262,13 @@ def choose_input(
                 continue
             new_width = np.minimum(trial_model.width, model.width)
             resolved[n] = float(improvement_from_widths(model.width, new_width, weights, scoring))
+            removed_exactly[n] = _floors_removed(trial_model.lower[None], trial_model.upper[None], floors)[0]
     # final ranking: exact improvement where available, the approximate score breaking ties
-    exact_key = np.where(np.isnan(resolved), estimate[top], resolved) * per_second[top]
+    exact_key = _with_floors_first(np.where(np.isnan(resolved), estimate[top], resolved) * per_second[top], removed_exactly)
     if top.size and np.any(exact_key > 0):
-        best = top[np.lexsort((np.arange(top.size), -(score * per_second)[top], -exact_key))[0]]
+        best = top[np.lexsort((np.arange(top.size), -ranking[top], -exact_key))[0]]
     else:
-        best = top[0] if top.size else int(top_indices(score * per_second, 1)[0])
+        best = top[0] if top.size else int(top_indices(ranking, 1)[0])
     return InputChoice(
         next_omega_rad_s=float(omega[best]),
         candidate_omega_rad_s=omega,
@@ -262,6 +277,21 @@ def choose_input(
         resolved_omega_rad_s=omega[top],
         resolved_improvement=resolved,
     )
+
+
+def _floors_removed(lower: np.ndarray, upper: np.ndarray, floors: np.ndarray) -> np.ndarray:
+    """How many of the floor modes (0-based) each predicted box ``(N, n_modes, 4)`` no longer holds."""
+    if floors.size == 0:
+        return np.zeros(np.shape(lower)[0])
+    return np.sum(~floor_mask(lower, upper)[:, floors], axis=1).astype(float)
+
+
+def _with_floors_first(score: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    """``score`` shifted so that removing more floors always ranks higher (ties: the score)."""
+    if not np.any(removed > 0):
+        return score
+    step = 1.0 + float(np.max(np.abs(np.nan_to_num(score)), initial=0.0))
+    return score + removed * step
 
 
 def uniform_weights(model: IntervalModel) -> np.ndarray:

@@ -4,14 +4,16 @@ Contract (``setmem-hil controller RUN_DIR --out FILE``; README "From the campaig
 target"). Every form states the feedback sign: **positive feedback, ``u = K y``** (thesis 6.3.2,
 footnote 3): the drive sample is ``+K`` applied to the sensor sample.
 
-* JSON: ``sign`` (``"positive"``), ``iteration``, ``mu_peak``, ``continuous`` ``{A, B, C, D}``
+* JSON: ``sign`` (``"positive"``), ``iteration``, ``mu_peak``, ``design`` (``"robust"`` or ``"h2"``:
+  which design made it, issue 38), ``margin`` (``1 / mu_peak``: how far the box could grow),
+  ``continuous`` ``{A, B, C, D}``
   (rad/s time base), ``poles`` and ``zeros`` (``[re, im]`` pairs), ``gain``; with a sample rate
   also ``discrete`` ``{A, B, C, D, Ts, prewarp_rad_s}``, ``sos`` (rows ``[b0, b1, b2, a0, a1,
   a2]``) and ``sos_gain`` (the gain left outside the sections: 1.0, as the gain is folded into the
   first section, so ``scipy.signal.sosfilt(sos, x)`` is the drive).
 * .mat (``scipy.io.savemat``): ``A, B, C, D, Ts, sign`` (the discrete compensator with ``Ts > 0``
   when a sample rate is given, else the continuous one with ``Ts = 0``), ``Ac, Bc, Cc, Dc`` (always
-  continuous), ``sos, sos_gain`` (with a sample rate), ``iteration, mu_peak``.
+  continuous), ``sos, sos_gain`` (with a sample rate), ``iteration, mu_peak, design``.
 * CSV: header ``b0,b1,b2,a0,a1,a2``, one row per section; a comment line before it gives the
   gain, the sample period and the sign.
 * C: one header, standard headers only, ``double`` arithmetic, direct form II transposed
@@ -50,13 +52,15 @@ def _pairs(values) -> list:
 
 
 def controller_document(*, iteration: int, mu_peak: float, continuous, zpk, discrete=None, prewarp_rad_s=None,
-                        sos=None, sos_gain=None) -> dict[str, Any]:
+                        sos=None, sos_gain=None, design: str = "h2") -> dict[str, Any]:
     """The JSON document (see the module docstring)."""
     doc: dict[str, Any] = {
         "sign": "positive",
         "convention": "positive feedback: u = K y (drive = +K applied to the sensor signal)",
         "iteration": int(iteration),
         "mu_peak": float(mu_peak),
+        "design": str(design),
+        "margin": float(1.0 / mu_peak) if mu_peak > 0 and np.isfinite(mu_peak) else None,
         "continuous": {name: _matrix(getattr(continuous, name)) for name in "ABCD"},
         "poles": _pairs(zpk.poles),
         "zeros": _pairs(zpk.zeros),
@@ -74,6 +78,7 @@ def mat_variables(doc: dict) -> dict[str, Any]:
     """The .mat file's variables from the JSON document."""
     cont = doc["continuous"]
     out: dict[str, Any] = {"sign": "positive", "iteration": doc["iteration"], "mu_peak": doc["mu_peak"],
+                           "design": doc.get("design", "h2"),
                            **{f"{k}c": np.asarray(cont[k], dtype=float) for k in "ABCD"}}
     if "discrete" in doc:
         out.update({k: np.asarray(doc["discrete"][k], dtype=float) for k in "ABCD"})
@@ -102,7 +107,7 @@ def c_header(doc: dict) -> str:
     Ts = float(doc["discrete"]["Ts"])
     if n == 0:
         raise ValueError("a static compensator has no sections: use its D matrix")
-    return f"""/* setmem-hil compensator, iteration {doc['iteration']} (mu-bar {doc['mu_peak']:.6g}).
+    return f"""/* setmem-hil compensator, iteration {doc['iteration']} ({doc.get('design', 'h2')} design, mu-bar {doc['mu_peak']:.6g}).
  * Discrete time: Ts = {Ts!r} s (fs = {1.0 / Ts:.9g} Hz), Tustin prewarped at {doc['discrete']['prewarp_rad_s']:.9g} rad/s.
  * Feedback sign: POSITIVE, u = K y: call setmem_controller_step(&s, y) once per sample with the
  * sensor sample y; its return value is the drive sample u (add it, do not subtract it).

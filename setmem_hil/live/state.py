@@ -79,6 +79,7 @@ def journal_state(run_dir: str | Path, live: dict | None = None) -> dict:
         "iteration": last.k if last else 0,
         "n_points": len(rows),
         "mu_peak": _num(last.mu_peak) if last else None,
+        "design": (last.design or "h2") if last else None,
         "rig_s": live.get("rig_s"),
         "dwell": live.get("dwell"),
         "measurements": [{"omega": r["omega_rad_s"], "re": r["re"], "im": r["im"], "bound": r["bound"], "role": r["role"],
@@ -87,7 +88,8 @@ def journal_state(run_dir: str | Path, live: dict | None = None) -> dict:
         "iterations": [{"k": it.k, "n_points": it.n_points, "mu_peak": _num(it.mu_peak), "mu_peak_omega": _num(it.mu_peak_omega),
                         "next_omega": _num(it.next_omega), "omega": [float(w) for w in it.omega],
                         "mu": [_num(m) for m in it.mu], "lower": it.lower.tolist(), "upper": it.upper.tolist(),
-                        "sensitivities": it.sensitivities, "outputs": it.outputs} for it in iterations],
+                        "sensitivities": it.sensitivities, "outputs": it.outputs, "design": it.design or "h2",
+                        "floor_modes": list(it.floor_modes or ())} for it in iterations],
         "model_band": band,
         "events": [{"utc": e["utc"], "kind": e["kind"], "message": e["message"][:300]}
                    for e in events if e["kind"] != "exact-resolve"][-50:],  # that one is data for figure 6-14

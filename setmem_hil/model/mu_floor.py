@@ -19,7 +19,17 @@ import numpy as np
 
 from setmem_hil.model.modal_model import A1, B0, B1, IntervalModel
 
-__all__ = ["floor_modes", "floor_message", "floor_sentence"]
+__all__ = ["floor_mask", "floor_modes", "floor_message", "floor_sentence"]
+
+
+def floor_mask(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Which modes hold the floor, for bounds of shape ``(..., n_modes, 4)``: bool ``(..., n_modes)``
+    (the predicted boxes of every candidate input at once, issue 38)."""
+    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    undamped = lower[..., A1] <= 0.0
+    zero_b1 = (lower[..., B1] <= 0.0) & (upper[..., B1] >= 0.0)
+    zero_b0 = (lower[..., B0] <= 0.0) & (upper[..., B0] >= 0.0)
+    return undamped & zero_b1 & zero_b0
 
 
 def floor_modes(model: IntervalModel) -> tuple[int, ...]:
@@ -32,10 +42,7 @@ def floor_modes(model: IntervalModel) -> tuple[int, ...]:
     >>> floor_modes(IntervalModel([[0.01, 1.0, 0.0, -1.0]], [[0.1, 2.0, 0.0, 1.0]]))
     ()
     """
-    lower, upper = np.asarray(model.lower, dtype=float), np.asarray(model.upper, dtype=float)
-    undamped = lower[:, A1] <= 0.0
-    zero_residue = (lower[:, B1] <= 0.0) & (upper[:, B1] >= 0.0) & (lower[:, B0] <= 0.0) & (upper[:, B0] >= 0.0)
-    return tuple(int(i) + 1 for i in np.flatnonzero(undamped & zero_residue))
+    return tuple(int(i) + 1 for i in np.flatnonzero(floor_mask(model.lower, model.upper)))
 
 
 def floor_sentence(mode: int) -> str:

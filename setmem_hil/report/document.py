@@ -194,12 +194,22 @@ def write_report(run_dir: str | os.PathLike) -> Path:
                              "residue of every mode shrinking as experiments are added.", "fig-intervals"))
         rows = [[r.k, r.n_points, _num(r.mu_peak), _certified_text(r), _num(r.mu_peak_omega, 4), _num(r.mu_lower_peak), _num(r.next_omega, 6),
                  "-" if r.next_omega is None else _num(r.next_omega / (2 * math.pi), 5),
-                 r.safeguard, r.controller_order, f"{r.wall_s:.2f}", f"{rig_by_iteration.get(r.k, 0.0):.1f}"] for r in its]
+                 r.safeguard, r.design or "h2", ", ".join(str(m) for m in r.floor_modes or ()) or "-",
+                 r.controller_order, f"{r.wall_s:.2f}", f"{rig_by_iteration.get(r.k, 0.0):.1f}"] for r in its]
         parts.append(_table(["k", "points", "peak mu-bar", "certified on the band", "at omega (rad/s)", "lower bound peak", "next omega (rad/s)",
-                             "next (Hz)", "eq. 5.12 branch", "controller order", "compute (s)", "rig (s)"], rows, "table-iterations",
+                             "next (Hz)", "eq. 5.12 branch", "design", "floor modes", "controller order", "compute (s)", "rig (s)"],
+                            rows, "table-iterations",
                             "Iterations (the numbers behind figure 6-12). 'certified on the band': mu-bar is proved "
-                            "below the peak (within 1e-4) at every frequency of the analysis band, not only at grid "
-                            "points, by that many frequency intervals; the campaign stops only on a certified value."))
+                            "below the peak (within 1e-4; 3e-3 for the robust design) at every frequency of the analysis band, "
+                            "not only at grid points, by that many frequency intervals; the campaign stops only on a certified "
+                            "value. 'design': what made the compensator the safeguard kept (robust: tuned to the mixed-mu bound; "
+                            "h2: the thesis). 'floor modes': modes whose box holds an undamped mode with zero residue, so that no "
+                            "compensator can reach mu-bar < 1 until an experiment bounds a1 or b0 away from 0."))
+        final = its[-1]
+        if math.isfinite(final.mu_peak) and final.mu_peak > 0:
+            parts.append(f"<p id='delivered'>Delivered compensator: iteration {final.k}, {html.escape(final.design or 'h2')} design, "
+                         f"order {final.controller_order}, mu-bar {_num(final.mu_peak)}: margin {_num(1.0 / final.mu_peak)} "
+                         "(the box could grow by that factor before robust performance is lost).</p>")
     else:
         parts.append("<p>No iteration is stored yet.</p>")
 

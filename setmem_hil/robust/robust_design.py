@@ -72,12 +72,18 @@ class TuningSettings:
     inner_iterations : int
         BFGS iterations per inner step.
     smoothing : float
-        ``tau`` of the log-sum-exp relative to the squared peak.
+        ``tau`` of the log-sum-exp relative to the squared peak at the start; a step the true peak
+        refuses divides it by 3 (down to :data:`MIN_SMOOTHING`), so a smoothed peak biased by many
+        frequencies near the top cannot stall the descent.
     min_gain : float
         Stop when an accepted outer step lowers the peak by less than this fraction.
     refresh_window : float
         After a step, the scalings are solved again where the stale bound is within this fraction
         of its peak (elsewhere the stale bound, still valid, is kept).
+    rounds : int
+        Tunings per design: after each, the analysis (grid refinement and certificate) runs, and
+        where it found mu-bar above the tuned peak those frequencies join the set and the tuning
+        goes on (:func:`~setmem_hil.robust.analysis.analyze_robust_performance`).
     active_fraction : float
         An inner step sees the frequencies whose bound is at least this fraction of the peak
         (``lambda_max`` units); the others are checked when the step is judged.
@@ -89,9 +95,12 @@ class TuningSettings:
     min_gain: float = 2e-3
     refresh_window: float = 0.15
     active_fraction: float = 0.05
+    rounds: int = 1
 
 
-FINAL_TUNING = TuningSettings(max_outer=12, inner_iterations=40, min_gain=5e-4)
+MIN_SMOOTHING = 1e-5  # relative tau below which the log-sum-exp is the plain maximum to rounding
+
+FINAL_TUNING = TuningSettings(max_outer=12, inner_iterations=40, min_gain=5e-4, rounds=3)
 """The effort spent once the goal is reached: the delivered compensator's margin (issue 38)."""
 
 
@@ -386,6 +395,7 @@ def tune_compensator(
     start_peak, evaluations, outer, improved = best_peak, 0, 0, False
     theta = np.concatenate([K.A.ravel(), K.B.ravel(), K.C.ravel(), K.D.ravel()])
     radius = 0.5 * max(np.linalg.norm(theta), 1e-12)
+    smoothing = settings.smoothing
     while outer < settings.max_outer:
         outer += 1
         # the objective sees the frequencies that can become the peak within a step; the rest
@@ -393,7 +403,7 @@ def tune_compensator(
         stale = freq.stale_bound(_as_matrices(_Objective(None, None, None, nk, 1.0), theta))  # type: ignore[arg-type]
         active = stale >= settings.active_fraction * stale.max()
         objective = _Objective(_OpenLoopResponse(plant, freq.omega[active]), freq.d[active], freq.g[active], nk,
-                               settings.smoothing * best_peak)
+                               smoothing * best_peak)
         centre = theta.copy()
 
         def acceptable(x: np.ndarray) -> bool:
@@ -420,7 +430,8 @@ def tune_compensator(
             K_best = _as_matrices(objective, theta)
             stale = freq.stale_bound(K_best)
             freq.refresh(K_best, stale >= (1.0 - settings.refresh_window) * stale.max())
-            radius *= 0.25
+            radius *= 0.5
+            smoothing = max(0.3 * smoothing, MIN_SMOOTHING)  # the smoothed peak's bias hid the true one
     best = _as_matrices(_Objective(None, None, None, nk, 1.0), theta)  # type: ignore[arg-type]
     return TuningResult(best, math.sqrt(max(start_peak, 0.0)), math.sqrt(max(best_peak, 0.0)), outer, evaluations, improved, chosen)
 

@@ -68,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
             raise _error("setmem-hil controller", f"--fs {args.fs:g}: {exc}") from None
         sos, gain = second_order_sections(K, args.fs, float(record.mu_peak_omega))
         extra = {"discrete": discrete, "prewarp_rad_s": float(record.mu_peak_omega), "sos": sos, "sos_gain": gain}
-    doc = controller_document(iteration=record.k, mu_peak=record.mu_peak, continuous=K, zpk=zpk_of(K), **extra)
+    doc = controller_document(iteration=record.k, mu_peak=record.mu_peak, continuous=K, zpk=zpk_of(K), design=record.design or "h2",
+                              **extra)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if fmt == "json":
@@ -81,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
         import scipy.io
 
         scipy.io.savemat(str(out), mat_variables(doc))
-    print(f"{out}: compensator of iteration {record.k} (order {K.order}, mu-bar {record.mu_peak:.4g}), positive feedback u = K y"
+    margin = f", margin {doc['margin']:.4g}" if doc.get("margin") else ""
+    print(f"{out}: compensator of iteration {record.k} (order {K.order}, {doc['design']} design, mu-bar {record.mu_peak:.4g}{margin}), "
+          "positive feedback u = K y"
           + (f", discrete at {args.fs:g} Hz" if args.fs else ""))
     return 0

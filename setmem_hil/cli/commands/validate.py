@@ -18,7 +18,7 @@ the exact robust-performance test of one plant (:mod:`setmem_hil.robust.validati
 
 REPORT.json keys: ``truth`` (``stable``, ``rp_peak``, ``rp_peak_omega``; null without a truth),
 ``samples`` (``n``, ``worst_rp_peak``, ``worst_omega``, ``violations``, ``drawn``,
-``worst_plant``), ``closed_loop_sim`` (null without a truth), ``claimed_mu_peak``, ``iteration``,
+``worst_plant``), ``closed_loop_sim`` (null without a truth), ``claimed_mu_peak``, ``iteration``, ``design``,
 ``figure``. The figure (``validate.png`` beside the report) shows ``|W2 S|`` and ``|W1 K S|`` of the
 truth and of the worst sampled plant against 1.
 
@@ -155,10 +155,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.run_dir) / "validate.json"
     figure = out.with_suffix(".png")
     _figure(figure, truth, plants, worst[2], K, weights, grid, k_grid)
-    doc = {"iteration": int(record.k), "claimed_mu_peak": claimed, "truth": truth_doc, "samples": samples_doc,
+    design = record.design or "h2"
+    doc = {"iteration": int(record.k), "claimed_mu_peak": claimed, "design": design, "truth": truth_doc, "samples": samples_doc,
            "closed_loop_sim": sim_doc, "figure": str(figure)}
     write_json_atomic(doc, out)
-    print(f"{out}: iteration {record.k}, claimed mu-bar {claimed:.4g}; "
+    print(f"{out}: iteration {record.k} ({design} design), claimed mu-bar {claimed:.4g}; "
           + (f"truth {'stable' if truth_doc['stable'] else 'UNSTABLE'}, peak {truth_doc['rp_peak']:.4g} at "
              f"{truth_doc['rp_peak_omega']:.4g} rad/s; " if truth_doc else "no simulated truth; ")
           + f"{len(plants)} plants ({drawn}), worst peak {worst[0]:.4g} at {worst[1]:.4g} rad/s, {len(violations)} violations")
