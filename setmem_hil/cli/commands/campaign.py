@@ -72,8 +72,8 @@ def print_iteration_table(summary: dict, console: Console) -> None:
     from rich.table import Table
 
     table = Table(title="mu-bar per iteration and the frequency chosen next (figure 6-12)")
-    for name in ("k", "points", "mu-bar peak", "at rad/s", "next rad/s", "safeguard (eq. 5.12)"):
-        table.add_column(name, justify="right")
+    for name in ("k", "points", "mu-bar peak", "at rad/s", "next rad/s", "eq. 5.12", "design", "floor"):
+        table.add_column(name, justify="right", no_wrap=name == "eq. 5.12")
     for it in summary.get("iterations", []):
         mu = it.get("mu_peak")
         nxt = it.get("next_omega")
@@ -84,13 +84,17 @@ def print_iteration_table(summary: dict, console: Console) -> None:
             "-" if at is None else f"{at:.3f}",
             "-" if nxt is None else f"{nxt:.3f}",
             str(it.get("safeguard", "")),
+            str(it.get("design", "")),
+            ",".join(str(m) for m in it.get("floor_modes") or ()) or "-",
         )
     console.print(table)
     reached = summary.get("reached_goal")
+    final = summary.get("final_mu_peak")
+    margin = f"; margin {1.0 / float(final):.3f}" if reached and final else ""
     console.print(
         f"{'reached' if reached else 'did not reach'} mu-bar < {summary.get('goal_mu', 1.0):g} "
         f"with {summary.get('experiments_added')} added experiments "
-        f"(final mu-bar {_mu_text(summary.get('final_mu_peak'))}, {summary.get('wall_s', 0.0):.1f} s)",
+        f"(final mu-bar {_mu_text(summary.get('final_mu_peak'))}, {summary.get('wall_s', 0.0):.1f} s{margin})",
         highlight=False,
     )
 
