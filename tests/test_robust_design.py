@@ -257,3 +257,16 @@ def test_candidates_that_remove_a_floor_rank_ahead_of_larger_improvements():
     assert np.argsort(-ranking).tolist() == [2, 1, 0]
     # no floor: the scores are untouched (the H2 loop's choices, bit for bit)
     assert _with_floors_first(np.array([0.9, 0.1]), np.zeros(2)).tolist() == [0.9, 0.1]
+
+
+def test_the_lower_bound_reaches_one_wherever_the_floor_holds():
+    """Inside the floor mode's a0 interval mu >= 1 (the floor plant's closed loop is singular
+    there): the reported lower bound says so, and never exceeds the upper bound."""
+    box = _box(0.2, floor_mode=3)
+    analysis = analyze_robust_performance(box)
+    lo, hi = np.sqrt(box.lower[2, A0]), np.sqrt(box.upper[2, A0])
+    inside = (analysis.omega >= lo) & (analysis.omega <= hi)
+    assert inside.sum() >= 5
+    assert np.all(analysis.mu_lower[inside] >= 1.0 - 1e-9)
+    assert np.all(analysis.mu_lower <= analysis.mu * (1.0 + 1e-9))
+    assert analysis.mu_lower_peak >= 1.0 - 1e-9

@@ -291,10 +291,52 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
     if omega.size == 0 or np.any(~np.isfinite(omega)) or np.any(omega < 0):
         raise ValueError("omega_rad_s: expected finite non-negative frequencies")
     if robust is not None:
-        return _robust_design_analysis(plant, omega, *robust, certificate_rtol)
+        return _with_floor_lower_bound(_robust_design_analysis(plant, omega, *robust, certificate_rtol), model, gain, plant)
     K = h2_controller_for_plant(plant) if controller is None else controller
-    result = _analyze_controller(plant, K, omega, certificate_rtol)
+    result = _with_floor_lower_bound(_analyze_controller(plant, K, omega, certificate_rtol), model, gain, plant)
     return result if controller is None else replace(result, design="given")
+
+
+def _with_floor_lower_bound(result: RobustAnalysis, model: IntervalModel, gain, plant) -> RobustAnalysis:
+    """The floor's own perturbation as a lower bound (:mod:`setmem_hil.model.mu_floor`).
+
+    Where mode ``m``'s box holds ``a1 = b1 = b0 = 0`` and ``w^2`` lies in its ``a0`` interval, the
+    real blocks ``q(a1_m), q(b1_m), q(b0_m)`` at those values, ``q(a0_m)`` at ``a0 = w^2`` and every
+    other block at 0 make ``I - M(j w) Delta`` singular: ``M Delta`` has the eigenvalue 1. It is
+    checked (a real eigenvalue, to 1e-8) before it counts, so the bound stays one that is attained.
+    The generic search (:func:`~setmem_hil.robust.mu_lower_bound.mixed_mu_lower`) rarely finds this
+    interior point. Without a common gain only (with one, the residues' blocks are rescaled)."""
+    from setmem_hil.model.modal_model import A0, A1, B0, B1, PARAM_NAMES
+    from setmem_hil.model.mu_floor import floor_modes
+
+    floors = floor_modes(model)
+    if gain is not None or not floors or not math.isfinite(result.mu_peak):
+        return result
+    names = list(plant.names)
+    mid, half = model.midpoint.values, 0.5 * model.width
+    lower = np.array(result.mu_lower, dtype=float)
+    cl = plant.closed_loop(result.controller)
+    for mode in floors:
+        i = mode - 1
+        a0_lo, a0_hi = model.lower[i, A0], model.upper[i, A0]
+        inside = (result.omega**2 >= a0_lo) & (result.omega**2 <= a0_hi) & (lower < 1.0)
+        if not inside.any():
+            continue
+        q = np.zeros((int(inside.sum()), plant.n_real + plant.n_complex))
+        for j, value in ((A1, 0.0), (B1, 0.0), (B0, 0.0)):
+            key = f"{PARAM_NAMES[j]}_{mode}"
+            if key in names:
+                q[:, names.index(key)] = (value - mid[i, j]) / half[i, j]
+        key = f"{PARAM_NAMES[A0]}_{mode}"
+        if key in names:
+            q[:, names.index(key)] = (result.omega[inside] ** 2 - mid[i, A0]) / half[i, A0]
+        if np.any(np.abs(q) > 1.0 + 1e-12):
+            continue
+        lam = np.linalg.eigvals(cl.frequency_response(result.omega[inside]) * q[:, None, :])
+        real = (np.abs(lam.imag) <= 1e-8 * np.abs(lam)) & (lam.real > 0.0)
+        found = np.where(real, lam.real, 0.0).max(axis=1)
+        lower[np.flatnonzero(inside)] = np.maximum(lower[inside], found)
+    return replace(result, mu_lower=lower, mu_lower_peak=float(max(result.mu_lower_peak, lower.max())))
 
 
 def _robust_design_analysis(plant, omega: np.ndarray, warm_start, tuning, rtol: float) -> RobustAnalysis:
