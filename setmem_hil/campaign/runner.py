@@ -537,16 +537,17 @@ def run_campaign(
     method = design or procedure.design_method
     floor_aware = (method == "robust") if floor_aware is None else bool(floor_aware)
 
+    def robust_analysis(model, **options):
+        return analyze_robust_performance(model, procedure.weights, gain=gain, certificate_rtol=ROBUST_CERTIFICATE_RTOL, **options)
+
     def analyze(model, controller):
         if method == "h2":
             return analyze_robust_performance(model, procedure.weights, controller=controller, gain=gain)
         if controller is not None:
-            return analyze_robust_performance(model, procedure.weights, controller=controller, gain=gain,
-                                              certificate_rtol=ROBUST_CERTIFICATE_RTOL)
+            return robust_analysis(model, controller=controller)
         # the robust design starts from the H2 design or the compensator kept last, the better
         warm = None if previous_outcome is None else (previous_outcome.analysis.controller, rows[-1].design)
-        return analyze_robust_performance(model, procedure.weights, gain=gain, design="robust", warm_start=warm,
-                                          certificate_rtol=ROBUST_CERTIFICATE_RTOL)
+        return robust_analysis(model, design="robust", warm_start=warm)
 
     k, n_added = 1, 0
     if continue_stored and journal is not None:
@@ -592,13 +593,13 @@ def run_campaign(
             experiment.update_output_models(sensor_models)
         with blas_one_thread():
             outcome = safeguarded_design(model, previous_outcome, analyze)
+            previous_design = rows[-1].design if rows else "h2"
             if method == "robust" and goal_certified(outcome, goal):  # the delivered compensator: more margin
-                outcome = polished(outcome, lambda box, warm: analyze_robust_performance(
-                    box, procedure.weights, gain=gain, design="robust", warm_start=warm, tuning=FINAL_TUNING,
-                    certificate_rtol=ROBUST_CERTIFICATE_RTOL), rows[-1].design if rows else "h2")
+                outcome = polished(outcome, lambda box, warm: robust_analysis(box, design="robust", warm_start=warm,
+                                                                               tuning=FINAL_TUNING), previous_design)
         plant = model if scales is None else plant_bounds(model, scales[0])  # its interval hull, for the journal
         analysis = outcome.analysis
-        kept_design = kept_design_of(outcome, rows[-1].design if rows else "h2")
+        kept_design = kept_design_of(outcome, previous_design)
         floor = floor_modes(model)
         emit("iteration", k=k, n_points=len(measured), mu_peak=outcome.mu_peak,
              mu_peak_omega=float(analysis.mu_peak_omega), safeguard=outcome.branch, design=kept_design, floor_modes=floor,

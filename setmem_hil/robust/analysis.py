@@ -442,9 +442,8 @@ def _analyze_controller(plant, K, omega: np.ndarray, certificate_rtol: float = C
     # lower bound: real blocks at zero everywhere (cheap); the full search near the peak
     lower = mixed_mu_lower(M_all, structure, search_real=False).beta
     top = np.argsort(all_mu)[-LOWER_SEARCH_POINTS:]
-    lower[top] = np.maximum(lower[top], mixed_mu_lower(M_all[top], structure, interior=False).beta)
-    top = top[-LOWER_INTERIOR_POINTS:]  # the real blocks' interior too, where the gap matters most
-    lower[top] = np.maximum(lower[top], mixed_mu_lower(M_all[top], structure).beta)
+    highest = np.arange(top.size) >= top.size - LOWER_INTERIOR_POINTS  # the real blocks' interior too, where the gap matters most
+    lower[top] = np.maximum(lower[top], mixed_mu_lower(M_all[top], structure, interior=highest).beta)
     peak = float(all_mu.max())
     attaining = np.flatnonzero(all_mu >= peak * (1.0 - PEAK_TIE_RTOL))
     sens = np.full(plant.n_real, np.inf)

@@ -77,7 +77,7 @@ def _complex_only(M: np.ndarray, n_iter: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def mixed_mu_lower(M: np.ndarray, structure: MuStructure, n_iter: int = 20, search_real: bool = True,
-                   interior: bool = True) -> MixedMuLower:
+                   interior=True) -> MixedMuLower:
     """Lower bound on mixed mu for a stack of matrices (Definition 2.1).
 
     Parameters
@@ -90,9 +90,10 @@ def mixed_mu_lower(M: np.ndarray, structure: MuStructure, n_iter: int = 20, sear
     search_real : bool
         Also search with the real blocks at vertices (costlier); otherwise the real blocks
         stay at zero (still a valid lower bound).
-    interior : bool
+    interior : bool or array of bool, shape (K,)
         With ``search_real``: then search the real blocks' interior too (:func:`interior_search`,
-        the costliest part: about 0.2 s per matrix of the 6.3.2 problem).
+        the costliest part: about 0.2 s per matrix of the 6.3.2 problem), for every matrix or
+        for those marked.
 
     Returns
     -------
@@ -124,8 +125,9 @@ def mixed_mu_lower(M: np.ndarray, structure: MuStructure, n_iter: int = 20, sear
         vertex_delta = dl.copy()  # the vertex search's direction, even where its eigenvalue was not real
         better = b > best
         best[better], best_delta[better] = b[better], dl[better]
-        for k in range(K if interior else 0):  # the real blocks' interior (issue 38): a local search from several starts
-            b, dl = interior_search(M[k], p, (vertex_delta[k], best_delta[k]), seed=k)
+        searched = np.broadcast_to(np.asarray(interior, dtype=bool), (K,))
+        for k in np.flatnonzero(searched):  # the real blocks' interior (issue 38): a local search from several starts
+            b, dl = interior_search(M[k], p, (vertex_delta[k], best_delta[k]))  # one seed for every matrix: the result does not depend on the batch
             if b > best[k]:
                 best[k], best_delta[k] = b, dl
     return MixedMuLower(beta=best, delta=best_delta)
@@ -173,10 +175,8 @@ def interior_search(M: np.ndarray, p: int, start, seed: int = 0, n_starts: int =
                    for v in itertools.product((-1.0, 1.0), repeat=p)]
     starts += [np.concatenate([rng.uniform(-1.0, 1.0, p), rng.uniform(0.0, 1.0, nc), rng.uniform(-np.pi, np.pi, nc)])
                for _ in range(n_starts)]
-    lower = np.concatenate([-np.ones(p), np.zeros(nc), np.full(nc, -np.inf)])
-    upper = np.concatenate([np.ones(p), np.ones(nc), np.full(nc, np.inf)])
-    bounds = list(zip(lower, np.where(np.isfinite(upper), upper, None)))
-    bounds = [(lo if np.isfinite(lo) else None, hi) for lo, hi in bounds]
+    lower, upper = _variable_bounds(p, nc)
+    bounds = [(lo if np.isfinite(lo) else None, hi if np.isfinite(hi) else None) for lo, hi in zip(lower, upper)]
     best, best_delta = 0.0, np.zeros(n, dtype=complex)
     for x0 in starts:
         track = _Tracked(M, p)
@@ -206,6 +206,12 @@ def interior_search(M: np.ndarray, p: int, start, seed: int = 0, n_starts: int =
         if value > best:
             best, best_delta = value, delta
     return best, best_delta
+
+
+def _variable_bounds(p: int, nc: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of ``x = (delta_1..delta_p, r_1..r_c, theta_1..theta_c)``: the unit ball of the structure."""
+    return (np.concatenate([-np.ones(p), np.zeros(nc), np.full(nc, -np.inf)]),
+            np.concatenate([np.ones(p), np.ones(nc), np.full(nc, np.inf)]))
 
 
 class _Tracked:
@@ -258,8 +264,7 @@ class _Tracked:
         +-1 may move inwards), the one with the largest effect. ``(lambda, Delta)``, or
         ``(0, Delta)`` when no variable makes it real to 1e-10."""
         nc = (x.size - self.p) // 2
-        lo = np.concatenate([-np.ones(self.p), np.zeros(nc), np.full(nc, -np.inf)])
-        hi = np.concatenate([np.ones(self.p), np.ones(nc), np.full(nc, np.inf)])
+        lo, hi = _variable_bounds(self.p, nc)
         lam, grad = self._derivs(x)
         start = self.lam
         g = grad.imag

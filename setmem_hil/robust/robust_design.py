@@ -188,18 +188,11 @@ class _Objective:
         self.r, self.d, self.g, self.nk, self.tau = response, d, g, nk, tau
         self.evaluations = 0
 
-    def unpack(self, theta: np.ndarray):
-        nk = self.nk
-        A = theta[: nk * nk].reshape(nk, nk)
-        B = theta[nk * nk: nk * nk + nk]
-        C = theta[nk * nk + nk: nk * nk + 2 * nk]
-        return A, B, C, theta[-1]
-
     def __call__(self, theta: np.ndarray):
         """``(f_tau, peak lambda_max, gradient)``."""
         self.evaluations += 1
         r, nk = self.r, self.nk
-        A, B, C, D = self.unpack(theta)
+        A, B, C, D = _unpack(theta, nk)
         jw = 1j * r.omega
         lhs = jw[:, None, None] * np.eye(nk) - A
         RB = np.linalg.solve(lhs, np.broadcast_to(B.astype(complex)[:, None], (jw.size, nk, 1)))[:, :, 0]
@@ -294,11 +287,10 @@ def _spectral_abscissa(plant: AugmentedPlant, K: StateSpaceMatrices) -> float:
 
 
 def _lightly_damped_frequencies(cl: StateSpaceMatrices, band: tuple[float, float]) -> np.ndarray:
-    """Natural frequencies (x 0.98, 1, 1.02) of the closed loop's poles with damping below 0.2."""
+    """Natural frequencies (x 0.98, 1, 1.02) and damped frequencies of the closed loop's poles with damping below 0.2."""
     ev = np.linalg.eigvals(cl.A)
-    ev = ev[ev.imag > 0.0]
-    light = np.abs(ev[np.abs(ev.real) < 0.2 * np.abs(ev)])
-    pts = np.concatenate([light * f for f in (0.98, 1.0, 1.02)] + [np.abs(ev[np.abs(ev.real) < 0.2 * np.abs(ev)].imag)])
+    ev = ev[(ev.imag > 0.0) & (np.abs(ev.real) < 0.2 * np.abs(ev))]
+    pts = np.concatenate([np.abs(ev) * f for f in (0.98, 1.0, 1.02)] + [ev.imag])
     return pts[(pts >= band[0]) & (pts <= band[1])]
 
 
@@ -350,6 +342,16 @@ class _ScaledSet:
         H = scaled_hermitian(self.plant.closed_loop(K).frequency_response(self.omega), self.d, self.g)
         return np.linalg.eigvalsh(H)[:, -1] + rounding_margin(H)
 
+    def follow(self, K: StateSpaceMatrices, band: tuple[float, float]) -> None:
+        """Add the loop's lightly damped poles, then points around its local peaks."""
+        self.add(K, _lightly_damped_frequencies(self.plant.closed_loop(K), band))
+        self.add(K, _around_local_peaks(self.omega, self.stale_bound(K)))
+
+    def refresh_near_peak(self, K: StateSpaceMatrices, window: float) -> None:
+        """:meth:`refresh` where the stale bound is within ``window`` of its peak."""
+        stale = self.stale_bound(K)
+        self.refresh(K, stale >= (1.0 - window) * stale.max())
+
     def refresh(self, K: StateSpaceMatrices, where: np.ndarray) -> None:
         """Solve the scalings again at the frequencies ``where`` (a boolean mask), keeping the new
         ones only where they give a lower bound."""
@@ -393,33 +395,30 @@ def tune_compensator(
     K, freq, best_peak, chosen = _best_start(plant, structure, start, omega, band)
     nk = K.n_states
     start_peak, evaluations, outer, improved = best_peak, 0, 0, False
-    theta = np.concatenate([K.A.ravel(), K.B.ravel(), K.C.ravel(), K.D.ravel()])
+    theta = _pack(K)
     radius = 0.5 * max(np.linalg.norm(theta), 1e-12)
     smoothing = settings.smoothing
     while outer < settings.max_outer:
         outer += 1
         # the objective sees the frequencies that can become the peak within a step; the rest
         # are checked (with their still valid stale bound) when the step is judged
-        stale = freq.stale_bound(_as_matrices(_Objective(None, None, None, nk, 1.0), theta))  # type: ignore[arg-type]
+        stale = freq.stale_bound(_as_matrices(theta, nk))
         active = stale >= settings.active_fraction * stale.max()
         objective = _Objective(_OpenLoopResponse(plant, freq.omega[active]), freq.d[active], freq.g[active], nk,
                                smoothing * best_peak)
         centre = theta.copy()
 
         def acceptable(x: np.ndarray) -> bool:
-            return bool(np.linalg.norm(x - centre) <= radius) and _spectral_abscissa(plant, _as_matrices(objective, x)) < 0.0
+            return bool(np.linalg.norm(x - centre) <= radius) and _spectral_abscissa(plant, _as_matrices(x, nk)) < 0.0
 
         trial, moved = _bfgs(objective, theta, acceptable, settings.inner_iterations)
         evaluations += objective.evaluations
         if not moved:
             break
-        Kt = _as_matrices(objective, trial)
+        Kt = _as_matrices(trial, nk)
         # the frequency set follows the trial loop: its lightly damped poles and new local peaks
-        freq.add(Kt, _lightly_damped_frequencies(plant.closed_loop(Kt), band))
-        stale = freq.stale_bound(Kt)
-        freq.add(Kt, _around_local_peaks(freq.omega, stale))
-        stale = freq.stale_bound(Kt)
-        freq.refresh(Kt, stale >= (1.0 - settings.refresh_window) * stale.max())
+        freq.follow(Kt, band)
+        freq.refresh_near_peak(Kt, settings.refresh_window)
         peak = float(freq.stale_bound(Kt).max())
         if peak < best_peak:
             gain = (best_peak - peak) / best_peak
@@ -427,13 +426,10 @@ def tune_compensator(
             if gain < settings.min_gain:
                 break
         else:  # a peak the inner step did not see: it is in the set now; retry shorter
-            K_best = _as_matrices(objective, theta)
-            stale = freq.stale_bound(K_best)
-            freq.refresh(K_best, stale >= (1.0 - settings.refresh_window) * stale.max())
+            freq.refresh_near_peak(_as_matrices(theta, nk), settings.refresh_window)
             radius *= 0.5
             smoothing = max(0.3 * smoothing, MIN_SMOOTHING)  # the smoothed peak's bias hid the true one
-    best = _as_matrices(_Objective(None, None, None, nk, 1.0), theta)  # type: ignore[arg-type]
-    return TuningResult(best, math.sqrt(max(start_peak, 0.0)), math.sqrt(max(best_peak, 0.0)), outer, evaluations, improved, chosen)
+    return TuningResult(_as_matrices(theta, nk), math.sqrt(max(start_peak, 0.0)), math.sqrt(max(best_peak, 0.0)), outer, evaluations, improved, chosen)
 
 
 def _best_start(plant: AugmentedPlant, structure: MuStructure, starts, omega: np.ndarray, band):
@@ -445,6 +441,7 @@ def _best_start(plant: AugmentedPlant, structure: MuStructure, starts, omega: np
         K = balanced_realisation(start)
         if _spectral_abscissa(plant, K) >= 0.0:
             continue
+        # the grid and the loop's lightly damped poles solved as one stack, then the local peaks
         freq = _ScaledSet(plant, structure, K, np.concatenate([omega, _lightly_damped_frequencies(plant.closed_loop(K), band)]))
         freq.add(K, _around_local_peaks(freq.omega, freq.stale_bound(K)))
         peak = float(freq.stale_bound(K).max())
@@ -455,7 +452,19 @@ def _best_start(plant: AugmentedPlant, structure: MuStructure, starts, omega: np
     return best
 
 
-def _as_matrices(objective: _Objective, theta: np.ndarray) -> StateSpaceMatrices:
-    A, B, C, D = objective.unpack(theta)
-    nk = objective.nk
+def _pack(K: StateSpaceMatrices) -> np.ndarray:
+    """The tuning's variables: every entry of ``(A, B, C, D)``."""
+    return np.concatenate([K.A.ravel(), K.B.ravel(), K.C.ravel(), K.D.ravel()])
+
+
+def _unpack(theta: np.ndarray, nk: int):
+    """``(A, B, C, D)`` views of the variables of an order-``nk`` compensator (``B``, ``C`` flat)."""
+    A = theta[: nk * nk].reshape(nk, nk)
+    B = theta[nk * nk: nk * nk + nk]
+    C = theta[nk * nk + nk: nk * nk + 2 * nk]
+    return A, B, C, theta[-1]
+
+
+def _as_matrices(theta: np.ndarray, nk: int) -> StateSpaceMatrices:
+    A, B, C, D = _unpack(theta, nk)
     return StateSpaceMatrices(A.copy(), B.reshape(nk, 1).copy(), C.reshape(1, nk).copy(), np.array([[float(D)]]))
