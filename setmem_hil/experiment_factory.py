@@ -56,7 +56,7 @@ from setmem_hil.io.procedure import BACKENDS, Procedure
 from setmem_hil.drivers.instruments.instrument_set import open_instrument_experiment
 from setmem_hil.loopback.instrument_emulation import open_emulated_instruments
 from setmem_hil.loopback.rigs import open_can_virtual_rig, open_modbus_loopback_rig, open_serial_loopback_rig
-from setmem_hil.sim_backends.beam import BEAM_N_MODES
+from setmem_hil.sim_backends.beam import BEAM_N_MODES, scaled_beam
 from setmem_hil.sim_backends.core_rig import CoreRig
 from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
@@ -217,7 +217,7 @@ def true_structure(procedure: Procedure):
         if backend.emulation is None:
             return None
         damping = backend.emulation.damping if backend.emulation.damping is not None else BEAM_DAMPING_RATIO
-        return ModalParameters.from_modal(beam_natural_frequencies(), damping, BEAM_RESIDUE, 0.0)
+        return scaled_beam(ModalParameters.from_modal(beam_natural_frequencies(), damping, BEAM_RESIDUE, 0.0), backend.emulation.first_mode_rad_s)
     sim = backend.simulation
     control = sim.sensors[sim.control_output - 1]
     if (control, sim.actuator) == (1.0, 1.0):
@@ -226,7 +226,6 @@ def true_structure(procedure: Procedure):
         from setmem_hil.sim_backends.beam import beam_parameters_at
 
         full = beam_parameters_at(control, sim.actuator)
-    if backend.kind == "sim" and sim.first_mode_rad_s != 1.0:
-        S = float(sim.first_mode_rad_s)
-        full = ModalParameters(full.values * np.array([S, S * S, S, S * S]))
+    if backend.kind == "sim":
+        full = scaled_beam(full, sim.first_mode_rad_s)
     return full if sim.unmodelled_dynamics else full.truncated(procedure.prior.n_modes)

@@ -66,6 +66,13 @@ def cantilever_mode_shape(x_k: float, position) -> np.ndarray:
     return 0.5 * (one_minus_sigma * np.exp(z) + (1.0 + sigma) * np.exp(-z)) - np.cos(z) + sigma * np.sin(z)
 
 
+def scaled_beam(params: ModalParameters, first_mode_rad_s: float) -> ModalParameters:
+    """``params`` (the beam at 1 rad/s) with every frequency times ``S = first_mode_rad_s``:
+    ``a1, b1`` times S, ``a0, b0`` times S^2, so ``G_S(j w) = G(j w / S)`` (issue 18's rule)."""
+    S = float(first_mode_rad_s)
+    return params if S == 1.0 else ModalParameters(params.values * np.array([S, S * S, S, S * S]))
+
+
 def beam_parameters_at(sensor: float, actuator: float = 1.0, n_modes: int = BEAM_N_MODES) -> ModalParameters:
     """The simulated beam seen from a force at ``actuator`` and a displacement sensor at
     ``sensor`` (fractions of the length from the clamp; issue 25). Same poles as

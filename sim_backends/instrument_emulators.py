@@ -35,6 +35,7 @@ import re
 import socket
 import socketserver
 import threading
+import time
 from typing import Callable
 
 import numpy as np
@@ -54,6 +55,11 @@ SR860_SENSITIVITIES = list(reversed(SR830_SENSITIVITIES)) + [1e-9]  # SCAL 0 = 1
 
 UNDEFINED_HEADER = '-113,"Undefined header"'
 OUT_OF_RANGE = '-222,"Data out of range"'
+SETTINGS_CONFLICT = '-221,"Settings conflict"'
+
+
+class SettingsConflict(Exception):
+    """A command valid in itself but refused in the instrument's present state (SCPI -221)."""
 
 
 class _Emulator:
@@ -69,6 +75,11 @@ class _Emulator:
 
     # binary data without a block header follows this text (None: the command set has none)
     raw_payload_marker: bytes | None = None
+
+    def parse_seconds(self, line: str, payload: bytes | None) -> float:
+        """Wall-clock seconds the instrument spends taking in this message before it reads the
+        next one (a long upload); replies to later queries wait that long. 0: at once."""
+        return 0.0
 
     def raw_payload_length(self, head: bytes) -> int | None:
         """Bytes of binary data after ``head`` (the message up to ``raw_payload_marker``); None:
@@ -91,6 +102,8 @@ class _Emulator:
                 reply = self.handle(command)
             except ValueError:
                 reply = self._execution_error()
+            except SettingsConflict:
+                reply = self._execution_error(SETTINGS_CONFLICT)
             if isinstance(reply, bytes):  # a binary block ends the answer (an IEEE 488.2 definite-length block)
                 return reply
             if reply is not None:
@@ -104,9 +117,10 @@ class _Emulator:
         """A command followed by binary data; instruments without one answer a command error."""
         return self._command_error()
 
-    def _execution_error(self) -> None:
-        """A value out of range: not executed, SCPI -222 and the execution-error bit of ``*ESR?``."""
-        self.errors.append(OUT_OF_RANGE)
+    def _execution_error(self, error: str = OUT_OF_RANGE) -> None:
+        """Not executed: a value out of range (SCPI -222) or a setting the present state refuses
+        (-221); the execution-error bit of ``*ESR?``."""
+        self.errors.append(error)
         self.esr |= 1 << 4
         return None
 
@@ -170,9 +184,19 @@ class GeneratorEmulator(_Emulator):
 
     Only the channel wired to the amplifier (``channel``) drives the bench; the other channel's
     settings are kept but go nowhere. Arbitrary waveforms: the 33500B's named volatile waveforms
-    (``SOURce:DATA:ARBitrary``, ASCII) and the DG800's one volatile waveform (``:DATA:DAC16``,
-    binary); both play each point held one sample period (``FUNCtion:ARBitrary:SRATe``).
+    (``SOURce:DATA:ARBitrary <name>,<floats>``, ASCII, or ``SOURce:DATA:ARBitrary:DAC
+    <name>,<block>``, 16-bit codes -32767..+32767 in the ``FORMat:BORDer`` order, NORMal: most
+    significant byte first) and the DG800's one volatile waveform (``:DATA:DAC16``, binary); both
+    play each point held one sample period (``FUNCtion:ARBitrary:SRATe``).
+
+    Timing (issue 40): the 33500B takes in an upload at ``ascii_parse_s_per_byte`` (text: about
+    1 MB/s, so the 7 MB of an 881,852-point record take seconds, as an instrument parsing floats
+    does) or ``binary_s_per_byte``; it reads nothing else meanwhile, so a query sent after an
+    upload is answered only when the upload is taken in (``*OPC?`` included).
     """
+
+    ascii_parse_s_per_byte = 1e-6
+    binary_s_per_byte = 1e-8
 
     def __init__(self, bench: EmulatedBench, model: str = "33500B", channel: int = 1):
         super().__init__(bench)
@@ -187,6 +211,14 @@ class GeneratorEmulator(_Emulator):
         self.uploads, self.generation = 0, {}  # which download each (channel, name) holds
         self.playing: tuple | None = None  # what the bench plays: (points id, rate)
         self.pending: dict[int, list[np.ndarray]] = {}  # DG800: packages received before END
+        self.byte_order = "NORM"  # 33500B FORMat:BORDer: NORMal (most significant byte first) | SWAPped
+
+    def parse_seconds(self, line: str, payload: bytes | None) -> float:
+        if self.model != "33500B":
+            return 0.0
+        if payload is not None:
+            return len(payload) * self.binary_s_per_byte
+        return len(line) * self.ascii_parse_s_per_byte if "DATA:ARB" in line.upper() else 0.0
 
     def handle(self, command: str) -> str | None:
         head, args = _split(command)
@@ -194,6 +226,8 @@ class GeneratorEmulator(_Emulator):
         nodes = canonical_header(head.rstrip("?"))
         if nodes in (("*IDN",), ("*RST",), ("*CLS",), ("*OPC",), ("SYST", "ERR")):
             return self._common(nodes, query)
+        if self.model == "33500B" and nodes == ("FORM", "BORD"):
+            return self._byte_order(args, query)
         m = re.fullmatch(r"(SOUR|OUTP)(\d?)", nodes[0]) if nodes else None
         if not m:
             return self._undefined(query)
@@ -240,6 +274,8 @@ class GeneratorEmulator(_Emulator):
         ch = int(m.group(1) or 1) if m else 1
         rest = nodes[1:] if m else nodes
         rest = rest[1:] if rest[:1] == ("TRAC",) else rest
+        if self.model == "33500B" and rest == ("DATA", "ARB", "DAC") and ch in (1, 2):
+            return self._dac_upload(ch, args, payload)
         if self.model != "DG800" or rest != ("DATA", "DAC16") or ch not in (1, 2):
             return self._undefined(False)
         parts = [a.strip().upper() for a in args.split(",")]
@@ -259,6 +295,30 @@ class GeneratorEmulator(_Emulator):
             self._store(ch, "VOLATILE", points)
             self.settings[ch].update(FUNC="ARB", ARB="VOLATILE")
             self._drive()
+        return None
+
+    def _byte_order(self, args: str, query: bool) -> str | None:
+        """``FORMat:BORDer {NORMal|SWAPped}`` (33500B): the byte order of binary blocks."""
+        if query:
+            return self.byte_order
+        word = canonical_header(args)[0] if args else ""
+        if word not in ("NORM", "SWAP"):
+            raise ValueError(args)
+        self.byte_order = word
+        return None
+
+    def _dac_upload(self, ch: int, args: str, payload: bytes) -> None:
+        """``SOURce<n>:DATA:ARBitrary:DAC <name>,<block>`` (33500B guide): 16-bit integers from
+        -32767 to +32767 (the waveform's -1 and +1), two bytes a point in the ``FORMat:BORDer``
+        order; 8 points to the memory's size; the name up to 12 characters."""
+        name, comma, rest = args.partition(",")
+        dtype = ">i2" if self.byte_order == "NORM" else "<i2"
+        if not comma or rest.strip() or len(payload) % 2 or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,11}", name.strip()):
+            raise ValueError(args)
+        codes = np.frombuffer(payload, dtype=dtype).astype(np.int32)
+        if not 8 <= codes.size <= self.MAX_ARB_POINTS or np.any(np.abs(codes) > 32767):
+            raise ValueError(args)
+        self._store(ch, name.strip().upper(), codes / 32767.0)
         return None
 
     def _store(self, ch: int, name: str, points: np.ndarray) -> None:
@@ -734,6 +794,7 @@ class InstrumentServer:
                             continue
                         if server._dropping_now():
                             return  # the command is lost with the link
+                        time.sleep(emu.parse_seconds(line, payload))  # outside the bench's lock: other instruments go on
                         with lock:
                             reply = emu.handle_line(line, payload)
                         if reply is not None:

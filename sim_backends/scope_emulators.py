@@ -38,7 +38,7 @@ import numpy as np
 
 from setmem_hil.drivers.instruments.scpi_commands import canonical_header
 from setmem_hil.sim_backends.instrument_bench import EmulatedBench
-from setmem_hil.sim_backends.instrument_emulators import UNDEFINED_HEADER, _Emulator, _number, _split
+from setmem_hil.sim_backends.instrument_emulators import UNDEFINED_HEADER, SettingsConflict, _Emulator, _number, _split
 
 __all__ = ["ScopeEmulator", "RigolScopeEmulator", "KeysightScopeEmulator"]
 
@@ -95,6 +95,7 @@ class ScopeEmulator(_Emulator):
             self.running = nodes == ("RUN",)
             return None
         if nodes == ("SING",):
+            self.running = False  # a single acquisition: armed, then stopped once it has triggered
             self.arm()
             return None
         if nodes and nodes[0] == "WAV":
@@ -342,6 +343,8 @@ class RigolScopeEmulator(ScopeEmulator):
         if nodes == ("ACQ", "MDEP"):
             if query:
                 return str(self.mdep)
+            if not self.running:  # users' reports: refused in STOP (and single) with -221
+                raise SettingsConflict(args)
             n_on = max(1, len(self.channels_on()))
             value = int(_number(args))
             if value not in self.depths[n_on]:  # the guide: only the depths of the channels on

@@ -14,7 +14,7 @@ import numpy as np
 
 from setmem_hil.model.experiment import Measurement
 from setmem_hil.model.modal_model import ModalParameters
-from setmem_hil.sim_backends.beam import W1_DEN, W1_NUM, beam_parameters, beam_parameters_at, polynomial_magnitude
+from setmem_hil.sim_backends.beam import W1_DEN, W1_NUM, beam_parameters, beam_parameters_at, polynomial_magnitude, scaled_beam
 from setmem_hil.sim_backends.noise import bounded_complex_noise, noise_bound_function
 
 
@@ -68,7 +68,7 @@ class SimulatedBeamExperiment:
             full = beam_parameters() if (x, self.actuator) == (1.0, 1.0) else beam_parameters_at(x, self.actuator)
             normalised_bound = noise_bound_function(self.noise_profile, full, self.noise_scale)
             if S != 1.0:
-                full = ModalParameters(full.values * np.array([S, S * S, S, S * S]))
+                full = scaled_beam(full, S)
                 self._noise_bounds.append(lambda w, f=normalised_bound: f(np.asarray(w, dtype=float) / S))
             else:
                 self._noise_bounds.append(normalised_bound)

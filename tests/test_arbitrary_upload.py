@@ -1,7 +1,8 @@
 """Issue 26 item 3: arbitrary waveforms on the three generator families the project ships
 profiles for, through our driver and PyVISA to emulators written from each programming guide:
 
-* Keysight 33500B: ``SOURce:DATA:ARBitrary <name>,<floats>`` (ASCII);
+* Keysight 33500B: ``SOURce:DATA:ARBitrary:DAC <name>,<IEEE block>`` (16-bit codes, ``FORMat:BORDer``),
+  then ``*OPC?`` with a timeout from the upload's size (the emulator takes time to parse one);
 * Rigol DG800: ``:DATA:DAC16 VOLATILE,<CON|END>,<IEEE block>`` (14-bit codes, packages);
 * Siglent SDG: ``C<n>:WVDT WVNM,<name>,LENGTH,<n>B,WAVEDATA,<bytes>`` (16-bit two's complement).
 
@@ -20,13 +21,13 @@ from pyvisa import util as visa_util
 from setmem_hil.drivers.instruments.profile import load_profile
 from setmem_hil.drivers.instruments.scpi_generator import ScpiGenerator, dac_codes, points_of_codes
 from setmem_hil.drivers.instruments.visa_link import VisaLink
-from setmem_hil.errors import DeviceRejectedError
+from setmem_hil.errors import DeviceRejectedError, DeviceTimeoutError
 from setmem_hil.sim_backends.beam import beam_parameters
 from setmem_hil.sim_backends.instrument_bench import EmulatedBench
 from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer, SiglentGeneratorEmulator
 
 GENERATORS = {  # profile: (emulator class, emulator model, half a DAC step in points)
-    "keysight-33500b": (GeneratorEmulator, "33500B", 0.5e-6),
+    "keysight-33500b": (GeneratorEmulator, "33500B", 1.0 / 32767),
     "rigol-dg800": (GeneratorEmulator, "DG800", 1.0 / 16383),
     "siglent-sdg2000x": (SiglentGeneratorEmulator, "SDG2000X", 1.0 / 32767),
     "siglent-sdg1000x": (SiglentGeneratorEmulator, "SDG1000X", 1.0 / 32767),
@@ -140,3 +141,47 @@ def test_an_upload_the_instrument_rejects_names_the_package():
         assert not r.bench.output_on and r.bench.arb_points is None
     finally:
         r.close()
+
+
+def test_the_33500b_takes_a_long_record_as_a_binary_block_and_waits_for_it():
+    """Issue 40 item 2: the 881,852 points of the hold-out rig's multisine go as one block of
+    16-bit codes (1.8 MB, not 7 MB of text), and ``*OPC?`` waits for the instrument to take it
+    in: the emulator parses as slowly as a real one would parse text, longer than the link's
+    2 s timeout, and the run goes on without a late reply answering a later query."""
+    r = Rig("keysight-33500b")
+    try:
+        r.emulator.binary_s_per_byte = 3.0 / (2 * 881_852)  # 3 s to take the block in: longer than the 2 s timeout
+        points = _waveform(881_852)
+        played = r.gen.play_arbitrary(points, 40e3)
+        assert np.max(np.abs(played - points)) <= 1.0 / 32767 * (1 + 1e-9)
+        assert np.max(np.abs(r.bench.arb_points - played)) <= 1e-12
+        sent = [c for c in r.emulator.commands if "DATA:ARB" in c.upper()]
+        assert sent == ["SOUR1:DATA:ARB:DAC SETMEM,"] and "FORM:BORD NORM" in r.emulator.commands
+        assert r.emulator.commands[r.emulator.commands.index(sent[0]) + 1] == "*OPC?"
+        assert r.gen.link.stale_replies == 0
+        r.gen.set_output(True)
+        r.gen.set_output(False)  # the read-backs answer their own queries
+    finally:
+        r.close()
+
+
+def test_a_reply_that_arrives_after_its_query_timed_out_never_answers_the_next_query():
+    """The failure issue 40 reports: an ASCII upload parsed for longer than the timeout, the
+    error query times out, and the next query read that late reply ('+0,"No error"' for
+    'OUTP1?'). The link opens a fresh session after a timeout: the next query gets its own reply."""
+    bench = EmulatedBench(beam_parameters())
+    emulator = GeneratorEmulator(bench, "33500B", channel=1)
+    emulator.ascii_parse_s_per_byte = 1.5 / 70_000  # 1.5 s for this upload
+    server = InstrumentServer(emulator)
+    link = VisaLink("fgen", server.resource, timeout_s=0.5)
+    try:
+        link.write("SOUR1:DATA:ARB SLOW," + ",".join(["0.123456"] * 7_500))
+        with pytest.raises(DeviceTimeoutError, match=r"fgen .*no reply to 'SYST:ERR\?' within 0.5 s"):
+            link.query("SYST:ERR?")
+        import time
+        time.sleep(1.5)  # the late reply is on its way meanwhile
+        assert link.query("OUTP1?") == "0"
+        assert link.stale_replies == 1
+    finally:
+        link.close()
+        server.close()

@@ -169,3 +169,33 @@ def test_a_window_a_sample_longer_than_a_time_scale_keeps_that_scale(rig):
     assert scope.record_length_for(length * 1.02) == pytest.approx(bigger)
     record = scope.record(length * 1.0001)
     assert record.t_s[-1] - record.t_s[0] + record.sample_interval_s == pytest.approx(length, rel=1e-3)
+
+
+def test_the_ds1000z_memory_depth_is_set_while_running_as_its_users_report():
+    """DS1000Z users report ``:ACQ:MDEP`` refused with -221 "Settings conflict" while the scope
+    is stopped (after ``:STOP`` or a single acquisition); the emulator refuses it there, and the
+    driver's record still gets the depth it needs (issue 40, item 1)."""
+    bench = EmulatedBench(beam_parameters(), BenchSettings())
+    bench.set_generator(frequency_hz=6.0 / (2 * math.pi), amplitude_v=0.25, output_on=True)
+    bench.clock.sleep(2000.0)
+    emulator = RigolScopeEmulator(bench, {1: "force", 2: "response", 4: "sync"}, {"force": FORCE_V_PER_N, "response": RESPONSE_V_PER_M})
+    server = InstrumentServer(emulator)
+    profile = load_profile("rigol-ds1000z")
+    link = VisaLink("scope", server.resource, termination=profile.termination, timeout_s=profile.timeout_s)
+    try:
+        # the rule itself, as a user meets it: set in STOP, the error queue says -221
+        link.write(":STOP")
+        link.write(":ACQ:MDEP 30000")
+        assert link.query(":SYST:ERR?").startswith("-221,")
+        assert link.query(":ACQ:MDEP?") == "12000"  # not executed
+        scope = ScpiScope("scope", profile, link, (1, 2), "ch4", 1.0, bench.clock)
+        scope.initialise()
+        for rate in (0.0, 3000.0 / 0.6):  # the shallowest depth, then a deeper one after a record
+            scope.range_for(1, FORCE_V_PER_N)
+            scope.range_for(2, RESPONSE_V_PER_M * 1.2)
+            record = scope.record(0.5, min_rate_hz=rate)
+            assert record.volts[1].size == int(link.query(":ACQ:MDEP?")) == scope.points
+        assert scope.points == 30000
+    finally:
+        link.close()
+        server.close()

@@ -84,6 +84,10 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
                 raise ProcedureError(_source(procedure), f"[instruments.{name}] key 'resource'", str(exc)) from None
         if isinstance(profile, ScopeProfile):
             _check_scope(procedure, settings, profile)
+        _check_daq_channel(procedure, settings, profile, role)
+        missing = missing_driver_package(settings, profile)
+        if missing:
+            raise ProcedureError(_source(procedure), where, missing)
         if name in found:  # one oscilloscope in the force and the response roles
             role = f"{found[name][2]}+{role}"
         found[name] = (settings, profile, role)
@@ -95,6 +99,34 @@ def check_instruments(procedure: Procedure) -> dict[str, tuple[InstrumentSetting
     if refusal:
         raise ProcedureError(_source(procedure), "[dwell] key 'signal'", refusal)
     return found
+
+
+# the Python packages each kind of profile is driven through: (module, pip requirement)
+_VISA = (("pyvisa", "setmem-hil[instruments]"),)
+DRIVER_PACKAGES = {
+    "scpi-generator": _VISA, "scpi-lockin": _VISA, "scpi-scope": _VISA,
+    "dbc": (("can", "python-can"), ("cantools", "setmem-hil[can]")),
+    "nidaqmx": (("nidaqmx", "setmem-hil[daq]"),),
+    "modbus": (("pymodbus", "pymodbus"),),
+}
+
+
+def missing_driver_package(settings: InstrumentSettings, profile: Profile) -> str | None:
+    """What a run would miss to drive this instrument (a package not installed), said with the
+    command that installs it; None when everything is there. ``run --check`` reports it before
+    a run would stop on it at the first connection (issue 40)."""
+    import importlib.util
+
+    needed = list(DRIVER_PACKAGES.get(profile.kind, ()))
+    if profile.kind.startswith("scpi-") and getattr(settings, "visa_library", "@py") == "@py":
+        needed.append(("pyvisa_py", "setmem-hil[instruments]"))  # PyVISA's pure-Python backend
+    if isinstance(profile, DbcProfile) and profile.canopen_identity is not None:
+        needed.append(("canopen", "setmem-hil[can]"))
+    for module, requirement in needed:
+        if importlib.util.find_spec(module) is None:
+            return (f"profile {settings.profile!r} ({profile.model}) is driven through the Python package {module!r}, which is not "
+                    f"installed; install it with: pip install '{requirement}'")
+    return None
 
 
 def _check_scope(procedure: Procedure, settings: InstrumentSettings, profile: ScopeProfile) -> None:
@@ -198,6 +230,44 @@ def probe_instruments(procedure: Procedure) -> list[ProbeResult]:
     return results
 
 
+def daq_input_setup(settings: InstrumentSettings, default_quantity: str):
+    """How an NI-DAQmx channel is created (its sensor's quantity, IEPE current, coupling)."""
+    from setmem_hil.drivers.instruments.nidaq_sensor import DaqInputSetup
+
+    return DaqInputSetup(settings.quantity or default_quantity, settings.iepe_current_a, effective_coupling(settings))
+
+
+def effective_coupling(settings: InstrumentSettings) -> str | None:
+    """The coupling a DAQ channel gets: as set, else AC for an IEPE sensor (its output sits on a
+    bias of several volts), else the device's default."""
+    return settings.coupling or ("AC" if settings.iepe_current_a else None)
+
+
+def ac_corner(settings: InstrumentSettings, daq: DaqProfile) -> float:
+    """The AC-coupling corner (Hz) of a DAQ channel, 0 for a DC-coupled one."""
+    return daq.ac_coupling_corner_hz if effective_coupling(settings) == "AC" else 0.0
+
+
+def _check_daq_channel(procedure: Procedure, settings: InstrumentSettings, profile: Profile, role: str) -> None:
+    """``iepe_current_a`` and ``coupling`` belong to NI-DAQmx channels; IEPE needs a force or
+    acceleration sensor (nidaqmx's IEPE channel types) and AC coupling (the sensor's bias)."""
+    where = f"[instruments.{settings.name}]"
+    if not isinstance(profile, DaqProfile):
+        given = [k for k in ("iepe_current_a", "coupling") if (settings.iepe_current_a if k == "iepe_current_a" else settings.coupling)]
+        if given:
+            raise ProcedureError(_source(procedure), f"{where} key '{given[0]}'", f"only NI-DAQmx channels have it; {settings.name!r} is a {profile.model}")
+        return
+    if settings.iepe_current_a:
+        quantity = settings.quantity or ("force" if role == "force" else "displacement")
+        if quantity not in ("force", "acceleration"):
+            raise ProcedureError(_source(procedure), f"{where} key 'iepe_current_a'",
+                                 f"IEPE excitation is made for force and acceleration sensors (nidaqmx's IEPE force and accelerometer "
+                                 f"channels); this sensor's quantity is {quantity!r}")
+        if settings.coupling == "DC":
+            raise ProcedureError(_source(procedure), f"{where} key 'coupling'",
+                                 "an IEPE sensor's output sits on a bias of several volts: use coupling = \"AC\" (the default with IEPE)")
+
+
 def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None, nidaqmx_module=None):
     """Source + NI-DAQ: the sine dwell on a sampled rig (:mod:`.sampled_rig`)."""
     from setmem_hil.drivers.instruments.nidaq_sensor import NidaqSensor
@@ -214,15 +284,17 @@ def open_daq_experiment(procedure: Procedure, checked: dict, *, extra_bound=None
         identity = source.check_identity()
         source.initialise()
         sensor = NidaqSensor(force.resource, [r.resource for r in responses], force.volt_per_unit, [r.volt_per_unit for r in responses],
-                             range_v=daq.range_v, terminal=daq.terminal, nidaqmx_module=nidaqmx_module)
+                             range_v=daq.range_v, terminal=daq.terminal, nidaqmx_module=nidaqmx_module,
+                             setups=[daq_input_setup(s, "force" if s is force else "displacement") for s in (force, *responses)])
         limits = procedure.safety
         # the sensor refuses a channel at its rails in volts; the dwell's own check then must not
         # flag a channel with a larger full scale than another's: the largest full scale
         response_range = max(daq.range_v / r.volt_per_unit for r in responses)
         rig = SampledInstrumentRig(source, sensor, exciter.newton_per_volt, exciter.max_drive_v or math.inf, limits.max_amplitude_n,
                                    force_range_n=daq.range_v / force.volt_per_unit, response_range=response_range,
-                                   sample_rate_hz=1000.0, force=DaqChannel(force.calibration_uncertainty, "force"),
-                                   responses=tuple(DaqChannel(r.calibration_uncertainty, r.quantity or "displacement") for r in responses))
+                                   sample_rate_hz=1000.0, force=DaqChannel(force.calibration_uncertainty, "force", ac_corner(force, daq)),
+                                   responses=tuple(DaqChannel(r.calibration_uncertainty, r.quantity or "displacement", ac_corner(r, daq))
+                                                   for r in responses))
     except BaseException:
         source.close()
         raise

@@ -130,6 +130,11 @@ class ArbitraryWaveform:
     block: str = "ieee"  # binary: "ieee" (a definite-length block) | "raw" (the bytes alone)
     package_points: int = 0  # binary: the most points one upload command carries
     package_flags: tuple[str, str] = ("", "")  # binary: {flag} of a package with more to come, of the last
+    byte_order_command: str = ""  # binary: sent before an upload, so the instrument reads the codes in byte_order
+    # asked after an upload (``*OPC?``) with a timeout from its size: the instrument answers once
+    # it has taken the upload in, so no later query meets a reply that is still on its way
+    complete_query: str = ""
+    upload_bytes_per_s: float = 1e5  # the slowest rate an instrument takes an upload in (the wait's timeout)
 
 
 @dataclass(frozen=True)
@@ -237,6 +242,7 @@ class DaqProfile:
     range_v: float
     terminal: str
     max_sample_rate_hz: float
+    ac_coupling_corner_hz: float = 0.5  # the -3 dB corner of the input's AC coupling (first order)
     kind: str = "nidaqmx"
     channels: tuple[int, ...] = (1,)
 
@@ -317,7 +323,7 @@ PROFILE_KEYS: dict[str, set[str]] = {
     "scpi-lockin": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "reference", "time_constant", "read", "status", "filter_slope_db_per_octave", "full_scale_v", "sensitivity"},
     "modbus": _COMMON | {"device_id", "identity", "frequency_hz", "amplitude_v", "output", "watchdog_s", "watchdog_timeout_s", "limits", "timeout_s"},
     "dbc": _COMMON | {"dbc", "command", "status", "identity", "canopen_identity", "limits"},
-    "nidaqmx": _COMMON | {"range_v", "terminal", "max_sample_rate_hz"},
+    "nidaqmx": _COMMON | {"range_v", "terminal", "max_sample_rate_hz", "ac_coupling_corner_hz"},
     "scpi-scope": _COMMON | {"termination", "timeout_s", "identity", "errors", "init", "channels", "ext_trigger", "vertical_fine", "adc_bits",
                              "divisions", "time_divisions", "vertical_scales_v", "time_scales_s", "record_points",
                              "max_transfer_points", "gain_accuracy", "timebase_ppm", "trigger_jitter_s", "commands", "done",
@@ -344,7 +350,8 @@ _TABLE_KEYS = {
     "scope-waveform": {"format", "byte_order", "y_origin", "clip_codes"},
     "scope-trigger-sources": {"ext", "channel"},
     "arbitrary": {"clear", "upload", "select", "sample_rate", "function_query", "function_expect", "sine", "max_points",
-                  "sample_rate_limits", "name", "data", "codes", "byte_order", "block", "package_points", "package_flags"},
+                  "sample_rate_limits", "name", "data", "codes", "byte_order", "block", "package_points", "package_flags",
+                  "byte_order_command", "complete_query", "upload_bytes_per_s"},
 }
 
 
@@ -514,7 +521,9 @@ def _arbitrary(top: _Reader) -> ArbitraryWaveform:
         clear=a.template("clear", fields, ""), upload=a.template("upload", fields), select=a.template("select", fields),
         sample_rate=_setting(a, "sample_rate", fields), function_query=a.template("function_query", fields),
         function_expect=a.regex("function_expect"), sine=a.template("sine", fields),
-        max_points=max_points, sample_rate_limits=rate, name=a.string("name", "SETMEM"), data=data, **binary)
+        max_points=max_points, sample_rate_limits=rate, name=a.string("name", "SETMEM"), data=data,
+        complete_query=a.template("complete_query", fields, ""), upload_bytes_per_s=a.number("upload_bytes_per_s", 1e5, positive=True),
+        **binary)
 
 
 def _binary_upload(a: _Reader, max_points: int) -> dict:
@@ -531,6 +540,7 @@ def _binary_upload(a: _Reader, max_points: int) -> dict:
     if len(flags) != 2:
         raise a.error(f"package_flags: expected [flag of a package with more to come, flag of the last], found {list(flags)!r}")
     return {"codes": (codes[0], codes[1]), "byte_order": order, "block": block,
+            "byte_order_command": a.template("byte_order_command", {"ch"}, ""),
             "package_points": a.integer("package_points", max_points, 8, max_points), "package_flags": tuple(flags)}
 
 
@@ -698,7 +708,8 @@ def _daq(name: str, source: str, top: _Reader) -> DaqProfile:
     if terminal not in ("DIFF", "RSE", "NRSE", "PSEUDO_DIFF", "DEFAULT"):
         raise top.error(f"terminal: expected DIFF, RSE, NRSE, PSEUDO_DIFF or DEFAULT, found {terminal!r}")
     return DaqProfile(name=name, source=source, model=top.string("model", name), range_v=top.number("range_v", 10.0, positive=True),
-                      terminal=terminal, max_sample_rate_hz=top.number("max_sample_rate_hz", 100e3, positive=True))
+                      terminal=terminal, max_sample_rate_hz=top.number("max_sample_rate_hz", 100e3, positive=True),
+                      ac_coupling_corner_hz=top.number("ac_coupling_corner_hz", 0.5, positive=True))
 
 
 def _ascending(top: _Reader, key: str) -> tuple[float, ...]:

@@ -15,8 +15,10 @@ sensor's ratio is converted to receptance (:meth:`LevelledDaqSensor.corrected`).
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from setmem_hil.drivers.instruments.drive_level import ForceLeveller, LevelledExciter
+from setmem_hil.drivers.instruments.nidaq_sensor import ac_coupling_error
 from setmem_hil.drivers.instruments.sampled_dwell import calibration_scales, scale_structure_terms, with_instrument_terms
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
@@ -28,10 +30,24 @@ __all__ = ["LevelledDaqSensor", "SampledInstrumentRig", "DaqChannel"]
 
 @dataclasses.dataclass(frozen=True)
 class DaqChannel:
-    """What a DAQ input's sensor adds to a point: its calibration and its quantity."""
+    """What a DAQ input's sensor adds to a point: its calibration, its quantity and its input's
+    AC-coupling corner (0: DC coupled)."""
 
     calibration_uncertainty: float = 0.0
     quantity: str = "displacement"
+    ac_corner_hz: float = 0.0
+
+    def error_at(self, omega_rad_s: float) -> ChannelError:
+        """The AC coupling's high-pass as a relative disc on the reading (none when DC coupled)."""
+        return ChannelError(relative=ac_coupling_error(omega_rad_s, self.ac_corner_hz) if self.ac_corner_hz else 0.0)
+
+    def shortfall_at(self, omega_rad_s: float) -> float:
+        """How much larger the true amplitude may be than the AC-coupled reading (``1/|H| - 1``)."""
+        if not self.ac_corner_hz:
+            return 0.0
+        if omega_rad_s <= 0:
+            return math.inf
+        return math.hypot(1.0, 2 * math.pi * self.ac_corner_hz / omega_rad_s) - 1.0
 
 
 class LevelledDaqSensor:
@@ -40,7 +56,10 @@ class LevelledDaqSensor:
     def __init__(self, sensor, exciter: LevelledExciter, max_force_n: float, force: DaqChannel, responses: tuple[DaqChannel, ...]):
         self.inner, self.exciter = sensor, exciter
         self.force, self.responses = force, tuple(responses)
-        self.leveller = ForceLeveller(exciter, max_force_n, lambda: force.calibration_uncertainty, getattr(sensor, "where", "DAQ"))
+        # the force trip's margin: the calibration, and what an AC-coupled force input reads short
+        self.leveller = ForceLeveller(exciter, max_force_n,
+                                      lambda: force.calibration_uncertainty + force.shortfall_at(exciter.omega_rad_s or exciter.lowest_rad_s),
+                                      getattr(sensor, "where", "DAQ"))
         self.last_acquire_s = 0.0
         self.last_sample_rate_hz = 0.0
 
@@ -86,8 +105,9 @@ class LevelledDaqSensor:
 
     def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
         """``m`` in its calibration scale (:attr:`calibration_scales`), converted to receptance."""
-        return with_instrument_terms(scale_structure_terms(m, self.calibration_scales), force_amplitude_n, ChannelError(),
-                                     [(ChannelError(), ch.quantity) for ch in self.responses], self.leveller.where)
+        w = m.omega_rad_s
+        return with_instrument_terms(scale_structure_terms(m, self.calibration_scales), force_amplitude_n, self.force.error_at(w),
+                                     [(ch.error_at(w), ch.quantity) for ch in self.responses], self.leveller.where)
 
 
 class SampledInstrumentRig:

@@ -91,7 +91,9 @@ class ScpiGenerator(ScpiInstrument):
 
     def _upload_ascii(self, arb: ArbitraryWaveform, values: np.ndarray) -> np.ndarray:
         text = [f"{v:.6f}" for v in values]
-        self.link.write(render(arb.upload, **self.fields, name=arb.name, values=",".join(text)))
+        command = render(arb.upload, **self.fields, name=arb.name, values=",".join(text))
+        self.link.write(command)
+        self._await_upload(arb, len(command))
         self.check_errors(f"{arb.upload.split(' ')[0]} ({values.size} points)")
         return np.array([float(t) for t in text])
 
@@ -103,12 +105,23 @@ class ScpiGenerator(ScpiInstrument):
         header = "ieee" if arb.block == "ieee" else "empty"
         count = math.ceil(codes.size / arb.package_points)
         packages = np.array_split(codes, count)
+        if arb.byte_order_command:
+            self.send(arb.byte_order_command)
         for i, package in enumerate(packages):
             flag = arb.package_flags[1] if i == count - 1 else arb.package_flags[0]
             command = render(arb.upload, **self.fields, name=arb.name, flag=flag, points=package.size, bytes=2 * package.size)
             self.link.write_binary(command, package.tolist(), datatype, big_endian=arb.byte_order == "msb", header=header)
+            self._await_upload(arb, 2 * package.size)
             self.check_errors(f"{command.split(' ')[0]} (package {i + 1} of {count}, {package.size} points)")
         return points_of_codes(codes, arb.codes)
+
+    def _await_upload(self, arb: ArbitraryWaveform, size_bytes: int) -> None:
+        """Ask ``complete_query`` (``*OPC?``) and wait for its answer as long as the upload may
+        take at ``upload_bytes_per_s``: an instrument still parsing answers nothing meanwhile,
+        and a query with the link's short timeout would give up and leave a late reply behind."""
+        if arb.complete_query:
+            timeout_s = self.link.timeout_s + size_bytes / arb.upload_bytes_per_s
+            self.link.query(render(arb.complete_query, **self.fields), timeout_s=timeout_s)
 
     def play_sine(self) -> None:
         """Back to the generator's own sine (after an arbitrary waveform)."""

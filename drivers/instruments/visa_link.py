@@ -11,6 +11,7 @@ link raises a :class:`~setmem_hil.errors.DeviceError` that says so.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import select
 import socket
@@ -37,6 +38,8 @@ class VisaLink:
         self._pyvisa = pyvisa
         self.answered = False  # has this session ever exchanged a message? (a lost link vs. never reached)
         self._sock: socket.socket | None = None  # pyvisa-py's TCP socket of the open session, if any
+        self._reply_owed = False  # a query timed out: its reply may still arrive, and must never answer another
+        self.stale_replies = 0  # replies dropped as stale (logged; tests read it)
         self._open()
 
     def _open(self) -> None:
@@ -57,6 +60,7 @@ class VisaLink:
         """Drop this session and open a fresh one to the same resource (after a dropped link)."""
         self.close()
         self.answered = False
+        self._reply_owed = False  # a late reply goes to the closed session
         self._open()
 
     def write(self, command: str) -> None:
@@ -68,22 +72,82 @@ class VisaLink:
             raise self._error(command, exc) from None
         self.answered = True
 
-    def query(self, command: str) -> str:
+    def query(self, command: str, timeout_s: float | None = None) -> str:
+        """Send ``command`` and read its one-line reply within ``timeout_s`` (the link's own by
+        default). A reply never answers another query: bytes waiting before the query are
+        dropped as stale, and after a query timed out the session is opened afresh first (the
+        late reply, still on its way, goes to the old one)."""
         self.transcript.append(command)
         self._refuse_if_closed(command)
+        self._drop_stale(command)
+        wait_s = self.timeout_s if timeout_s is None else float(timeout_s)
         try:
-            if self._sock is None or self._pending():
-                reply = str(self._inst.query(command)).strip()
-            else:
-                self._inst.write(command)
-                self._await_reply(self._sock, command)
-                reply = str(self._inst.read()).strip()
+            with self._timeout(wait_s):
+                if self._sock is None:
+                    reply = str(self._inst.query(command)).strip()
+                else:
+                    self._inst.write(command)
+                    self._await_reply(self._sock, command, wait_s)
+                    reply = str(self._inst.read()).strip()
+        except DeviceTimeoutError:
+            self._reply_owed = True
+            raise
         except DeviceError:
             raise
         except Exception as exc:  # noqa: BLE001
-            raise self._error(command, exc) from None
+            error = self._error(command, exc, wait_s)
+            self._reply_owed = isinstance(error, DeviceTimeoutError)
+            raise error from None
         self.answered = True
         return reply
+
+    @contextlib.contextmanager
+    def _timeout(self, seconds: float):
+        """The session's timeout set to ``seconds`` for one exchange (pyvisa counts milliseconds)."""
+        if seconds == self.timeout_s:
+            yield
+            return
+        old = self._inst.timeout
+        self._inst.timeout = int(seconds * 1000)
+        try:
+            yield
+        finally:
+            self._inst.timeout = old
+
+    def _drop_stale(self, command: str) -> None:
+        """Before a query: a session owing a timed-out query's reply is opened afresh (that
+        reply, late, must not answer this query), and bytes already waiting are dropped."""
+        if self._reply_owed:
+            log.warning("%s: a reply was owed to a query that timed out; opening a fresh session before %r", self.name, command)
+            self.stale_replies += 1
+            self.reopen()
+            return
+        if not self.answered:  # nothing can be stale before the first exchange (and pyvisa-py connects on first use)
+            return
+        stale = self._take_waiting_bytes()
+        if stale:
+            self.stale_replies += 1
+            log.warning("%s: dropped %d stale bytes before %r (%r)", self.name, len(stale), command, stale[:40])
+
+    def _take_waiting_bytes(self) -> bytes:
+        """What pyvisa-py holds or the socket has ready now (without waiting)."""
+        taken = b""
+        try:
+            buffer = self._inst.visalib.sessions[self._inst.session]._pending_buffer
+            taken, buffer[:] = bytes(buffer), b""
+        except Exception:  # noqa: BLE001 - another backend, or a session without a buffer
+            pass
+        while self._sock is not None and _readable_now(self._sock):
+            try:
+                chunk = self._sock.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                break
+            if not chunk:  # the peer closed: reported by the query itself
+                break
+            taken += chunk
+        return taken
 
     def write_binary(self, command: str, values, datatype: str, *, big_endian: bool, header: str = "ieee") -> None:
         """``command`` followed by ``values`` packed as ``datatype`` (``"H"``, ``"h"``, ...) in one
@@ -142,36 +206,30 @@ class VisaLink:
             return None
         return sock if isinstance(sock, socket.socket) else None
 
-    def _pending(self) -> bool:
-        """Bytes pyvisa-py already holds (a reply longer than one line): no need to wait."""
-        try:
-            return bool(self._inst.visalib.sessions[self._inst.session]._pending_buffer)
-        except Exception:  # noqa: BLE001
-            return False
-
     def peer_closed(self) -> bool:
         """Has the instrument closed the connection? pyvisa-py reads an orderly close as silence
-        and reports a timeout after ``timeout_s``; a non-blocking peek tells at once."""
+        and reports a timeout after ``timeout_s``; a peek at a socket ``select`` finds readable
+        tells at once. (Not ``MSG_DONTWAIT``: Windows has no such flag.)"""
         if self._sock is None:
             return False
         try:
-            return self._sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+            return _readable_now(self._sock) and self._sock.recv(1, socket.MSG_PEEK) == b""
         except (ConnectionResetError, ConnectionAbortedError, BrokenPipeError):
             return True
-        except OSError:  # would block (open, nothing to read), not connected yet, refused: not a close
+        except (OSError, ValueError):  # would block, not connected yet, refused, already closed: not a close
             return False
 
-    def _await_reply(self, sock: socket.socket, command: str) -> None:
+    def _await_reply(self, sock: socket.socket, command: str, timeout_s: float) -> None:
         """Wait for the reply to start arriving; an instrument that closes the connection
         instead is reported at once (pyvisa-py would wait out its timeout first)."""
-        deadline = time.monotonic() + self.timeout_s
+        deadline = time.monotonic() + timeout_s
         while (left := deadline - time.monotonic()) > 0:
             readable, _, _ = select.select([sock], [], [], min(left, 0.5))
             if readable:
                 if self.peer_closed():
                     raise self._closed(command)
                 return
-        raise DeviceTimeoutError(f"{self.name} ({self.resource}): no reply to {command!r} within {self.timeout_s:g} s")
+        raise DeviceTimeoutError(f"{self.name} ({self.resource}): no reply to {command!r} within {timeout_s:g} s")
 
     def _refuse_if_closed(self, command: str) -> None:
         if self.answered and self.peer_closed():
@@ -181,12 +239,13 @@ class VisaLink:
         return DeviceDisconnectedError(f"{self.name} ({self.resource}): the instrument closed the connection "
                                        f"({command!r} was not delivered)")
 
-    def _error(self, command: str, exc: Exception) -> DeviceError:
+    def _error(self, command: str, exc: Exception, timeout_s: float | None = None) -> DeviceError:
         errors = self._pyvisa.errors
         if isinstance(exc, errors.VisaIOError) and exc.error_code == self._pyvisa.constants.StatusCode.error_timeout:
             if self.peer_closed():
                 return self._closed(command)
-            return DeviceTimeoutError(f"{self.name} ({self.resource}): no reply to {command!r} within {self.timeout_s:g} s")
+            waited = self.timeout_s if timeout_s is None else timeout_s
+            return DeviceTimeoutError(f"{self.name} ({self.resource}): no reply to {command!r} within {waited:g} s")
         if self.answered and isinstance(exc, (ConnectionResetError, BrokenPipeError, ConnectionAbortedError)):
             return DeviceDisconnectedError(f"{self.name} ({self.resource}): the connection was lost ({_reason(exc)}); "
                                            f"{command!r} may not have been delivered")
@@ -203,6 +262,14 @@ class VisaLink:
                     closer.close()
             except Exception as exc:  # noqa: BLE001 - closing must not mask anything
                 log.debug("closing %s: %r", self.name, exc)
+
+
+def _readable_now(sock: socket.socket) -> bool:
+    """Has ``sock`` bytes (or a close) to read right now? ``select`` with no wait: portable."""
+    try:
+        return bool(select.select([sock], [], [], 0)[0])
+    except (OSError, ValueError):  # closed under us
+        return False
 
 
 def _reason(exc: Exception) -> str:

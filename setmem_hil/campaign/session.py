@@ -28,7 +28,7 @@ from typing import Any, Callable, ContextManager, Iterator, Sequence
 
 from rich.console import Console
 
-from setmem_hil import __version__
+from setmem_hil import __version__, os_support
 from setmem_hil.campaign.observers import Observer, broadcast, standard_observers
 from setmem_hil.campaign.runner import CampaignSummary, run_campaign
 from setmem_hil.errors import CampaignAborted, DeviceError, InconsistentDataError, InputFormatError, RunInterrupted, SetmemError
@@ -67,23 +67,13 @@ def _arguments_error(problem: str) -> InputFormatError:
 
 @contextmanager
 def directory_lock(folder: Path, lock_name: str, busy: str) -> Iterator[None]:
-    """One process at a time per directory (POSIX advisory ``flock``, released when the process
-    ends, also on SIGKILL); ``InputFormatError(folder, "", busy)`` when another holds it. Where
-    ``fcntl`` is missing there is no lock."""
+    """One process at a time per directory, on every OS (:mod:`setmem_hil.os_support`);
+    ``InputFormatError(folder, "", busy)`` when another holds it."""
     try:
-        import fcntl
-    except ImportError:  # pragma: no cover (not POSIX)
-        yield
-        return
-    fh = open(Path(folder) / lock_name, "a+")
-    try:
-        try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise InputFormatError(str(folder), "", busy) from None
-        yield
-    finally:
-        fh.close()
+        with os_support.directory_lock(folder, lock_name):
+            yield
+    except os_support.DirectoryBusy:
+        raise InputFormatError(str(folder), "", busy) from None
 
 
 @contextmanager
@@ -128,6 +118,7 @@ def preflight(procedure: Procedure) -> None:
                     f"{modes[i].omega_min:g}-{modes[i].omega_max:g} rad/s)"
                     for i in range(1, len(modes)) if modes[i].omega_min < modes[i - 1].omega_max]
         cause = f"; the bands of {', '.join(overlaps)} overlap" if overlaps else ""
+        cause += _looks_like_hz(w, [(m.omega_min, m.omega_max) for m in modes])
         import re
 
         coupling = re.search(r"mode coupling [^)]*", exc.problem)
@@ -135,6 +126,25 @@ def preflight(procedure: Procedure) -> None:
                                f"the residues cannot be bounded from measurements at the [initial] frequencies"
                                f"{f' ({coupling.group(0)})' if coupling else ''}{cause}; give b0_min/b0_max, separate the "
                                "bands or move initial points nearer the resonances") from None
+
+
+def _looks_like_hz(initial, bands: list[tuple[float, float]]) -> str:
+    """A cause to name when the [initial] frequencies or the [[mode]] bands look like hertz: the
+    initial points sit far more often at a mode's band (within a factor 1.5) once one side is
+    multiplied by 2 pi (issue 40: a Hz list was caught, but explained as a mode coupling)."""
+    import numpy as np
+
+    def near(w) -> float:
+        return float(np.mean([any(lo / 1.5 <= x <= hi * 1.5 for lo, hi in bands) for x in w])) if len(w) else 0.0
+
+    given, initial_hz, bands_hz = near(initial), near(np.asarray(initial) * 2 * np.pi), near(np.asarray(initial) / (2 * np.pi))
+    if max(initial_hz, bands_hz) < 0.6 or max(initial_hz, bands_hz) < given + 0.3:
+        return ""
+    if initial_hz >= bands_hz:
+        return ("; the [initial] frequencies look like Hz: times 2 pi they sit at the modes' bands (they are rad/s; "
+                "or give them in Hz as omega_hz = [...])")
+    return ("; the [[mode]] bands look like Hz: the [initial] frequencies sit at them divided by 2 pi (omega_min and "
+            "omega_max are rad/s; or give omega_min_hz / omega_max_hz)")
 
 
 def run_journaled_campaign(procedure: Procedure, experiment: Any, journal: Journal, *, seed: int, strategy: str,
@@ -195,7 +205,7 @@ def start_run(
     adds a view of the campaign (terminal progress, live view). ``design`` overrides the
     procedure's ``[design] method`` (``--design``); the journal keeps it for a resume.
     """
-    console = console or Console()
+    console = console or Console(soft_wrap=True)
     run_dir = Path(run_dir)
     if design is not None:
         if design not in DESIGN_METHODS:
@@ -249,7 +259,7 @@ def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, op
     (old and new text's SHA-256, the new text) is journaled as a ``procedure-changed`` event, so a
     later plain resume continues with the corrected procedure too.
     """
-    console = console or Console()
+    console = console or Console(soft_wrap=True)
     run_dir = Path(run_dir)
     journal = Journal.open(run_dir)
     try:

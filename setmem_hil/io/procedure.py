@@ -80,6 +80,10 @@ class InstrumentSettings:
     calibration_uncertainty: float = 0.0
     quantity: str | None = None  # sensors: None -> force for the force role, displacement for the response role
     visa_library: str = "@py"
+    # an NI-DAQmx channel's sensor power and input coupling (issue 40): IEPE current excitation
+    # in amperes (0: none) and "AC" | "DC" (None: AC with IEPE, else the device's default, DC)
+    iepe_current_a: float = 0.0
+    coupling: str | None = None
     # an oscilloscope (issue 26): {"force": (1,), "response": (2, 3)} as the file lists them;
     # each channel's sensor in channel_sensors
     channel_roles: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
@@ -115,6 +119,7 @@ class EmulationSettings:
     relock_s: float = 0.0  # the emulated lock-ins relock this long after every frequency step
     sensors: tuple[float, ...] = (1.0,)  # emulated sensor position per response instrument, in [backend] response's order
     actuator: float = 1.0  # where the emulated force acts
+    first_mode_rad_s: float = 1.0  # the emulated beam's first natural frequency (every mode scales with it, as in simulation)
 
 
 @dataclass(frozen=True)
@@ -207,18 +212,23 @@ class Procedure:
     def time_scaled(self, factor: float) -> "Procedure":
         """The same campaign for the structure with every frequency times ``factor`` (issue 18's
         rescaling rule): prior bands, initial frequencies, safety frequency limits, an explicit
-        candidate band and the simulated beam's first mode times ``factor``, the weights
+        candidate band and the simulated (or emulated) beam's first mode times ``factor``, the weights
         time-scaled (``W(s) -> W(s / factor)``). Noise and amplitudes are unchanged."""
         f = float(factor)
         d = self.input_design
         design = replace(d, **{k: getattr(d, k) * f for k in ("candidate_omega_min_rad_s", "candidate_omega_max_rad_s")
                                if getattr(d, k) is not None})
-        sim = replace(self.backend.simulation, first_mode_rad_s=self.backend.simulation.first_mode_rad_s * f)
+        sim = self.backend.simulation
+        if self.backend.kind == "sim":  # the other backends simulate the beam at 1 rad/s (the parser refuses the key there)
+            sim = replace(sim, first_mode_rad_s=sim.first_mode_rad_s * f)
+        emulation = self.backend.emulation
+        if emulation is not None:
+            emulation = replace(emulation, first_mode_rad_s=emulation.first_mode_rad_s * f)
         return replace(
             self,
             prior=self.prior.time_scaled(f),
             initial_omegas_rad_s=tuple(w * f for w in self.initial_omegas_rad_s),
-            backend=replace(self.backend, simulation=sim),
+            backend=replace(self.backend, simulation=sim, emulation=emulation),
             safety=replace(self.safety, omega_min_rad_s=self.safety.omega_min_rad_s * f, omega_max_rad_s=self.safety.omega_max_rad_s * f),
             input_design=design,
             weights=self.weights.time_scaled(f),

@@ -131,6 +131,7 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("backend.emulation", "damping", "number", "", "0.01 (the beam's)", "Damping ratio of every emulated mode (lightly damped structures: 0.002, 0.0005).", gt=0.0, le=0.5),
     KeySpec("backend.emulation", "relock_s", "number", "s", 0.0, "Time the emulated lock-ins need to relock their reference after a frequency step.", ge=0.0, le=60.0),
     KeySpec("backend.emulation", "sensors", "numbers", "", "[1.0] (the tip)", "Where each response instrument's emulated displacement sensor sits on the cantilever (fraction of its length from the clamp), one per name in [backend] response, in that order (issue 25); required with several response instruments.", gt=0.0, le=1.0),
+    KeySpec("backend.emulation", "first_mode_rad_s", "number", "rad/s", 1.0, "First natural frequency of the emulated beam; all its modes scale with it and its residues with its square, as [backend.simulation] first_mode_rad_s does for the simulation (time-scale [weights] with it).", gt=0.0, le=1e9),
     KeySpec("backend.emulation", "actuator", "number", "", 1.0, "Where the emulated shaker's force acts (fraction of the length from the clamp; the thesis: the tip).", gt=0.0, le=1.0),
     KeySpec("backend.simulation", "noise_profile", "choice", "", _SIM.noise_profile, "Additive-noise bound R(omega) of section 6.2: fully damped model (6.3.2), SNR 10 (6.3.3), resonance noise (6.3.4) or none.", choices=NOISE_PROFILES),
     KeySpec("backend.simulation", "noise_scale", "number", "", _SIM.noise_scale, "Multiplies the noise bound.", ge=0.0),
@@ -174,6 +175,8 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("instrument", "volt_per_unit", "number", "V/unit", "required for sensors", "Sensor sensitivity: volts per newton (force), per metre, per m/s or per m/s^2 (response).", gt=0.0),
     KeySpec("instrument", "calibration_uncertainty", "number", "", 0.0, "Relative uncertainty of volt_per_unit; part of every point's bound and of the force limit.", ge=0.0, le=0.5),
     KeySpec("instrument", "quantity", "choice", "", "force (force role) / displacement (response role)", "What the sensor measures; the point is converted to receptance.", choices=SENSOR_QUANTITIES),
+    KeySpec("instrument", "iepe_current_a", "number", "A", "0 (no excitation)", "NI-DAQmx channels: IEPE current excitation for an accelerometer or force sensor (e.g. 0.004); the channel is created as nidaqmx's IEPE accelerometer (quantity = \"acceleration\") or IEPE force channel (quantity = \"force\"), with volt_per_unit as its sensitivity.", ge=0.0, le=0.025),
+    KeySpec("instrument", "coupling", "choice", "", "AC with iepe_current_a, else DC", "NI-DAQmx channels: input coupling; AC removes an IEPE sensor's bias, and its high-pass (the profile's ac_coupling_corner_hz) enters every point's bound.", choices=("AC", "DC")),
     KeySpec("instrument", "visa_library", "string", "", "@py", "PyVISA library: @py (pyvisa-py, pure Python), @ivi (a vendor VISA) or FILE.yaml@sim (pyvisa-sim)."),
     # [safety]
     KeySpec("safety", "max_amplitude_n", "number", "N", _S.max_amplitude_n, "Largest exciter amplitude ever commanded.", gt=0.0),
@@ -390,7 +393,8 @@ def _backend(top: _Table) -> BackendSettings:
             faults["rates"] = {str(k): float(r) for k, r in rates.items()}
     if kind != "sim" and sim.first_mode_rad_s != 1.0:
         raise ProcedureError(top.source, "[backend.simulation] key 'first_mode_rad_s'",
-                             f"only the frequency-domain simulation (kind = \"sim\") scales the beam; the {kind} fake device simulates it at 1 rad/s")
+                             f"only the frequency-domain simulation (kind = \"sim\") scales the beam this way; the {kind} backend simulates it at 1 rad/s"
+                             + (" (emulated instruments: [backend.emulation] first_mode_rad_s)" if kind == "instruments" else ""))
     if kind not in LOOPBACK_BACKENDS:
         for key in ("transport", "faults"):
             if t.has(key):
@@ -418,7 +422,7 @@ def _backend(top: _Table) -> BackendSettings:
             raise e.error(f"sensors: one position per response instrument ({n_responses}: {list(responses)}), found {list(sensors)}")
         emulation = EmulationSettings(drive_gain_ratio=e.get("drive_gain_ratio", 1.0), noise_v_per_rthz=e.get("noise_v_per_rthz", 2e-6),
                                       damping=e.get("damping", None), relock_s=e.get("relock_s", 0.0),
-                                      sensors=sensors, actuator=e.get("actuator", 1.0))
+                                      sensors=sensors, actuator=e.get("actuator", 1.0), first_mode_rad_s=e.get("first_mode_rad_s", 1.0))
     if kind != "instruments":
         given = [k for k in ("exciter", "force", "response", "control_output", "emulation") if t.has(k)]
         if given:
@@ -443,6 +447,7 @@ def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentS
             newton_per_volt=t.get("newton_per_volt"), max_drive_v=t.get("max_drive_v"), load_ohms=t.get("load_ohms"),
             volt_per_unit=t.get("volt_per_unit"), calibration_uncertainty=t.get("calibration_uncertainty", 0.0),
             quantity=t.get("quantity"), visa_library=t.get("visa_library", "@py"),
+            iepe_current_a=t.get("iepe_current_a", 0.0), coupling=t.get("coupling"),
             channel_roles=_scope_channel_roles(t, backend) if t.has("channels") else {},
             trigger_channel=t.get("trigger_channel"),
             channel_match=t.get("channel_match"),

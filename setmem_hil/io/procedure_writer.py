@@ -80,14 +80,18 @@ def format_procedure(procedure: Procedure) -> str:
                 f"relock_s = {_toml_value(float(b.emulation.relock_s))}",
                 f"sensors = {_toml_value([float(x) for x in b.emulation.sensors])}",
                 f"actuator = {_toml_value(float(b.emulation.actuator))}"]
+        if b.emulation.first_mode_rad_s != 1.0:
+            out.append(f"first_mode_rad_s = {_toml_value(float(b.emulation.first_mode_rad_s))}")
         if b.emulation.damping is not None:
             out.append(f"damping = {_toml_value(float(b.emulation.damping))}")
         out.append("")
     for name, inst in p.instruments.items():
         out.append(f"[instruments.{_toml_key(name)}]")
         for key in ("profile", "resource", "channel", "newton_per_volt", "max_drive_v", "load_ohms", "volt_per_unit",
-                    "calibration_uncertainty", "quantity", "visa_library"):
+                    "calibration_uncertainty", "quantity", "visa_library", "iepe_current_a", "coupling"):
             value = getattr(inst, key)
+            if key == "iepe_current_a" and not value:
+                continue
             if value is not None and not (key == "channel" and inst.channel_sensors):
                 out.append(f"{key} = {_toml_value(value)}")
         if inst.channel_roles:  # an oscilloscope (issue 26)

@@ -23,7 +23,7 @@ from setmem_hil.drivers.instruments.profile import LockInProfile, ModbusProfile,
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import Procedure
 from setmem_hil.model.modal_model import ModalParameters
-from setmem_hil.sim_backends.beam import BEAM_DAMPING_RATIO, BEAM_RESIDUE, beam_natural_frequencies, beam_parameters_at
+from setmem_hil.sim_backends.beam import BEAM_DAMPING_RATIO, BEAM_RESIDUE, beam_natural_frequencies, beam_parameters_at, scaled_beam
 from setmem_hil.sim_backends.instrument_bench import BenchSettings, EmulatedBench
 from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer, LockInEmulator, SiglentGeneratorEmulator
 from setmem_hil.sim_backends.modbus_controller_emulator import ModbusControllerEmulator
@@ -164,7 +164,7 @@ def _emulated_outputs(procedure: Procedure) -> list[ModalParameters]:
             residues = BEAM_RESIDUE
         else:
             residues = beam_parameters_at(x, emulation.actuator).values[:, 3]
-        outputs.append(ModalParameters.from_modal(beam_natural_frequencies(), damping, residues, 0.0))
+        outputs.append(scaled_beam(ModalParameters.from_modal(beam_natural_frequencies(), damping, residues, 0.0), emulation.first_mode_rad_s))
     return outputs
 
 

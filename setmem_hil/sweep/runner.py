@@ -46,7 +46,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +53,7 @@ from typing import Callable, Sequence
 
 from setmem_hil.campaign.session import directory_lock
 from setmem_hil.errors import InputFormatError
+from setmem_hil.os_support import kill_process
 from setmem_hil.io.procedure import STRATEGIES, Procedure
 from setmem_hil.sweep.storage import (
     clean_partials,
@@ -171,7 +171,7 @@ class _RichProgress:
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-        self.console = Console(stderr=True)
+        self.console = Console(stderr=True, soft_wrap=True)
         self.progress = Progress(
             TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
             TextColumn("campaigns, [red]{task.fields[failures]} failed"), TimeElapsedColumn(), TimeRemainingColumn(),
@@ -418,7 +418,7 @@ def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str]], out: Path
         # writing is under runs/.partial and is discarded by the next run of the sweep.
         for pid in local_pids:
             with contextlib.suppress(OSError):
-                os.kill(pid, signal.SIGKILL)
+                kill_process(pid)
         raise
     finally:
         if client is not None:

@@ -1,0 +1,108 @@
+"""Issue 40 item 3: a rig PC runs Windows. What is OS-specific lives in
+:mod:`setmem_hil.os_support`; everything else uses what every OS has.
+
+CI has no Windows, so the tests take away the POSIX-only names the code once relied on
+(``socket.MSG_DONTWAIT``, the ``fcntl`` module, ``signal.SIGKILL``) in a fresh interpreter and
+run what used them: an emulated instrument campaign through PyVISA sockets, the run lock
+between two processes, the sweep's kill of its workers.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+# run first in each child: the names Windows lacks are gone, as on a Windows interpreter
+WITHOUT_POSIX_NAMES = textwrap.dedent("""
+    import signal, socket, sys
+    import serial  # pyserial's POSIX backend needs fcntl (on Windows pyserial loads its win32 backend instead)
+    sys.modules["fcntl"] = None  # import fcntl -> ImportError
+    for module, name in ((socket, "MSG_DONTWAIT"), (signal, "SIGKILL")):
+        if hasattr(module, name):
+            delattr(module, name)
+""")
+
+
+def _child(code: str, *args: str, **kwargs) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", WITHOUT_POSIX_NAMES + textwrap.dedent(code), *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.PIPE, text=True, **kwargs)
+
+
+@pytest.mark.slow
+def test_an_emulated_instrument_campaign_runs_without_the_posix_only_names(tmp_path):
+    """33500B + SR830 + SR860 over PyVISA sockets (every query peeks for a closed peer and for
+    stale bytes), the run lock held throughout: exit 0, the goal reached."""
+    child = _child("""
+        from setmem_hil.cli.main import main
+        sys.exit(main(["run", sys.argv[1], "--out", sys.argv[2], "--quiet"]))
+    """, str(REPO / "procedures" / "instruments_emulated.toml"), str(tmp_path / "run"))
+    out, err = child.communicate(timeout=600)
+    assert child.returncode == 0, err[-2000:]
+    import json
+
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["reached_goal"]
+
+
+LOCK_HOLDER = """
+    import sys
+    from pathlib import Path
+    from setmem_hil import os_support
+    with os_support.directory_lock(Path(sys.argv[1]), ".run.lock"):
+        print("held", flush=True)
+        sys.stdin.readline()  # hold until told (or killed)
+"""
+LOCK_TAKER = """
+    import sys
+    from pathlib import Path
+    from setmem_hil import os_support
+    try:
+        with os_support.directory_lock(Path(sys.argv[1]), ".run.lock"):
+            print("taken")
+    except os_support.DirectoryBusy:
+        print("busy")
+"""
+
+
+@pytest.mark.parametrize("posix_names", [True, False], ids=["fcntl", "no-fcntl"])
+def test_the_run_lock_refuses_a_second_process_and_frees_with_its_holders_death(tmp_path, posix_names):
+    """Two processes, one directory: the second is refused while the first lives, also where
+    ``fcntl`` is missing (Windows); a holder killed outright leaves no lock behind."""
+    prelude = "" if posix_names else WITHOUT_POSIX_NAMES
+
+    def spawn(code):
+        return subprocess.Popen([sys.executable, "-c", prelude + textwrap.dedent(code), str(tmp_path)], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, stdin=subprocess.PIPE, text=True)
+
+    holder = spawn(LOCK_HOLDER)
+    try:
+        assert holder.stdout.readline().strip() == "held", holder.stderr.read()
+        taker = spawn(LOCK_TAKER)
+        assert taker.communicate(timeout=60)[0].strip() == "busy"
+    finally:
+        holder.kill()
+        holder.wait(timeout=30)
+    taker = spawn(LOCK_TAKER)
+    assert taker.communicate(timeout=60)[0].strip() == "taken"
+
+
+def test_a_process_is_killed_where_there_is_no_sigkill():
+    child = _child("""
+        import os, time
+        from setmem_hil.os_support import kill_process
+        sleeper = __import__("subprocess").Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+        kill_process(sleeper.pid)
+        start = time.monotonic()
+        sleeper.wait(timeout=30)
+        print("ended" if time.monotonic() - start < 10 else "late")
+    """)
+    out, err = child.communicate(timeout=60)
+    assert out.strip() == "ended", err
