@@ -3,7 +3,7 @@ lightly damped flexible structures, on simulated rigs, loopback transports or re
 
 The library surface a user needs is re-exported here (imported on first use, so the command line
 starts fast): :func:`identify`, :func:`analyze_robust_performance`, :func:`run_campaign`,
-:func:`load_procedure` and the error types of :mod:`setmem_hil.errors`. Subpackages by concept:
+:func:`load_procedure`, :func:`open_run` (a stored run in python-control's types, docs/notebook.md) and the error types of :mod:`setmem_hil.errors`. Subpackages by concept:
 ``model``, ``identification``, ``robust``, ``design``, ``estimation``, ``discrepancy``,
 ``campaign``, ``io``, ``report``, ``sweep``, ``cli``; hardware in ``setmem_hil.drivers``,
 simulation in ``setmem_hil.sim_backends`` (see ARCHITECTURE.md).
@@ -25,6 +25,7 @@ _LAZY = {
     "analyze_robust_performance": "setmem_hil.robust.analysis",
     "run_campaign": "setmem_hil.campaign.runner",
     "load_procedure": "setmem_hil.io.procedure_file",
+    "open_run": "setmem_hil.campaign.stored_run",
 }
 
 __all__ = ["__version__", *_LAZY, "SetmemError", "InputFormatError", "ProcedureError", "InconsistentDataError",

@@ -27,7 +27,7 @@ from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure_file import load_procedure
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.robust.analysis import analyze_robust_performance
-from setmem_hil.robust.controller_forms import StateSpace, frequency_response
+from setmem_hil.robust.controller_forms import frequency_response, statespace_from_lists
 
 REPO = Path(__file__).resolve().parents[1]
 FS = 1000.0
@@ -65,7 +65,7 @@ def test_json_contract_and_the_continuous_form_is_the_analysed_compensator(run_d
     assert {"A", "B", "C", "D"} <= set(exported["continuous"]) and {"A", "B", "C", "D", "Ts", "prewarp_rad_s"} <= set(exported["discrete"])
     assert all(len(p) == 2 for p in exported["poles"] + exported["zeros"])
     record = _last(run_dir)
-    K = StateSpace.from_lists(exported["continuous"])
+    K = statespace_from_lists(exported["continuous"])
     weights = load_procedure(REPO / "procedures" / "beam_6_3_2.toml").weights
     import control
 
@@ -91,9 +91,9 @@ def test_json_contract_and_the_continuous_form_is_the_analysed_compensator(run_d
 
 
 def test_discrete_and_sections_match_an_independent_tustin_map(exported):
-    K = StateSpace.from_lists(exported["continuous"])
+    K = statespace_from_lists(exported["continuous"])
     d = exported["discrete"]
-    Kd = StateSpace.from_lists(d, Ts=d["Ts"])
+    Kd = statespace_from_lists(d, Ts=d["Ts"])
     wp = d["prewarp_rad_s"]
     assert abs(frequency_response(Kd, [wp])[0] / frequency_response(K, [wp])[0] - 1) < 1e-9  # exact at wp
     # the Tustin map's defining identity: H_d(e^{j w Ts}) = H_c(j c tan(w Ts / 2)), c = wp / tan(wp Ts / 2),
@@ -169,7 +169,7 @@ def test_a_journal_from_before_stored_compensators_gets_the_h2_design_again(h2_r
         records, text = j.iterations(), j.run_info()["procedure_text"]
     record = next(r for r in reversed(records) if r.safeguard == "new-design")
     again = designed_again(str(run_dir), dataclasses.replace(record, controller=None), text)
-    stored = StateSpace.from_lists(record.controller)
+    stored = statespace_from_lists(record.controller)
     w = np.geomspace(0.05, 500, 100)
     assert np.max(np.abs(frequency_response(again, w) / frequency_response(stored, w) - 1)) < 1e-8
 
@@ -198,9 +198,9 @@ def test_version_2_journals_are_upgraded_and_export_designs_again(h2_run_dir, tm
     assert records and all(r.controller is None and r.mu_peak_certified is None for r in records)
     k = next(r.k for r in reversed(records) if r.safeguard == "new-design")
     assert main(["controller", str(old), "--out", str(tmp_path / "K.json"), "--iteration", str(k)]) == 0
-    redesigned = StateSpace.from_lists(json.loads((tmp_path / "K.json").read_text())["continuous"])
+    redesigned = statespace_from_lists(json.loads((tmp_path / "K.json").read_text())["continuous"])
     with Journal.open(run_dir) as j:
-        stored = StateSpace.from_lists(next(r for r in j.iterations() if r.k == k).controller)
+        stored = statespace_from_lists(next(r for r in j.iterations() if r.k == k).controller)
     w = np.geomspace(0.05, 500, 100)
     assert np.max(np.abs(frequency_response(redesigned, w) / frequency_response(stored, w) - 1)) < 1e-8
 
@@ -221,7 +221,7 @@ def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(run
     import control
 
     record = _last(run_dir)
-    K = StateSpace.from_lists(record.controller)
+    K = statespace_from_lists(record.controller)
     w = np.geomspace(0.1, 1000, 20000)
     dense = rp_curve(beam_parameters(), control.ss(K.A, K.B, K.C, K.D), load_procedure(REPO / "procedures" / "beam_6_3_2.toml").weights, w)
     assert doc["truth"]["rp_peak"] >= dense.max() - 1e-9 and doc["truth"]["rp_peak"] <= dense.max() * 1.001

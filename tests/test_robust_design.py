@@ -226,13 +226,13 @@ def test_design_h2_is_the_thesis_loop(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert all(r["design"] == "h2" for r in summary["iterations"])
     from setmem_hil.io.journal import Journal
-    from setmem_hil.robust.controller_forms import StateSpace, frequency_response
+    from setmem_hil.robust.controller_forms import frequency_response, statespace_from_lists
 
     with Journal.open(out) as journal:
         records = journal.iterations()
     record = next(r for r in records if r.safeguard == "new-design")
     designed = analyze_robust_performance(IntervalModel(record.lower, record.upper)).controller
-    stored = StateSpace.from_lists(record.controller)
+    stored = statespace_from_lists(record.controller)
     w = np.geomspace(0.1, 100.0, 50)
     theirs = np.array([complex(np.squeeze(designed(1j * x))) for x in w])
     assert np.max(np.abs(frequency_response(stored, w) / theirs - 1.0)) < 1e-8

@@ -20,7 +20,7 @@ def _error(where: str, problem: str) -> InputFormatError:
 def kept_controller(run_dir: str, iteration: int | None, command: str = "setmem-hil controller"):
     """``(record, StateSpace)`` of the compensator iteration K (or the last) kept."""
     from setmem_hil.io.journal import Journal
-    from setmem_hil.robust.controller_forms import StateSpace
+    from setmem_hil.robust.controller_forms import statespace_from_lists
 
     with Journal.open(run_dir) as journal:
         records = journal.iterations()
@@ -35,7 +35,7 @@ def kept_controller(run_dir: str, iteration: int | None, command: str = "setmem-
             raise _error(command, f"--iteration {iteration}: {run_dir} holds iterations 1-{records[-1].k}")
         record = found[0]
     if record.controller is not None:
-        return record, StateSpace.from_lists(record.controller)
+        return record, statespace_from_lists(record.controller)
     return record, designed_again(run_dir, record, procedure_text)
 
 
@@ -47,9 +47,9 @@ def designed_again(run_dir: str, record, procedure_text: str):
     from setmem_hil.io.procedure_file import parse_procedure_text
     from setmem_hil.model.modal_model import IntervalModel
     from setmem_hil.robust.analysis import analyze_robust_performance
-    from setmem_hil.robust.controller_forms import StateSpace
+    from setmem_hil.robust.controller_forms import statespace_from_lists
     from setmem_hil.campaign.runner import controller_matrices
 
     weights = parse_procedure_text(procedure_text, f"{run_dir} (stored procedure)").weights
     analysis = analyze_robust_performance(IntervalModel(record.lower, record.upper), weights)
-    return StateSpace.from_lists(controller_matrices(analysis.controller))
+    return statespace_from_lists(controller_matrices(analysis.controller))

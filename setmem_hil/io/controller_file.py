@@ -67,7 +67,7 @@ def controller_document(*, iteration: int, mu_peak: float, continuous, zpk, disc
         "gain": float(zpk.gain),
     }
     if discrete is not None:
-        doc["discrete"] = {**{name: _matrix(getattr(discrete, name)) for name in "ABCD"}, "Ts": float(discrete.Ts),
+        doc["discrete"] = {**{name: _matrix(getattr(discrete, name)) for name in "ABCD"}, "Ts": float(discrete.dt),
                            "prewarp_rad_s": float(prewarp_rad_s)}
         doc["sos"] = np.asarray(sos, dtype=float).tolist()
         doc["sos_gain"] = float(sos_gain)

@@ -44,6 +44,14 @@ class FrequencyData:
     def __len__(self) -> int:
         return self.omega_rad_s.size
 
+    def to_frd(self):
+        """The points as a python-control ``FrequencyResponseData`` (rad/s), sorted by
+        frequency (python-control interpolates between neighbours); the bounds are not part of it."""
+        import control
+
+        order = np.argsort(self.omega_rad_s, kind="stable")
+        return control.frd(self.response[order], self.omega_rad_s[order])
+
     @classmethod
     def from_measurements(cls, measurements: Iterable[Measurement], output: int = 0) -> "FrequencyData":
         """The measurements' data; ``output`` k >= 1 takes the k-th of their other sensors
@@ -61,6 +69,10 @@ class FrequencyData:
 
     def measurements(self) -> list[Measurement]:
         return [Measurement(float(w), complex(g), float(r)) for w, g, r in zip(self.omega_rad_s, self.response, self.bound)]
+
+    def sorted_by_frequency(self) -> "FrequencyData":
+        """The same points in ascending frequency (a stable sort: equal frequencies keep their order)."""
+        return self.subset(np.argsort(self.omega_rad_s, kind="stable"))
 
     def subset(self, index) -> "FrequencyData":
         return FrequencyData(self.omega_rad_s[index], self.response[index], self.bound[index])

@@ -154,6 +154,10 @@ class IntervalModel:
         """Nominal model at the interval midpoints (eq. 2.25)."""
         return ModalParameters(0.5 * (self.lower + self.upper))
 
+    def nominal(self) -> ModalParameters:
+        """The nominal model (the midpoints, eq. 2.25); ``.to_statespace()`` gives it to python-control."""
+        return self.midpoint
+
     @property
     def width(self) -> np.ndarray:
         """Interval widths ``delta = upper - lower`` (eq. 2.27)."""

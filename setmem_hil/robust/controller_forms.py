@@ -1,8 +1,10 @@
 """The compensator in the forms a real-time target takes: poles, zeros and gain, the discrete
 state space (Tustin, prewarped) and second-order sections.
 
-Pure numerics on a SISO state space ``(A, B, C, D)`` in rad/s with the feedback sign of thesis
-6.3.2, footnote 3 (positive feedback, ``u = K y``). No transfer-function polynomials anywhere:
+Pure numerics on a SISO python-control ``StateSpace`` in rad/s with the feedback sign of thesis
+6.3.2, footnote 3 (positive feedback, ``u = K y``). python-control does the state space, its
+evaluation and the prewarped Tustin map (``sample_system(..., "bilinear", prewarp_frequency=)``);
+this module adds what it lacks: zeros, poles and gain by eigenvalue problems, and sections. No transfer-function polynomials anywhere:
 for the lightly damped compensators of this problem (poles a few 1e-3 from the imaginary axis,
 orders 10-20) the polynomial coefficients lose the poles; every form here comes from the state
 space by eigenvalue problems.
@@ -10,9 +12,9 @@ space by eigenvalue problems.
 * zeros: the finite generalized eigenvalues of the Rosenbrock pencil
   ``([[A, B], [C, D]], [[I, 0], [0, 0]])``; poles: ``eig(A)``; gain: the response at a point away
   from both divided by the product form there;
-* Tustin with prewarping at ``w_p``: ``s = (w_p / tan(w_p Ts / 2)) (z - 1) / (z + 1)``, i.e. the
-  plain bilinear map of period ``Ts' = 2 tan(w_p Ts / 2) / w_p``, so the discrete response equals
-  the continuous one exactly at ``w_p`` (the mu-bar peak: where the guarantee is tightest);
+* Tustin with prewarping at ``w_p`` (python-control's): ``s = (w_p / tan(w_p Ts / 2)) (z - 1) / (z + 1)``,
+  so the discrete response equals the continuous one exactly at ``w_p`` (the mu-bar peak: where
+  the guarantee is tightest);
 * sections: ``scipy.signal.zpk2sos`` of the discrete zeros, poles and gain, the gain folded into
   the first section.
 """
@@ -22,32 +24,22 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import control
 import numpy as np
 import scipy.linalg
 import scipy.signal
 
-__all__ = ["StateSpace", "ZerosPolesGain", "zpk_of", "tustin_prewarped", "second_order_sections", "frequency_response"]
+__all__ = ["statespace_from_lists", "ZerosPolesGain", "zpk_of", "tustin_prewarped", "second_order_sections", "frequency_response"]
 
 
-@dataclass(frozen=True)
-class StateSpace:
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-    Ts: float = 0.0  # 0: continuous time
-
-    @classmethod
-    def from_lists(cls, doc: dict, Ts: float = 0.0) -> "StateSpace":
-        A = np.asarray(doc["A"], dtype=float).reshape(len(doc["A"]), -1) if len(doc["A"]) else np.zeros((0, 0))
-        n = A.shape[0]
-        B = np.asarray(doc["B"], dtype=float).reshape(n, -1) if n else np.zeros((0, 1))
-        C = np.asarray(doc["C"], dtype=float).reshape(-1, n) if n else np.zeros((1, 0))
-        return cls(A, B, C, np.asarray(doc["D"], dtype=float).reshape(C.shape[0], B.shape[1]), Ts)
-
-    @property
-    def order(self) -> int:
-        return self.A.shape[0]
+def statespace_from_lists(doc: dict, Ts: float = 0.0) -> control.StateSpace:
+    """A ``control.StateSpace`` from ``{"A": [[...]], "B": ..., "C": ..., "D": ...}`` (the
+    journal's and the controller file's lists); ``Ts`` 0: continuous time."""
+    A = np.asarray(doc["A"], dtype=float).reshape(len(doc["A"]), -1) if len(doc["A"]) else np.zeros((0, 0))
+    n = A.shape[0]
+    B = np.asarray(doc["B"], dtype=float).reshape(n, -1) if n else np.zeros((0, 1))
+    C = np.asarray(doc["C"], dtype=float).reshape(-1, n) if n else np.zeros((1, 0))
+    return control.ss(A, B, C, np.asarray(doc["D"], dtype=float).reshape(C.shape[0], B.shape[1]), Ts)
 
 
 @dataclass(frozen=True)
@@ -57,25 +49,20 @@ class ZerosPolesGain:
     gain: float
 
 
-def frequency_response(sys: StateSpace, omega_rad_s: np.ndarray) -> np.ndarray:
-    """``C (x I - A)^-1 B + D`` at ``x = j w`` (continuous) or ``exp(j w Ts)`` (discrete)."""
+def frequency_response(sys: control.StateSpace, omega_rad_s: np.ndarray) -> np.ndarray:
+    """``C (x I - A)^-1 B + D`` at ``x = j w`` (continuous) or ``exp(j w Ts)`` (discrete): python-control's evaluation."""
     w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
-    x = np.exp(1j * w * sys.Ts) if sys.Ts > 0 else 1j * w
-    n = sys.order
-    out = np.empty(w.size, complex)
-    for i, xi in enumerate(x):
-        out[i] = (sys.C @ np.linalg.solve(xi * np.eye(n) - sys.A, sys.B) + sys.D)[0, 0] if n else sys.D[0, 0]
-    return out
+    return np.asarray(control.frequency_response(sys, w).complex, dtype=complex).reshape(w.size)
 
 
-def _response_at(sys: StateSpace, x: complex) -> complex:
-    n = sys.order
+def _response_at(sys: control.StateSpace, x: complex) -> complex:
+    n = sys.nstates
     return complex((sys.C @ np.linalg.solve(x * np.eye(n) - sys.A, sys.B) + sys.D)[0, 0]) if n else complex(sys.D[0, 0])
 
 
-def zpk_of(sys: StateSpace) -> ZerosPolesGain:
+def zpk_of(sys: control.StateSpace) -> ZerosPolesGain:
     """Zeros (finite transmission zeros), poles and gain of a SISO state space."""
-    n = sys.order
+    n = sys.nstates
     poles = np.linalg.eigvals(sys.A) if n else np.zeros(0, complex)
     pencil = np.block([[sys.A, sys.B], [sys.C, sys.D]])
     mass = np.zeros_like(pencil)
@@ -86,7 +73,7 @@ def zpk_of(sys: StateSpace) -> ZerosPolesGain:
     zeros = zeros[np.abs(zeros) < 1e12 * max(1.0, float(np.max(np.abs(poles), initial=1.0)))]
     # the gain: the response at a point away from every zero and pole, over the product form there
     scale = max(1.0, float(np.max(np.abs(np.concatenate([poles, zeros])), initial=1.0)))
-    if sys.Ts > 0:
+    if sys.dt:
         x = 0.3 + 0.4j  # inside the unit circle, off the real axis: away from poles of a stable loop
     else:
         x = scale * (1.7 + 2.3j)
@@ -95,18 +82,16 @@ def zpk_of(sys: StateSpace) -> ZerosPolesGain:
     return ZerosPolesGain(zeros, poles, float(gain.real))
 
 
-def tustin_prewarped(sys: StateSpace, fs_hz: float, prewarp_rad_s: float) -> StateSpace:
-    """The discrete compensator at sample rate ``fs_hz`` (Tustin, exact at ``prewarp_rad_s``)."""
-    Ts = 1.0 / fs_hz
+def tustin_prewarped(sys: control.StateSpace, fs_hz: float, prewarp_rad_s: float) -> control.StateSpace:
+    """The discrete compensator at sample rate ``fs_hz`` (Tustin, exact at ``prewarp_rad_s``):
+    python-control's ``sample_system``, after checking the prewarp lies below the Nyquist frequency."""
     if not 0 < prewarp_rad_s < math.pi * fs_hz:
         raise ValueError(f"prewarp frequency {prewarp_rad_s:.6g} rad/s must lie below the Nyquist frequency "
                          f"{math.pi * fs_hz:.6g} rad/s (--fs {fs_hz:g} Hz)")
-    warped = 2.0 * math.tan(prewarp_rad_s * Ts / 2.0) / prewarp_rad_s
-    Ad, Bd, Cd, Dd, _ = scipy.signal.cont2discrete((sys.A, sys.B, sys.C, sys.D), warped, method="bilinear")
-    return StateSpace(np.asarray(Ad), np.asarray(Bd), np.asarray(Cd), np.asarray(Dd), Ts)
+    return control.sample_system(sys, 1.0 / fs_hz, "bilinear", prewarp_frequency=prewarp_rad_s)
 
 
-def second_order_sections(continuous: StateSpace, fs_hz: float, prewarp_rad_s: float) -> tuple[np.ndarray, float]:
+def second_order_sections(continuous: control.StateSpace, fs_hz: float, prewarp_rad_s: float) -> tuple[np.ndarray, float]:
     """``(sos, gain)`` of the prewarped Tustin image: rows ``[b0, b1, b2, 1, a1, a2]``.
 
     The continuous zeros, poles and gain (:func:`zpk_of`) go through the bilinear map in product

@@ -13,7 +13,7 @@ returned by ``control.h2syn`` (SLICOT SB10HD).
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import solve_continuous_lyapunov
+import control
 
 from setmem_hil.robust.augmented_plant import AugmentedPlant, StateSpaceMatrices, augmented_plant
 from setmem_hil.errors import SolverError
@@ -30,8 +30,6 @@ def h2_controller_for_plant(plant: AugmentedPlant):
     SolverError
         If SB10HD fails (e.g. ``D_11 != 0`` because ``W_2`` has no extra pole).
     """
-    import control
-
     if np.any(plant.Dzw != 0.0):
         raise SolverError("H2 design: D11 of the augmented plant is nonzero; give W2 an extra pole (w2_extra_pole_rad_s)")
     try:
@@ -67,11 +65,11 @@ def design_h2_controller(model: IntervalModel, weights: Weights = THESIS_WEIGHTS
 
 
 def h2_norm(system: StateSpaceMatrices) -> float:
-    """H2 norm from the controllability Gramian: ``sqrt(trace(C P C^T))``, ``A P + P A^T + B B^T = 0``.
+    """H2 norm: python-control's ``norm(sys, 2)`` (the controllability Gramian's
+    ``sqrt(trace(C P C^T))``, ``A P + P A^T + B B^T = 0``).
 
     Returns ``inf`` for an unstable system or a nonzero feedthrough.
     """
     if np.any(system.D != 0.0) or np.any(np.linalg.eigvals(system.A).real >= 0.0):
         return float("inf")
-    P = solve_continuous_lyapunov(system.A, -system.B @ system.B.T)
-    return float(np.sqrt(max(np.trace(system.C @ P @ system.C.T), 0.0)))
+    return float(control.norm(system.to_statespace(), 2, print_warning=False))

@@ -127,7 +127,7 @@ def closed_loop_simulation(truth: ModalParameters, continuous, discrete, weights
     """
     import scipy.signal
 
-    Ts = float(discrete.Ts)
+    Ts = float(discrete.dt)
     Ap, Bp, Cp, Dp = truth.state_space_matrices()
     Ad, Bd, _, _, _ = scipy.signal.cont2discrete((Ap, Bp, Cp, Dp), Ts, method="zoh")
     Ak, Bk, Ck, Dk = (np.atleast_2d(np.asarray(getattr(discrete, n), dtype=float)) for n in "ABCD")

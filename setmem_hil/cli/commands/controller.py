@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
 
         scipy.io.savemat(str(out), mat_variables(doc))
     margin = f", margin {doc['margin']:.4g}" if doc.get("margin") else ""
-    print(f"{out}: compensator of iteration {record.k} (order {K.order}, {doc['design']} design, mu-bar {record.mu_peak:.4g}{margin}), "
+    print(f"{out}: compensator of iteration {record.k} (order {K.nstates}, {doc['design']} design, mu-bar {record.mu_peak:.4g}{margin}), "
           "positive feedback u = K y"
           + (f", discrete at {args.fs:g} Hz" if args.fs else ""))
     return 0
