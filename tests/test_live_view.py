@@ -168,6 +168,18 @@ def test_view_serves_a_finished_run_read_only(tmp_path):
         assert [it["design"] for it in state["iterations"]] == [r.design for r in records]
         assert [it["floor_modes"] for it in state["iterations"]] == [list(r.floor_modes) for r in records]
         assert _call(base, "/api/pause", token, "POST")[0] == 409  # a viewer cannot steer another process's run
+        # issue 40: the run's rig time (the summary's, the sum of its measurements') and its own
+        # elapsed time (start to finish in the journal), not the viewer's few seconds
+        summary = json.loads((tmp_path / "done" / "summary.json").read_text())
+        assert state["rig_s"] == pytest.approx(summary["rig_s"], rel=1e-9) and state["rig_s"] > 0
+        with Journal.open(tmp_path / "done") as journal:
+            info = journal.run_info()
+        from datetime import datetime
+
+        run_s = (datetime.fromisoformat(info["finished_utc"]) - datetime.fromisoformat(info["created_utc"])).total_seconds()
+        assert state["run_elapsed_s"] == pytest.approx(run_s, abs=1e-3) and state["elapsed_s"] == pytest.approx(run_s, abs=1e-3)
+        time.sleep(1.0)
+        assert _call(base, "/api/state", token)[1]["elapsed_s"] == pytest.approx(run_s, abs=1e-3)  # finished: it does not grow
     finally:
         child.terminate()
         child.wait(timeout=30)

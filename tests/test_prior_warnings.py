@@ -115,3 +115,29 @@ def test_real_beam_seven_modes_flags_the_spurious_one(tmp_path, capsys):
     _, prior, err = propose(tmp_path, capsys, "ladisk-pyuff-beam", 7)
     assert "computational mode" in err
     assert prior.read_text().count("# CHECK THIS MODE") == 1
+
+
+def test_prior_proposes_the_same_modes_for_the_same_rows_in_another_order(tmp_path):
+    """Issue 40 (a new user's finding): a data file's rows in another order are the same data;
+    `prior` proposed other modes for them (LSCF read the lines as given)."""
+    import numpy as np
+
+    from setmem_hil.cli.main import main
+    from setmem_hil.io.data_file import write_data_csv
+    from setmem_hil.model.frequency_data import FrequencyData
+    from setmem_hil.sim_backends.beam import beam_parameters
+
+    truth = beam_parameters().truncated(3)
+    w = np.geomspace(0.6, 25.0, 200)
+    g = truth.frequency_response(w)
+    rng = np.random.default_rng(4)
+    bound = 0.03 * np.abs(g) + 1e-3
+    data = FrequencyData(w, g + bound * rng.uniform(0, 0.9, w.size) * np.exp(2j * np.pi * rng.uniform(size=w.size)), bound)
+    shuffled = data.subset(rng.permutation(w.size))
+    write_data_csv(data, tmp_path / "sorted.csv")
+    write_data_csv(shuffled, tmp_path / "shuffled.csv")
+    texts = []
+    for name in ("sorted", "shuffled"):
+        assert main(["prior", "--data", str(tmp_path / f"{name}.csv"), "--modes", "3", "--out", str(tmp_path / f"{name}.toml")]) == 0
+        texts.append((tmp_path / f"{name}.toml").read_text().split("\n", 1)[1])  # the first line names the file
+    assert texts[0] == texts[1]

@@ -125,7 +125,10 @@ def main(argv: list[str] | None = None) -> int:
             message = f"{message}; {hint}"
         if debug:
             traceback.print_exc()
-        print(f"setmem-hil: {one_line(message)}", file=sys.stderr)
+        line = one_line(message)
+        # a message naming its command ("setmem-hil controller: ...") keeps one prefix:
+        # "setmem-hil: controller: ..." (issue 40: it printed "setmem-hil: setmem-hil controller: ...")
+        print(f"setmem-hil: {line.removeprefix('setmem-hil ')}", file=sys.stderr)
         return code
 
 

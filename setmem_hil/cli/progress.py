@@ -86,7 +86,7 @@ class CampaignProgress:
         on_event: Callable[..., None] | None = None,
         live: bool | None = None,
     ):
-        self.console = console or Console()
+        self.console = console or Console(soft_wrap=True)
         self.planned_dwell_s = planned_dwell_s
         self.on_event = on_event
         self.live = self.console.is_terminal if live is None else live

@@ -162,6 +162,9 @@ def estimate_common_modes(datas: list[FrequencyData], n_modes: int, band_rad_s: 
     """
     if n_modes < 1:
         raise ValueError(f"n_modes: expected at least 1, found {n_modes}")
+    # the same rows in another order are the same data (issue 40): LSCF and the peaks read the
+    # lines in ascending frequency
+    datas = [d.sorted_by_frequency() for d in datas]
     w = datas[0].omega_rad_s
     for k, d in enumerate(datas[1:], start=2):
         if d.omega_rad_s.shape != w.shape or not np.allclose(d.omega_rad_s, w, rtol=1e-9, atol=0.0):

@@ -9,7 +9,8 @@ empty cell for "none", ``inf``/``nan`` spelled so):
     device seconds its dwell took.
 ``data.csv``
     ``omega, re, im, bound``: the same measurements in the data-CSV format that
-    ``setmem-hil identify --data`` reads.
+    ``setmem-hil identify --data`` reads, in ascending frequency (``measurements.csv`` keeps the
+    measurement order; a plot of ``data.csv`` is a curve, not a zigzag).
 ``bounds.csv``
     ``k, n_points, mode, parameter, lower, upper, name``: the parameter intervals of every iteration
     (``name`` is the parameter's one name, ``a1_1``, as in RESULT.json and sensitivities.csv)
@@ -110,13 +111,13 @@ def export_csv(run_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[P
         from setmem_hil.io.data_file import format_data_csv
 
         for k in range(1, len(names)):
-            files[f"data_{k + 1}.csv"] = format_data_csv(FrequencyData.from_measurements(measurements, output=k))
+            files[f"data_{k + 1}.csv"] = format_data_csv(FrequencyData.from_measurements(measurements, output=k).sorted_by_frequency())
     else:
         files["measurements.csv"] = _csv_text(cols, ([r[c] for c in cols] for r in rows))
     if measurements:
         from setmem_hil.io.data_file import format_data_csv
 
-        files["data.csv"] = format_data_csv(FrequencyData.from_measurements(measurements))
+        files["data.csv"] = format_data_csv(FrequencyData.from_measurements(measurements).sorted_by_frequency())
     else:
         files["data.csv"] = "omega,re,im,bound\n"
     if names:

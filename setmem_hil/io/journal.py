@@ -461,9 +461,13 @@ class Journal:
     def _query(self, sql: str, params: tuple = ()) -> list[sqlite3.Row]:
         with self._lock:
             db = self._db()
-            cur = db.execute(sql, params)
-            names = [d[0] for d in cur.description]
-            return [dict(zip(names, row)) for row in cur.fetchall()]
+            try:
+                cur = db.execute(sql, params)
+                names = [d[0] for d in cur.description]
+                return [dict(zip(names, row)) for row in cur.fetchall()]
+            except sqlite3.DatabaseError as exc:  # damaged pages: found only when read (issue 40: was exit 1)
+                raise InputFormatError(str(self.path), "", f"the journal is damaged ({exc}); `sqlite3 {self.path.name} .recover` "
+                                       "may save what it holds") from None
 
     # ------------------------------------------------------------------ run
     def run_info(self) -> dict:

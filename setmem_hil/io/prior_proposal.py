@@ -103,13 +103,17 @@ def _residue_brackets(m) -> tuple[float, float]:
 
 
 def _b1_lines(i: int, m, outputs, complex_residues: bool) -> list[str]:
-    """``b1 = 0.0``, or the ``b1_min``/``b1_max`` brackets of mode ``i`` (arrays with several outputs)."""
+    """``b1 = 0.0``, or the ``b1_min``/``b1_max`` brackets of mode ``i`` (one output)."""
     if not complex_residues or m.low_pseudo_mode:
         return ["b1 = 0.0"]
-    if not outputs:
-        lo, hi = _b1_bracket(m)
-        return [f"b1_min = {_num(lo)}", f"b1_max = {_num(hi)}"]
-    brackets = [_b1_bracket(e.modes[i]) for _, e in outputs]
+    lo, hi = _b1_bracket(m)
+    return [f"b1_min = {_num(lo)}", f"b1_max = {_num(hi)}"]
+
+
+def _b1_array_lines(brackets: list[tuple[float, float]]) -> list[str]:
+    """Several outputs' ``b1`` brackets of one mode: ``b1 = 0.0`` when every one is fixed at 0."""
+    if all(b == (0.0, 0.0) for b in brackets):
+        return ["b1 = 0.0"]
     return ["b1_min = [" + ", ".join(_num(b[0]) for b in brackets) + "]",
             "b1_max = [" + ", ".join(_num(b[1]) for b in brackets) + "]"]
 
@@ -120,8 +124,35 @@ def _b1_bracket(m) -> tuple[float, float]:
     return m.b1 - half, m.b1 + half
 
 
+def output_brackets(estimate, complex_residues: bool) -> list[dict[str, tuple[float, float]]]:
+    """Per mode, the ``b0`` and ``b1`` brackets a proposal writes for one output's estimate
+    (``b1`` fixed at 0 for real residues and for the low pseudo-mode)."""
+    return [{"b0": _residue_brackets(m), "b1": _b1_bracket(m) if complex_residues and not m.low_pseudo_mode else (0.0, 0.0)}
+            for m in estimate.modes]
+
+
+def no_wider_than_alone(joint_estimate, joint: list[dict], alone_estimate, alone: list[dict]) -> list[dict]:
+    """One output's brackets in a joint proposal, each no wider than the same output's own
+    single-output proposal (issue 40: a second sensor must never make the first one's answer
+    worse): where the output's own proposal has a mode at the same frequency (within the joint
+    mode's +-5 % band) and a narrower bracket for a parameter, that bracket is taken whole."""
+    bands = _bands(joint_estimate)
+    out = []
+    for i, (m, brackets) in enumerate(zip(joint_estimate.modes, joint)):
+        lo, hi = bands[i]
+        match = [k for k, a in enumerate(alone_estimate.modes)
+                 if a.low_pseudo_mode == m.low_pseudo_mode and (m.low_pseudo_mode or lo <= a.omega_n_rad_s <= hi)]
+        if not match:
+            out.append(dict(brackets))
+            continue
+        own = alone[match[0]]
+        out.append({key: own[key] if own[key][1] - own[key][0] < bracket[1] - bracket[0] else bracket
+                    for key, bracket in brackets.items()})
+    return out
+
+
 def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = (), outputs=None,
-                          complex_reason: str | None = None) -> str:
+                          complex_reason: str | None = None, brackets: list[list[dict]] | None = None) -> str:
     """The PRIOR.toml text for ``estimate`` (a :class:`setmem_hil.estimation.modal_estimate.ModalEstimate`).
 
     ``outputs`` (issue 25): ``[(name, estimate), ...]`` of several outputs with common poles (the
@@ -130,6 +161,9 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
 
     ``complex_reason``: the estimates have complex residues (``b1`` brackets are written), and
     why they were chosen (a line in the header).
+
+    ``brackets`` (several outputs): per output, per mode, the ``b0``/``b1`` brackets to write
+    (:func:`no_wider_than_alone`) instead of the ones of each output's joint estimate.
     """
     if outputs:  # the poles are common: the outputs differ in residues, and the header names the worst fit
         estimate = max((e for _, e in outputs), key=lambda e: e.max_normalized_residual)
@@ -149,7 +183,8 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
     if advice:
         lines[-1:-1] = [f"# WARNING: {advice}."]
     if outputs:
-        lines[-1:-1] = ["# Several outputs: common poles (LSCF over all of them), residue brackets per output in this order:",
+        lines[-1:-1] = ["# Several outputs: common poles (LSCF over all of them), residue brackets per output in this order"
+                        + ("; none wider than that output's own single-output proposal:" if brackets is not None else ":"),
                         "outputs = [" + ", ".join(f'"{name}"' for name, _ in outputs) + "]"]
     flags = dict(suspicious_modes(estimate))
     for i, (m, (lo, hi)) in enumerate(zip(estimate.modes, _bands(estimate))):
@@ -166,14 +201,17 @@ def format_prior_proposal(estimate, source: str, residuals: tuple[str, ...] = ()
             lines.append(f"# estimate: {m.omega_n_rad_s / (2 * math.pi):.6g} Hz = {m.omega_n_rad_s:.6g} rad/s, zeta {m.zeta:.3g}, b0 {b0_text}{b1_text}")
             zeta_max = min(0.5, max(0.01, 10.0 * m.zeta))
         if outputs:
-            brackets = [_residue_brackets(e.modes[i]) for _, e in outputs]
-            b_min = "[" + ", ".join(_num(b[0]) for b in brackets) + "]"
-            b_max = "[" + ", ".join(_num(b[1]) for b in brackets) + "]"
+            per_output = ([b[i] for b in brackets] if brackets is not None else
+                          [output_brackets(e, complex_reason is not None)[i] for _, e in outputs])
+            b_min = "[" + ", ".join(_num(b["b0"][0]) for b in per_output) + "]"
+            b_max = "[" + ", ".join(_num(b["b0"][1]) for b in per_output) + "]"
+            b1_lines = _b1_array_lines([b["b1"] for b in per_output])
         else:
             b_lo, b_hi = _residue_brackets(m)
             b_min, b_max = _num(b_lo), _num(b_hi)
+            b1_lines = _b1_lines(i, m, outputs, complex_reason is not None)
         lines += [f"omega_min = {_num(lo)}", f"omega_max = {_num(hi)}", f"zeta_max = {_num(zeta_max)}",
-                  *_b1_lines(i, m, outputs, complex_reason is not None), f"b0_min = {b_min}", f"b0_max = {b_max}", ""]
+                  *b1_lines, f"b0_min = {b_min}", f"b0_max = {b_max}", ""]
     if residuals:
         lines += ["[residuals]", "# residual terms for modes outside the band (lower: mass line r/s^2, upper: flexibility r)",
                   "# ASSUMED: each within +-100 % of its least-squares estimate (+- the same for a zero estimate)",

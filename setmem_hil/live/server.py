@@ -168,7 +168,10 @@ class LiveServer:
         except SetmemError:  # the journal is not created yet (the rig is being opened)
             state = {"status": "starting", "iteration": 0, "n_points": 0, "mu_peak": None, "rig_s": None, "dwell": None,
                      "measurements": [], "iterations": [], "model_band": {}, "events": [], "procedure": None, "backend": None}
-        state["elapsed_s"] = time.monotonic() - self._started
+        # the run's own elapsed time (a viewer of a finished run is not the run); the server's
+        # uptime only before the journal exists
+        run_elapsed = state.get("run_elapsed_s")
+        state["elapsed_s"] = run_elapsed if run_elapsed is not None else time.monotonic() - self._started
         state["read_only"] = self.control is None
         return web.Response(text=json.dumps(json_safe(state)), content_type="application/json",
                             headers={"Cache-Control": "no-store"})

@@ -52,6 +52,25 @@ def _output_names(info: dict, last) -> list[str]:
         return []
 
 
+def _run_rig_s(rows: list) -> float | None:
+    """The run's rig time: the sum of its measurements' (None when the backend reported none)."""
+    times = [r["rig_s"] for r in rows if r["rig_s"] is not None]
+    return float(sum(times)) if times else (0.0 if not rows else None)
+
+
+def _run_elapsed_s(info: dict) -> float | None:
+    """Wall time from the run's start to its end (a finished run) or to now (issue 40: a viewer of
+    a finished run showed its own uptime instead)."""
+    from datetime import datetime, timezone
+
+    try:
+        start = datetime.fromisoformat(info["created_utc"])
+        end = datetime.fromisoformat(info["finished_utc"]) if info.get("finished") and info.get("finished_utc") else datetime.now(timezone.utc)
+    except (KeyError, TypeError, ValueError):
+        return None
+    return max(0.0, (end - start).total_seconds())
+
+
 def journal_state(run_dir: str | Path, live: dict | None = None) -> dict:
     """The API's state document (``GET /api/state``); ``live`` adds what only the running process
     knows (status from the buttons, the current dwell)."""
@@ -80,7 +99,8 @@ def journal_state(run_dir: str | Path, live: dict | None = None) -> dict:
         "n_points": len(rows),
         "mu_peak": _num(last.mu_peak) if last else None,
         "design": (last.design or "h2") if last else None,
-        "rig_s": live.get("rig_s"),
+        "rig_s": live.get("rig_s") if live.get("rig_s") is not None else _run_rig_s(rows),
+        "run_elapsed_s": _run_elapsed_s(info),
         "dwell": live.get("dwell"),
         "measurements": [{"omega": r["omega_rad_s"], "re": r["re"], "im": r["im"], "bound": r["bound"], "role": r["role"],
                           "iteration": r["iteration"], "others": json.loads(r["others"]) if r["others"] else []} for r in rows],

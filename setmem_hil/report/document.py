@@ -27,7 +27,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from setmem_hil.errors import SetmemError
+from setmem_hil.errors import InputFormatError, SetmemError
 from setmem_hil.io.atomic_file import write_text_atomic
 from setmem_hil.io.journal import IterationRecord, journal_path, read_snapshot
 from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel
@@ -144,6 +144,8 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     from setmem_hil.report import figures as figs
 
     jp = journal_path(run_dir)
+    if not jp.is_file():  # never the parent's journal (issue 40): a missing directory is named as given
+        raise InputFormatError(str(run_dir), "", "no journal here (expected a run directory holding journal.sqlite)")
     out_dir = jp.parent
     run = read_snapshot(out_dir)
     info, its = run.info, run.iterations

@@ -22,6 +22,7 @@ from typing import Sequence
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from setmem_hil.model.experiment import Measurement
 from setmem_hil.io.journal import IterationRecord
@@ -221,9 +222,8 @@ def mu_peak_figure(iterations: Sequence[IterationRecord], mu_target: float, path
     ax.axhline(mu_target, color="k", ls="--", lw=1, label=f"goal {mu_target:g}")
     ax.set_xlabel("iteration k")
     ax.set_ylabel("peak mu-bar")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_title("peak mu-bar per iteration; labels: next frequency (rad/s) (figure 6-12)")
-    if len(k):
-        ax.set_xticks(k)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
     return _save(fig, path)
@@ -295,6 +295,7 @@ def interval_figure(iterations: Sequence[IterationRecord], path: Path) -> Path:
             ax.set_ylabel(label, fontsize=8)
             ax.grid(True, alpha=0.3)
             ax.tick_params(labelsize=7)
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # iterations are whole numbers (issue 40)
             if i == n_modes - 1:
                 ax.set_xlabel("iteration k", fontsize=8)
     fig.suptitle("parameter intervals per iteration (guaranteed bounds)", fontsize=10)

@@ -61,7 +61,7 @@ def campaign(args: argparse.Namespace) -> int:
         procedure = dataclasses.replace(
             procedure, backend=dataclasses.replace(procedure.backend, kind=args.backend), source_text="",
         )
-    console = Console(quiet=bool(args.quiet))
+    console = Console(quiet=bool(args.quiet), soft_wrap=True)  # whole lines, also into a file (issue 40)
     outcome = start_run(procedure, out, seed=args.seed, strategy=args.strategy, console=console, design=args.design)
     print_iteration_table(outcome.summary, console)
     return 0

@@ -57,7 +57,7 @@ def demo(args: argparse.Namespace) -> int:
     from setmem_hil.cli.commands.run import start_run
 
     out = Path(args.out) if args.out else default_demo_dir()  # start_run refuses one holding a journal
-    console = Console(quiet=bool(args.quiet))
+    console = Console(quiet=bool(args.quiet), soft_wrap=True)  # whole lines, also into a file (issue 40)
     procedure = packaged_demo_procedure()
     if args.seed is not None:
         procedure = dataclasses.replace(procedure, seed=int(args.seed))

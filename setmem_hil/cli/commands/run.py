@@ -105,7 +105,7 @@ def start_run(procedure: Procedure, run_dir: str | os.PathLike, *, seed: int | N
               console: Console | None = None, report_follows: bool = False, design: str | None = None, **live) -> RunOutcome:
     """:func:`setmem_hil.campaign.session.start_run` with the terminal display (``report_follows``:
     the caller writes the report, so no hint how to)."""
-    console = console or Console()
+    console = console or Console(soft_wrap=True)
     return session.start_run(procedure, run_dir, seed=seed, strategy=strategy, console=console,
                              opener=lambda p, s: open_backend(p, s), display=terminal_display(console),
                              quiet_report_hint=report_follows, design=design, **live)
@@ -113,6 +113,6 @@ def start_run(procedure: Procedure, run_dir: str | os.PathLike, *, seed: int | N
 
 def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, procedure_path=None, **live) -> RunOutcome:
     """:func:`setmem_hil.campaign.session.resume_run` with the terminal display."""
-    console = console or Console()
+    console = console or Console(soft_wrap=True)
     return session.resume_run(run_dir, console=console, opener=lambda p, s: open_backend(p, s),
                               display=terminal_display(console), procedure_path=procedure_path, **live)

@@ -26,6 +26,9 @@ def run(args: argparse.Namespace) -> int:
 
     if not journal_path(args.run_dir).is_file():
         raise InputFormatError(str(args.run_dir), "", "no journal here (expected a run directory holding journal.sqlite)")
+    from setmem_hil.io.journal import read_snapshot
+
+    read_snapshot(args.run_dir)  # a damaged or foreign journal is refused here, not served as "starting" forever
     with LiveServer(args.run_dir, None, host=args.host, port=args.port) as server:
         print(f"live view: {server.url}", flush=True)
         print("read-only view; Ctrl-C stops serving", flush=True)
