@@ -123,3 +123,22 @@ def test_progress_written_to_a_file_keeps_its_lines_whole(tmp_path, command):
     assert any(len(line) > 80 for line in lines)
     iteration_lines = [line for line in lines if re.match(r"iteration \d+: \d+ points", line)]
     assert iteration_lines and all("rig time" in line for line in iteration_lines), iteration_lines[:2]
+
+
+def test_pyproject_refers_to_no_file_the_repository_lacks():
+    """Before: `pymodbus~=3.16  # ... see ECOSYSTEM-NOTES`, a file that is not in the repository."""
+    text = (REPO / "pyproject.toml").read_text()
+    named = re.findall(r"\bsee ([A-Za-z0-9_./-]+)", text) + re.findall(r"\b([A-Z][A-Z0-9]+(?:-[A-Z0-9]+)+(?:\.md)?)\b", text)
+    for name in named:
+        candidates = [REPO / name, REPO / f"{name}.md", REPO / "docs" / name, REPO / "docs" / f"{name}.md"]
+        assert any(c.exists() for c in candidates), f"pyproject.toml refers to {name!r}, not in the repository"
+
+
+def test_readme_says_what_a_resumed_instrument_run_holds():
+    """Before: "run --resume DIR completes the run with the measurements of an uninterrupted run",
+    true on the simulated and loopback backends (bit for bit, tests/test_resume.py), not with
+    instruments, whose measurements are taken anew on the wall clock."""
+    text = " ".join((REPO / "README.md").read_text().split())
+    at = text.index("`run --resume DIR` completes the run")
+    paragraph = text[at: at + 700]
+    assert "bit for bit" in paragraph and "simulated and loopback" in paragraph and "with instruments" in paragraph

@@ -106,3 +106,42 @@ def test_a_process_is_killed_where_there_is_no_sigkill():
     """)
     out, err = child.communicate(timeout=60)
     assert out.strip() == "ended", err
+
+
+def test_tcp_nodelay_through_the_visa_attribute_and_the_socket_where_it_is_not_honoured(monkeypatch):
+    """Issue 40, item 7: VI_ATTR_TCPIP_NODELAY first; a library that refuses it still gets the
+    socket option (what pyvisa-py's INSTR sessions would need)."""
+    import socket
+
+    import pyvisa
+
+    from setmem_hil.drivers.instruments.visa_link import VisaLink
+    from setmem_hil.sim_backends.beam import beam_parameters
+    from setmem_hil.sim_backends.instrument_bench import EmulatedBench
+    from setmem_hil.sim_backends.instrument_emulators import GeneratorEmulator, InstrumentServer
+
+    server = InstrumentServer(GeneratorEmulator(EmulatedBench(beam_parameters()), "33500B"))
+    try:
+        link = VisaLink("fgen", server.resource)
+        assert link._inst.get_visa_attribute(pyvisa.constants.VI_ATTR_TCPIP_NODELAY) == pyvisa.constants.VI_TRUE
+        link.close()
+        refused = []
+        honoured = pyvisa.resources.Resource.set_visa_attribute
+
+        def refuse(self, attribute, state):
+            if attribute != pyvisa.constants.VI_ATTR_TCPIP_NODELAY:
+                return honoured(self, attribute, state)
+            refused.append(attribute)
+            raise pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_nonsupported_attribute)
+
+        monkeypatch.setattr(pyvisa.resources.Resource, "set_visa_attribute", refuse)
+        original = socket.socket.setsockopt
+        calls = []
+        monkeypatch.setattr(socket.socket, "setsockopt", lambda self, *a: calls.append(a) or original(self, *a))
+        link = VisaLink("fgen", server.resource)
+        assert refused == [pyvisa.constants.VI_ATTR_TCPIP_NODELAY]
+        assert (socket.IPPROTO_TCP, socket.TCP_NODELAY, 1) in calls
+        assert link.query("OUTP1?") == "0"
+        link.close()
+    finally:
+        server.close()

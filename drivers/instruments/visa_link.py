@@ -50,7 +50,22 @@ class VisaLink:
         except Exception as exc:  # noqa: BLE001 - pyvisa raises VisaIOError, ValueError, OSError, LibraryError...
             raise DeviceDisconnectedError(f"{self.name}: cannot open {self.resource!r} ({_reason(exc)})") from None
         self._sock = self._socket()  # the session keeps its socket until closed: looked up once
-        if self._sock is not None:  # short commands go out at once (Nagle would hold a write behind the last one's ACK)
+        self._no_delay()
+
+    def _no_delay(self) -> None:
+        """Short commands go out at once (Nagle would hold a write behind the last one's ACK):
+        the VISA attribute ``VI_ATTR_TCPIP_NODELAY`` first (a vendor VISA honours it; pyvisa-py
+        0.8.1 only on raw SOCKET sessions, not on its VXI-11 or HiSLIP INSTR sessions); where it is
+        not honoured (refused, or read back off) and we reach the session's socket, the socket
+        option itself."""
+        constants = self._pyvisa.constants
+        try:
+            self._inst.set_visa_attribute(constants.VI_ATTR_TCPIP_NODELAY, constants.VI_TRUE)
+            if self._inst.get_visa_attribute(constants.VI_ATTR_TCPIP_NODELAY) == constants.VI_TRUE:
+                return
+        except Exception:  # noqa: BLE001 - not a TCP/IP session, or the library does not support the attribute
+            pass
+        if self._sock is not None:
             try:
                 self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             except OSError:
