@@ -11,6 +11,7 @@ from __future__ import annotations
 import inspect
 import math
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,6 +25,13 @@ from setmem_hil.drivers.instruments.nidaq_sensor import DaqInputSetup, NidaqSens
 from setmem_hil.drivers.instruments.sampled_rig import DaqChannel  # noqa: E402
 from setmem_hil.errors import ProcedureError  # noqa: E402
 from setmem_hil.estimation.sine_fit import fit_sine  # noqa: E402
+
+import importlib.util as _importlib_util  # noqa: E402
+
+_spec = _importlib_util.spec_from_file_location("_daq_procedures", Path(__file__).with_name("_daq_procedures.py"))
+_daq_procedures = _importlib_util.module_from_spec(_spec)
+_spec.loader.exec_module(_daq_procedures)
+daq_procedure_text = _daq_procedures.daq_procedure_text
 
 OMEGA = 2 * math.pi * 40.0
 FORCE_N, ACCEL = 0.8, 3.0  # amplitudes: newtons, m/s^2
@@ -147,43 +155,10 @@ def test_an_ac_coupled_response_point_carries_the_high_pass_in_its_bound():
     assert dc.corrected(Measurement(omega_rad_s=w, response=complex(reading), bound=0.0), 1.0).bound == 0.0
 
 
-DAQ_RIG = """
-name = "iepe-rig"
-[backend]
-kind = "instruments"
-exciter = "fgen"
-force = "force_sensor"
-response = "accelerometer"
-[instruments.fgen]
-profile = "keysight-33500b"
-resource = "TCPIP::192.168.1.20::5025::SOCKET"
-newton_per_volt = 4.0
-max_drive_v = 2.5
-[instruments.force_sensor]
-profile = "ni-daqmx"
-resource = "cDAQ1Mod1/ai0"
-volt_per_unit = 0.0225
-iepe_current_a = 0.004
-[instruments.accelerometer]
-profile = "ni-daqmx"
-resource = "cDAQ1Mod1/ai1"
-volt_per_unit = 0.0102
-quantity = "acceleration"
-iepe_current_a = 0.004
-coupling = "AC"
-[safety]
-max_amplitude_n = 1.0
-omega_min_rad_s = 0.05
-omega_max_rad_s = 2000.0
-max_dwell_s = 3600.0
-[[mode]]
-omega_min = 0.884
-omega_max = 1.125
-zeta_max = 0.5
-b1 = 0.0
-[initial]
-omega_rad_s = [3.0]
-"""
+IEPE_FORCE = "iepe_current_a = 0.004"
+IEPE_ACCELEROMETER = 'quantity = "acceleration"\niepe_current_a = 0.004\ncoupling = "AC"'
+DAQ_RIG = daq_procedure_text("TCPIP::192.168.1.20::5025::SOCKET", force="force_sensor", response="accelerometer",
+                             force_keys=IEPE_FORCE, response_keys=IEPE_ACCELEROMETER)
 
 
 def test_the_procedure_keys_reach_the_channels():
@@ -197,6 +172,7 @@ def test_the_procedure_keys_reach_the_channels():
     assert force.iepe_current_a == 0.004 and force.coupling is None and accel.coupling == "AC"
     assert daq_input_setup(force, "force") == DaqInputSetup("force", 0.004, "AC")  # AC by default with IEPE
     assert daq_input_setup(accel, "displacement") == DaqInputSetup("acceleration", 0.004, "AC")
+    assert accel.resource == "Dev1/ai1" and accel.volt_per_unit == 0.004
     assert ac_corner(force, load_profile("ni-daqmx")) == 0.5
     again = parse_procedure_text(format_procedure(procedure), "again.toml")  # the journal's copy keeps them
     assert again.instruments["accelerometer"] == accel and again.instruments["force_sensor"] == force
@@ -213,7 +189,7 @@ def test_a_wrong_iepe_setting_is_refused_naming_the_key(change, where, words):
     from setmem_hil.drivers.instruments.instrument_set import check_instruments
     from setmem_hil.io.procedure_file import parse_procedure_text
 
-    text = DAQ_RIG.replace('quantity = "acceleration"\niepe_current_a = 0.004\ncoupling = "AC"', change)
+    text = DAQ_RIG.replace(IEPE_ACCELEROMETER, change)
     if not where:
         check_instruments(parse_procedure_text(text, "iepe.toml"))
         return
@@ -225,7 +201,7 @@ def test_a_wrong_iepe_setting_is_refused_naming_the_key(change, where, words):
 def test_iepe_on_a_lock_in_is_refused():
     from setmem_hil.drivers.instruments.instrument_set import check_instruments
     from setmem_hil.io.procedure_file import load_procedure
-    from pathlib import Path
+
 
     path = Path(__file__).resolve().parents[1] / "procedures" / "instruments_emulated.toml"
     text = path.read_text().replace('profile = "srs-sr830"', 'profile = "srs-sr830"\niepe_current_a = 0.004', 1)

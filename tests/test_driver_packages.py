@@ -23,6 +23,13 @@ from setmem_hil.cli.main import main
 from setmem_hil.drivers.instruments.instrument_set import DRIVER_PACKAGES, check_instruments
 from setmem_hil.io.procedure_file import load_procedure
 
+import importlib.util as _importlib_util  # noqa: E402
+
+_spec = _importlib_util.spec_from_file_location("_daq_procedures", Path(__file__).with_name("_daq_procedures.py"))
+_daq_procedures = _importlib_util.module_from_spec(_spec)
+_spec.loader.exec_module(_daq_procedures)
+daq_procedure_text = _daq_procedures.daq_procedure_text
+
 REPO = Path(__file__).resolve().parents[1]
 TECHNICIAN_PROCEDURES = sorted(set(re.findall(r"procedures/(\w+\.toml)", (REPO / "README.md").read_text())))
 
@@ -58,39 +65,7 @@ def test_run_check_names_a_missing_driver_package_and_how_to_install_it(monkeypa
         and "pip install 'setmem-hil[instruments]'" in err[0], err
 
 
-DAQ_PROCEDURE = """
-name = "daq-rig"
-[backend]
-kind = "instruments"
-exciter = "fgen"
-force = "daq_force"
-response = "daq_response"
-[instruments.fgen]
-profile = "keysight-33500b"
-resource = "TCPIP::192.168.1.20::5025::SOCKET"
-newton_per_volt = 4.0
-max_drive_v = 2.5
-[instruments.daq_force]
-profile = "ni-daqmx"
-resource = "Dev1/ai0"
-volt_per_unit = 0.0225
-[instruments.daq_response]
-profile = "ni-daqmx"
-resource = "Dev1/ai1"
-volt_per_unit = 0.004
-[safety]
-max_amplitude_n = 1.0
-omega_min_rad_s = 0.05
-omega_max_rad_s = 2000.0
-max_dwell_s = 3600.0
-[[mode]]
-omega_min = 0.884
-omega_max = 1.125
-zeta_max = 0.5
-b1 = 0.0
-[initial]
-omega_rad_s = [3.0]
-"""
+DAQ_PROCEDURE = daq_procedure_text("TCPIP::192.168.1.20::5025::SOCKET")
 
 
 def test_run_check_names_a_missing_nidaqmx_for_a_daq_procedure(monkeypatch, capsys, tmp_path):

@@ -119,3 +119,42 @@ def test_export_command(tmp_path, capsys):
     capsys.readouterr()
     assert main(["export", str(tmp_path / "nothing"), "--csv", str(tmp_path / "o2")]) == 2
     assert "no journal" in capsys.readouterr().err
+
+
+def test_export_uff_writes_one_58_record_per_output_that_identify_reads_back(tmp_path, capsys):
+    """Issue 39, item 4: `export RUN --uff FILE.uff` (with or without --csv): UFF dataset 58, one
+    FRF record per output, frequency in Hz, displacement over force, double precision (58b);
+    pyuff reads the same numbers back (a second reader than ours), and `identify` takes the file."""
+    import json
+
+    import pyuff
+
+    from setmem_hil.io.journal import read_snapshot
+    from setmem_hil.model.frequency_data import FrequencyData
+
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    run = tmp_path / "run"
+    procedure = (repo / "procedures" / "beam_6_3_2_fast.toml").read_text().replace(
+        "[backend.simulation]", "[backend.simulation]\nsensors = [1.0, 0.7]", 1)
+    (tmp_path / "p.toml").write_text(procedure)
+    assert main(["run", str(tmp_path / "p.toml"), "--out", str(run), "--quiet", "--design", "h2"]) == 0
+    assert main(["export", str(run), "--uff", str(tmp_path / "run.uff")]) == 0
+    assert not (run / "csv").exists()  # only what was asked for
+    records = pyuff.UFF(str(tmp_path / "run.uff")).read_sets()
+    measurements = read_snapshot(run).measurements
+    assert len(records) == 2 == 1 + len(measurements[0].others)
+    for k, record in enumerate(records):
+        truth = FrequencyData.from_measurements(measurements, output=k).sorted_by_frequency()
+        assert record["type"] == 58 and record["func_type"] == 4 and record["ord_data_type"] == 6
+        assert record["abscissa_spec_data_type"] == 18 and record["ordinate_spec_data_type"] == 8 and record["orddenom_spec_data_type"] == 13
+        np.testing.assert_allclose(2 * np.pi * np.asarray(record["x"]), truth.omega_rad_s, rtol=1e-15)
+        assert np.array_equal(np.asarray(record["data"]), truth.response)
+    assert main(["export", str(run), "--uff", str(tmp_path / "both.uff"), "--csv", str(tmp_path / "csv")]) == 0
+    assert (tmp_path / "both.uff").exists() and (tmp_path / "csv" / "data.csv").exists()
+    capsys.readouterr()
+    bound = float(max(m.bound for m in measurements)) * 3
+    assert main(["identify", "--data", str(tmp_path / "run.uff"), "--bound-abs", str(bound), "--prior", str(tmp_path / "p.toml"),
+                 "--out", str(tmp_path / "id.json")]) == 0
+    assert len(json.loads((tmp_path / "id.json").read_text())["modes"]) == 3

@@ -243,3 +243,41 @@ def test_other_sensors_round_trip(tmp_path):
     assert got[0] == m and got[0].others == m.others and got[1].others == ()
     assert j.iterations()[0].outputs == outputs
     j.close()
+
+
+def test_every_json_text_of_a_journal_is_valid_and_non_finite_values_read_back(tmp_path):
+    """Issue 39, item 4: the journal held `Infinity` (embedding_gamma: 6 of 88 texts of the demo's
+    journal failed SQLite's json_valid). Now every JSON text passes json_valid (SQLite's own
+    parser: an independent reader), non-finite values are null, and they read back as they were
+    written: an unbounded gamma or mu-bar as +inf, other values as NaN."""
+    import math
+    import sqlite3
+
+    import numpy as np
+
+    from setmem_hil.io.journal import IterationRecord, Journal
+
+    j = Journal.create(tmp_path / "run" / "journal.sqlite", procedure_text="x", procedure_name="x", seed=1,
+                       software_version="t", backend="sim", strategy="mu")
+    lo = np.ones((2, 4))
+    rec = IterationRecord(k=1, n_points=3, lower=lo, upper=lo + 1, mu_peak=math.inf, mu_peak_omega=1.0, mu_lower_peak=math.nan,
+                          omega=np.array([1.0, 2.0]), mu=np.array([0.5, math.inf]), sensitivities={"a0_1": math.nan, "b0_1": 0.25},
+                          next_omega=None, candidate_omega=np.zeros(0), estimated_improvement=np.zeros(0), controller_order=4,
+                          safeguard="new-design", wall_s=0.1, embedding_gamma=np.array([math.inf, 1.5]),
+                          mismatch_ratio=np.array([math.nan, 0.2]))
+    j.add_iteration(rec)
+    j.finish({"final_mu_peak": math.inf, "reached_goal": False})
+    j.close()
+    db = sqlite3.connect(tmp_path / "run" / "journal.sqlite")
+    texts = []
+    for (table,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'"):
+        columns = [c[1] for c in db.execute(f"PRAGMA table_info({table})")]
+        for column in columns:
+            texts += db.execute(f"SELECT {column}, json_valid({column}) FROM {table} WHERE typeof({column}) = 'text' "
+                                f"AND substr({column}, 1, 1) IN ('[', '{{')").fetchall()
+    db.close()
+    assert texts and all(valid for _, valid in texts), [t for t, valid in texts if not valid]
+    with Journal.open(tmp_path / "run") as j:
+        back = j.iterations()[0]
+    assert back.mu[1] == math.inf and back.embedding_gamma[0] == math.inf and back.embedding_gamma[1] == 1.5
+    assert math.isnan(back.mismatch_ratio[0]) and math.isnan(back.sensitivities["a0_1"]) and back.sensitivities["b0_1"] == 0.25

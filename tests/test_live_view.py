@@ -90,9 +90,20 @@ def test_api_token_pause_resume_abort_then_resume_equals_uninterrupted(tmp_path)
     assert child.returncode == 130, err
     assert "exciter at zero" in err and "run --resume" in err
     j = Journal.open(run_dir)
-    kinds = [e["kind"] for e in j.events()]
+    events = j.events()
+    kinds = [e["kind"] for e in events]
     j.close()
     assert "aborted" in kinds
+    # issue 39: the pause and its end are journaled with their times, in order, the pause held >= 1.5 s
+    paused, unpaused = (next(e for e in events if e["kind"] == k) for k in ("paused", "unpaused"))
+    from datetime import datetime
+
+    assert "confirmed off" in paused["message"]
+    held = (datetime.fromisoformat(unpaused["utc"]) - datetime.fromisoformat(paused["utc"])).total_seconds()
+    import re
+
+    said = float(re.search(r"after ([0-9.]+) s paused", unpaused["message"]).group(1))
+    assert held >= 1.4 and abs(said - held) < 0.5, (held, unpaused["message"])
     from setmem_hil.cli.main import main
 
     assert main(["run", "--resume", str(run_dir), "--quiet"]) == 0

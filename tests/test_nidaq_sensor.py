@@ -21,6 +21,13 @@ from setmem_hil.drivers.instruments.nidaq_sensor import NidaqSensor  # noqa: E40
 from setmem_hil.errors import DeviceError  # noqa: E402
 from setmem_hil.estimation.sine_fit import fit_sine  # noqa: E402
 
+import importlib.util as _importlib_util  # noqa: E402
+
+_spec = _importlib_util.spec_from_file_location("_daq_procedures", Path(__file__).with_name("_daq_procedures.py"))
+_daq_procedures = _importlib_util.module_from_spec(_spec)
+_spec.loader.exec_module(_daq_procedures)
+daq_procedure_text = _daq_procedures.daq_procedure_text
+
 OMEGA, F_AMP, R_AMP, R_PHASE = 2 * math.pi * 7.0, 0.8, 0.003, -0.6
 
 
@@ -93,40 +100,7 @@ def test_a_driver_error_is_one_line_naming_the_channels_and_the_task_is_closed()
 def _daq_procedure(generator_resource: str, gain_ratio: float = 1.0):
     from setmem_hil.io.procedure_file import parse_procedure_text
 
-    text = f'''
-name = "daq-rig"
-[backend]
-kind = "instruments"
-exciter = "fgen"
-force = "daq_force"
-response = "daq_response"
-[instruments.fgen]
-profile = "keysight-33500b"
-resource = "{generator_resource}"
-newton_per_volt = 4.0
-max_drive_v = 2.5
-[instruments.daq_force]
-profile = "ni-daqmx"
-resource = "Dev1/ai0"
-volt_per_unit = 0.0225
-[instruments.daq_response]
-profile = "ni-daqmx"
-resource = "Dev1/ai1"
-volt_per_unit = 0.004
-[safety]
-max_amplitude_n = 1.0
-omega_min_rad_s = 0.05
-omega_max_rad_s = 2000.0
-max_dwell_s = 3600.0
-[[mode]]
-omega_min = 0.884
-omega_max = 1.125
-zeta_max = 0.5
-b1 = 0.0
-[initial]
-omega_rad_s = [3.0]
-'''
-    return parse_procedure_text(text, "daq.toml")
+    return parse_procedure_text(daq_procedure_text(generator_resource), "daq.toml")
 
 
 def _daq_from_bench(bench):

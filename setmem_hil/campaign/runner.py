@@ -207,6 +207,23 @@ class _Replay:
         if isinstance(self.experiment, OutputConfirmingExperiment):
             self.experiment.confirm_output_off()
 
+    def _checkpoint(self) -> None:
+        """The live view's checkpoint between dwells; a pause is journaled when it holds (the
+        outputs confirmed off) and when it ends, each event with its time (issue 39, item 4)."""
+        if self.control is None:
+            return
+        held_since = []
+
+        def safe_and_journaled() -> None:
+            self._make_safe()
+            held_since.append(time.monotonic())
+            if self.journal is not None:
+                self.journal.add_event("paused", f"paused before measurement {self.count}: every exciter output confirmed off")
+
+        self.control.checkpoint(safe_and_journaled)  # may wait (paused) or raise CampaignAborted
+        if held_since and self.journal is not None:
+            self.journal.add_event("unpaused", f"went on after {time.monotonic() - held_since[0]:.1f} s paused")
+
     def measure(self, omega_rad_s: float, *, iteration: int, role: str) -> Measurement:
         index = self.count
         self.count += 1
@@ -221,8 +238,7 @@ class _Replay:
                 )
             self.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=True)
             return m
-        if self.control is not None:
-            self.control.checkpoint(self._make_safe)  # may wait (paused) or raise CampaignAborted, between dwells
+        self._checkpoint()  # between dwells: may wait (paused) or raise CampaignAborted
         if not self._synced:
             if self.stored and isinstance(self.experiment, ResumableExperiment):
                 self.experiment.n_measured = len(self.stored)
@@ -252,8 +268,7 @@ class _Replay:
         if not isinstance(self.experiment, MultisineExperiment):
             raise DeviceError(f"{type(self.experiment).__name__} cannot measure a multisine record "
                               "([dwell] signal = \"multisine\" needs backend kind 'sim' or 'time-domain')")
-        if self.control is not None:
-            self.control.checkpoint(self._make_safe)
+        self._checkpoint()
         if isinstance(self.experiment, ResumableExperiment):
             self.experiment.n_measured = start  # the record's noise is seeded with its first line's index
         self._synced = True

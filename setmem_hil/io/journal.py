@@ -56,6 +56,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from setmem_hil.errors import InputFormatError, JournalError
+from setmem_hil.io.atomic_file import json_safe
 from setmem_hil.model.experiment import Measurement
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.mu_floor import floor_modes
@@ -246,12 +247,57 @@ def _utc_now() -> str:
 
 
 def _to_json(value: Any) -> str:
-    """JSON text of arrays/dicts; NaN and +-inf are kept (Python's json extension tokens)."""
+    """Strict JSON text (issue 39: SQLite's ``json_valid`` and every other reader accept it); a
+    non-finite number is ``null``. An array keeps what its nulls were (:func:`_array_to_json`)."""
     if isinstance(value, np.ndarray):
-        value = value.tolist()
-    elif isinstance(value, Mapping):
-        value = {str(k): (float(v) if isinstance(v, (np.floating, np.integer)) else v) for k, v in value.items()}
-    return json.dumps(value, default=_json_default)
+        return _array_to_json(value)
+    return json.dumps(json_safe(value), allow_nan=False, default=_json_default)
+
+
+def _array_to_json(array: np.ndarray) -> str:
+    """A finite array as a plain JSON list; one with non-finite entries as
+    ``{"values": [... null ...], "nonfinite": [[flat index, "inf" | "-inf" | "nan"], ...]}``:
+    valid JSON with nulls, and read back bit for bit (:func:`_array_from_json`)."""
+    a = np.asarray(array, dtype=float)
+    bad = np.flatnonzero(~np.isfinite(a.ravel()))
+    if not bad.size:
+        return json.dumps(a.tolist(), allow_nan=False)
+    tags = [[int(i), "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")] for i, x in zip(bad, a.ravel()[bad])]
+    return json.dumps({"values": json_safe(a.tolist()), "nonfinite": tags}, allow_nan=False)
+
+
+def _floats_to_json(mapping: Mapping[str, float]) -> str:
+    """A name -> number mapping (the mu-sensitivities) as :func:`_array_to_json` stores arrays."""
+    values = {str(k): float(v) for k, v in mapping.items()}
+    bad = [[k, "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf")] for k, v in values.items() if not math.isfinite(v)]
+    doc = {"values": json_safe(values), "nonfinite": bad} if bad else values
+    return json.dumps(doc, allow_nan=False)
+
+
+def _floats_from_json(text: str) -> dict[str, float]:
+    doc = json.loads(text)
+    if set(doc) == {"values", "nonfinite"} and isinstance(doc["values"], dict):
+        values = {k: math.nan if v is None else float(v) for k, v in doc["values"].items()}
+        values.update({k: float(tag) for k, tag in doc["nonfinite"]})
+        return values
+    return {k: float(x) for k, x in doc.items()}
+
+
+def _array_from_json(text: str) -> np.ndarray:
+    """An array stored by :func:`_array_to_json` (or, before issue 39, a list that may hold the
+    ``NaN``/``Infinity`` tokens Python's json reads)."""
+    doc = json.loads(text)
+    if not isinstance(doc, dict):
+        return np.asarray(doc, dtype=float)
+
+    def nulls_as_nan(v):
+        return [nulls_as_nan(x) for x in v] if isinstance(v, list) else (math.nan if v is None else v)
+
+    a = np.asarray(nulls_as_nan(doc["values"]), dtype=float)
+    flat = a.reshape(-1)
+    for index, tag in doc["nonfinite"]:
+        flat[int(index)] = float(tag)
+    return a
 
 
 def _json_default(obj: Any) -> Any:
@@ -548,7 +594,7 @@ class Journal:
             if name in _ARRAY_FIELDS:
                 v = _to_json(np.asarray(v, dtype=float))
             elif name == "sensitivities":
-                v = _to_json(dict(v))
+                v = _floats_to_json(v)
             elif name in ("k", "n_points", "controller_order"):
                 v = int(v)
             elif name == "safeguard":
@@ -581,9 +627,9 @@ class Journal:
             for name in _ITERATION_COLUMNS:
                 v = row[name]
                 if name in _ARRAY_FIELDS:
-                    v = np.asarray(json.loads(v), dtype=float)
+                    v = _array_from_json(v)
                 elif name == "sensitivities":
-                    v = {k: float(x) for k, x in json.loads(v).items()}
+                    v = _floats_from_json(v)
                 elif name in ("mu_peak", "mu_peak_omega", "mu_lower_peak", "wall_s"):
                     v = math.nan if v is None else float(v)
                 elif name == "controller":
