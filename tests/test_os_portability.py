@@ -37,13 +37,18 @@ def _child(code: str, *args: str, **kwargs) -> subprocess.Popen:
 
 
 @pytest.mark.slow
-def test_an_emulated_instrument_campaign_runs_without_the_posix_only_names(tmp_path):
-    """33500B + SR830 + SR860 over PyVISA sockets (every query peeks for a closed peer and for
+@pytest.mark.parametrize("procedure", ["instruments_emulated.toml", "instruments_scope_emulated.toml"])
+def test_an_emulated_instrument_campaign_runs_without_the_posix_only_names(tmp_path, procedure):
+    """33500B + SR830 + SR860, and 33500B + DS1104Z (binary records, its channel match measured
+    on the emulated tee first), over PyVISA sockets (every query peeks for a closed peer and for
     stale bytes), the run lock held throughout: exit 0, the goal reached."""
+    import shutil
+
+    shutil.copy(REPO / "procedures" / procedure, tmp_path / procedure)  # a channel match is measured beside it
     child = _child("""
         from setmem_hil.cli.main import main
         sys.exit(main(["run", sys.argv[1], "--out", sys.argv[2], "--quiet"]))
-    """, str(REPO / "procedures" / "instruments_emulated.toml"), str(tmp_path / "run"))
+    """, str(tmp_path / procedure), str(tmp_path / "run"))
     out, err = child.communicate(timeout=600)
     assert child.returncode == 0, err[-2000:]
     import json
