@@ -155,9 +155,7 @@ class VisaLink:
         while self._sock is not None and _readable_now(self._sock):
             try:
                 chunk = self._sock.recv(65536)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
+            except OSError:  # would block after all, or the link failed: the query reports the latter
                 break
             if not chunk:  # the peer closed: reported by the query itself
                 break
@@ -184,6 +182,7 @@ class VisaLink:
 
         self.transcript.append(command)
         self._refuse_if_closed(command)
+        self._drop_stale(command)  # a block query is a query too: no late reply may answer it
         try:
             values = self._inst.query_binary_values(command, datatype=datatype, is_big_endian=big_endian, header_fmt="ieee",
                                                     container=np.array, expect_termination=True)
@@ -194,7 +193,9 @@ class VisaLink:
             raise DeviceRejectedError("garbled", f"{self.name} ({self.resource}): {command!r} did not answer an IEEE 488.2 "
                                                  f"definite-length block ({_reason(exc)})") from None
         except Exception as exc:  # noqa: BLE001
-            raise self._error(command, exc) from None
+            error = self._error(command, exc)
+            self._reply_owed = isinstance(error, DeviceTimeoutError)
+            raise error from None
         self.answered = True
         return values
 
