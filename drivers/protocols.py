@@ -142,6 +142,20 @@ class InstrumentTermsSensor(Protocol):
 
 
 @runtime_checkable
+class TermsReportingSensor(Protocol):
+    """An :class:`InstrumentTermsSensor` that states its terms as data: ``instrument_terms(w)``
+    is what ``corrected`` applies to a point at ``w`` of the last record
+    (:class:`~setmem_hil.estimation.instrument_terms.InstrumentTerms`), kept in the raw record so
+    ``reprocess`` applies the same."""
+
+    def corrected(self, measurement, force_amplitude: float):
+        ...
+
+    def instrument_terms(self, omega_rad_s: float):
+        ...
+
+
+@runtime_checkable
 class ResolutionLimitedSensor(Protocol):
     """A sampled sensor of few bits (an 8-bit oscilloscope): ``dynamic_range`` is the largest
     ratio between a record's summed line amplitudes and one line it still resolves well; a

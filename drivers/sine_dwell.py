@@ -69,11 +69,13 @@ from setmem_hil.drivers.protocols import (
     RecordedMultisineExciter,
     ResolutionLimitedSensor,
     Rig,
+    TermsReportingSensor,
     WaitingSensor,
 )
 from setmem_hil.drivers.safety import SafeExciter, check_dwell, check_sine_command, output_guard, safe_stop
 from setmem_hil.errors import DataQualityError, DeviceError, SafetyLimitError
-from setmem_hil.model.experiment import Measurement
+from setmem_hil.estimation.dwell_record import DwellInputs, corrected_points, dwell_record, results_from_inputs
+from setmem_hil.model.experiment import Measurement, RawRecord
 from setmem_hil.model.modal_model import IntervalModel, ModalParameters
 from setmem_hil.io.procedure import SafetyLimits
 from setmem_hil.estimation.dwell_estimate import (
@@ -83,8 +85,6 @@ from setmem_hil.estimation.dwell_estimate import (
     MultisinePlan,
     PoleTracker,
     check_block,
-    estimate_dwell,
-    estimate_multisine,
     plan_dwell,
     plan_multisine,
     record_duration_s,
@@ -155,6 +155,8 @@ class SineDwellExperiment:
         self.last_result: DwellResult | None = None
         self.counters: dict[str, int] = {}
         self.pole_tracker = PoleTracker()
+        self._raw: list[RawRecord] = []  # raw records not yet taken (take_raw_records)
+        self._inputs: DwellInputs | None = None  # the last settled window's estimator inputs
         self._closed = False
         self._failed_attempts = 0  # attempts spent on measurements that raised (since start)
         # interpreter exit without close(): still command zero output and release the rig
@@ -191,7 +193,8 @@ class SineDwellExperiment:
             self.safe_exciter.set_sine(plan.omega_rad_s, self.settings.amplitude_n)
 
         def estimate(plan, block, attempt, dwell_s, extensions):
-            return estimate_dwell(self.settings, self.model, self.pole_tracker, self.extra_bound, plan, block, attempt, dwell_s, extensions)
+            results = self._estimate(plan, block, attempt, dwell_s, extensions)
+            return None if results is None else results[0]
 
         result = self._attempts(f"sine dwell at {w:g} rad/s", plan, start, estimate)
         return self._finish([result])[0]
@@ -229,9 +232,7 @@ class SineDwellExperiment:
         def start(plan):
             self.safe_exciter.set_multisine(signal, longest)
 
-        def estimate(plan, block, attempt, dwell_s, extensions):
-            return estimate_multisine(self.settings, self.model, self.pole_tracker, self.extra_bound, plan, block, attempt,
-                                      dwell_s, extensions)
+        estimate = self._estimate
 
         label = f"multisine record at {', '.join(f'{w:g}' for w in lines)} rad/s"
         return self._finish(self._attempts(label, plan, start, estimate))
@@ -249,19 +250,42 @@ class SineDwellExperiment:
             expected = np.abs(nominal.frequency_response(np.array(lines)))
         return expected if np.all(np.isfinite(expected)) and np.all(expected > 0) else None
 
+    def _estimate(self, plan, block, attempt: int, dwell_s: float, extensions: int) -> list[DwellResult] | None:
+        """The window's results through :func:`~setmem_hil.estimation.dwell_record.results_from_inputs`
+        (what ``reprocess`` runs on the raw record); the inputs of a settled window are kept for it."""
+        extra = None
+        if self.extra_bound is not None:
+            extra = tuple((float(w), float(self.extra_bound(float(w)))) for w in plan.omegas_rad_s)
+        inputs = DwellInputs(self.settings, self.model, self.pole_tracker.state(), extra, plan, np.asarray(block.t_s),
+                             np.asarray(block.force), np.asarray(block.response), tuple(np.asarray(o) for o in block.others),
+                             attempt, dwell_s, extensions)
+        results = results_from_inputs(inputs)
+        if results is not None:
+            self._inputs = inputs
+        return results
+
+    def take_raw_records(self) -> list[RawRecord]:
+        """The raw records of the dwells since the last call (kind ``sine-dwell``:
+        :mod:`setmem_hil.estimation.dwell_record`)."""
+        taken, self._raw = self._raw, []
+        return taken
+
     def _finish(self, results: list[DwellResult]) -> list[Measurement]:
-        """Count a finished dwell or record, learn its poles, add its device time; each of its
-        points carries an equal share of that time."""
+        """Count a finished dwell or record, keep its raw record, learn its poles, add its device
+        time; each of its points carries an equal share of that time."""
         self.n_measured += len(results)
         self.last_result = results[0]
+        sensor = self.rig.sensor
+        terms = tuple(sensor.instrument_terms(r.measurement.omega_rad_s) for r in results) if isinstance(sensor, TermsReportingSensor) else None
+        inputs = dataclasses.replace(self._inputs, terms=terms)
+        self._raw.append(dwell_record(inputs, rig=self.rig.metadata.name))
         if self.settings.learn_poles:
             self._learn(results[0].response_fit)
         self.rig_s += self._device_s
         share = self._device_s / len(results)
-        sensor = self.rig.sensor
-        if isinstance(sensor, InstrumentTermsSensor):
+        if terms is None and isinstance(sensor, InstrumentTermsSensor):  # terms it cannot state: not re-processable
             return [dataclasses.replace(sensor.corrected(r.measurement, abs(r.force_fit.phasor)), rig_s=share) for r in results]
-        return [dataclasses.replace(r.measurement, rig_s=share) for r in results]
+        return [dataclasses.replace(p, rig_s=share) for p in corrected_points(results, terms)]
 
     def _attempts(self, label: str, plan, start, estimate):
         """Run a dwell until it gives a result, at most ``max_attempts`` times (see the module docs)."""

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from setmem_hil.model.experiment import Measurement
+from setmem_hil.estimation.reprocessing import SIMULATED_PHASOR, simulated_points
+from setmem_hil.model.experiment import Measurement, RawRecord
 from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import W1_DEN, W1_NUM, beam_parameters, beam_parameters_at, polynomial_magnitude, scaled_beam
 from setmem_hil.sim_backends.noise import bounded_complex_noise, noise_bound_function
@@ -75,6 +76,7 @@ class SimulatedBeamExperiment:
             self._truths.append(full if self.unmodelled_dynamics else full.truncated(self.n_modelled))
         self._noise_bound = self._noise_bounds[self.control_output]
         self.truth = self._truths[self.control_output]
+        self._raw: list[RawRecord] = []
 
     @property
     def truths(self) -> tuple[ModalParameters, ...]:
@@ -123,17 +125,27 @@ class SimulatedBeamExperiment:
         w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
         gain = np.broadcast_to(np.asarray(noise_gain, dtype=float), w.shape)
         readings = [self._reading(k, w, gain) for k in range(len(self.sensors))]
-        g, bounds = readings[self.control_output]
-        others = [r for k, r in enumerate(readings) if k != self.control_output]
+        unmodelled = polynomial_magnitude(self.w1_num, self.w1_den, w) if self.unmodelled_dynamics else np.zeros(w.size)
+        record = RawRecord(SIMULATED_PHASOR, {
+            "omega_rad_s": w.copy(), "phasor": np.array([r[0] for r in readings]), "noise_bound": np.array([r[1] for r in readings]),
+            "unmodelled_bound": np.broadcast_to(unmodelled, (len(readings), w.size)).copy(),
+        }, {"control_output": int(self.control_output), "seed": int(self.seed), "first_index": int(self.n_measured),
+            "unmodelled_dynamics": bool(self.unmodelled_dynamics)})
         self.n_measured += w.size
-        return [Measurement(float(wi), complex(gi), float(bi), others=tuple((complex(o[0][i]), float(o[1][i])) for o in others))
-                for i, (wi, gi, bi) in enumerate(zip(w, g, bounds))]
+        self._raw.append(record)
+        return simulated_points(record)
+
+    def take_raw_records(self) -> list[RawRecord]:
+        """The raw records of the measurements since the last call (the simulated phasors and
+        their bounds' terms, :data:`~setmem_hil.estimation.reprocessing.SIMULATED_PHASOR`)."""
+        taken, self._raw = self._raw, []
+        return taken
 
     def _reading(self, k: int, w: np.ndarray, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Sensor ``k``'s response (its truth plus bounded noise) and total bound at ``w``."""
+        """Sensor ``k``'s response (its truth plus bounded noise) and noise bound at ``w``."""
         bound = self._noise_bounds[k](w) * gain
         noise = np.array([bounded_complex_noise(bound[i : i + 1], self.noise_generator(self.n_measured + i, k))[0] for i in range(w.size)])
-        return self._truths[k].frequency_response(w) + noise, self._with_w1(bound, w)
+        return self._truths[k].frequency_response(w) + noise, bound
 
     def measure(self, omega_rad_s: float) -> Measurement:
         return self.measure_many([omega_rad_s])[0]

@@ -134,6 +134,10 @@ class InterruptingExperiment(ForwardingExperiment):
             time.sleep(self.delay_s)  # a dwell takes time: lets a test kill the process mid-campaign
         return self.inner.measure(omega_rad_s)
 
+    def take_raw_records(self):
+        """The inner experiment's raw records (its points pass through unchanged)."""
+        return self.inner.take_raw_records()
+
     def close(self):
         self.closed = True
         self.inner.close()

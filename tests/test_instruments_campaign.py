@@ -48,6 +48,22 @@ def _run(procedure, run_dir):
     return outcome, opened[0]
 
 
+def _reprocessed_and_every_reading_kept(run_dir, n_points: int) -> bool:
+    """Issue 39: ``reprocess`` agrees with the journal, and each lock-in record holds every reading
+    of its dwell (more than the window the point is the mean of), with their times."""
+    import h5py
+
+    from setmem_hil.cli.main import main
+
+    with h5py.File(run_dir / "raw.h5", "r") as f:
+        records = [f["measurements"][name] for name in f["measurements"]]
+        kinds = {r.attrs["kind"] for r in records}
+        readings = [(r["times_s"].size, r["force_v"].size, r.attrs["window"]) for r in records if r.attrs["kind"] == "lock-in-readings"]
+        del records
+    assert all(t == n >= w for t, n, w in readings) and (kinds != {"lock-in-readings"} or len(readings) == n_points)
+    return main(["reprocess", str(run_dir)]) == 0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("rig", list(PROCEDURES))
 def test_full_campaign_through_the_instrument_path(rig, tmp_path):
@@ -73,6 +89,7 @@ def test_full_campaign_through_the_instrument_path(rig, tmp_path):
     assert bench.peak_force_n <= 1.05 * procedure.safety.max_amplitude_n
     assert bench.peak_force_n >= 0.9 * procedure.safety.max_amplitude_n / 1.01  # closed loop reached the level
     assert not bench.output_on and bench.force_amplitude_n == 0.0
+    assert _reprocessed_and_every_reading_kept(tmp_path / "run", len(measured))
     assert exp.closed
 
 

@@ -154,6 +154,17 @@ def _stored_measurements(run_dir) -> int:
         j.close()
 
 
+def _raw_record_seqs(run_dir) -> set[int]:
+    """Every measurement ``raw.h5`` holds a record for, read through its index with h5py alone
+    (an empty set before the first record)."""
+    import h5py
+
+    if not (run_dir / "raw.h5").exists():
+        return set()
+    with h5py.File(run_dir / "raw.h5", "r") as f:
+        return {int(s) for name in f["measurements"] for s in f["measurements"][name].attrs["seqs"]}
+
+
 @pytest.mark.slow
 def test_campaign_killed_repeatedly_then_resumed_equals_uninterrupted(tmp_path, monkeypatch):
     """SIGKILL ``setmem-hil run`` at random moments KILL_ROUNDS times (SETMEM_CAMPAIGN_KILLS=20
@@ -213,6 +224,7 @@ def test_campaign_killed_repeatedly_then_resumed_equals_uninterrupted(tmp_path, 
                     mid_campaign += 1
             finally:
                 j.close()
+            assert _raw_record_seqs(run_dir) >= set(range(1, len(ms) + 1))  # raw.h5 readable, every committed point's record in it
     done = subprocess.run([sys.executable, "-c", CAMPAIGN_CHILD, str(HELPERS), "run", "--resume", str(run_dir), "--quiet"]
                           if (run_dir / "journal.sqlite").exists() else
                           [sys.executable, "-c", CAMPAIGN_CHILD, str(HELPERS), "run", str(proc_path), "--out", str(run_dir), "--quiet"],
@@ -223,6 +235,9 @@ def test_campaign_killed_repeatedly_then_resumed_equals_uninterrupted(tmp_path, 
     assert [(r.k, r.n_points, r.next_omega, r.mu_peak) for r in j.iterations()] == [(r.k, r.n_points, r.next_omega, r.mu_peak) for r in ref_its]
     assert j.run_info()["finished"] and (run_dir / "summary.json").exists()
     j.close()
+    from setmem_hil.cli.main import main
+
+    assert main(["reprocess", str(run_dir)]) == 0  # every point recomputed from raw.h5 after the kills
     print(f"campaign killed {KILL_ROUNDS} times ({mid_campaign} mid-campaign), resumed to the uninterrupted result")
     assert mid_campaign >= max(1, KILL_ROUNDS // 4)
 

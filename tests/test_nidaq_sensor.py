@@ -190,6 +190,19 @@ def _three_channel_daq(bench, wiring):
     return _daq_module(rows)
 
 
+def _recomputed(record):
+    """The record's points recomputed after a round trip through an HDF5 file (issue 39)."""
+    import tempfile
+
+    from setmem_hil.estimation.reprocessing import points_from_record
+    from setmem_hil.io.raw_store import RawStore, read_raw_records
+
+    with tempfile.TemporaryDirectory() as folder:
+        RawStore(folder).write((1,), record)
+        (stored,) = read_raw_records(folder)
+    return points_from_record(stored.record)
+
+
 @pytest.mark.parametrize("control", ["daq_tip", "daq_mid"])
 def test_several_daq_response_channels_are_outputs_with_their_own_bounds(control):
     """Issue 25 on the DAQ path: `response = [...]` reads every channel in one task; the control
@@ -210,6 +223,8 @@ def test_several_daq_response_channels_are_outputs_with_their_own_bounds(control
                                          "Dev1/ai3": (truths["daq_mid"], 0.01)})
         with open_daq_experiment(procedure, check_instruments(procedure), nidaqmx_module=daq) as exp:
             m = exp.measure(3.0)
+            (record,) = exp.take_raw_records()
+        assert _recomputed(record) == [m]  # issue 39: the DAQ record (three channels) recomputes to the point
         readings = [(m.response, m.bound), *m.others]
         assert len(readings) == 3
         for (g, bound), name in zip(readings, order):
@@ -287,6 +302,8 @@ def test_a_multisine_record_plays_as_the_generators_arbitrary_waveform_on_a_daq_
             assert bench.arb_points is not None and bench.peak_force_n <= 1.0 + 1e-9
             for m in measurements:
                 assert abs(m.response - bench.true_response(m.omega_rad_s)) <= m.bound, m.omega_rad_s
+            records = exp.take_raw_records()
+        assert [p for r in records for p in _recomputed(r)] == measurements  # issue 39: the record recomputes to every line
         assert not bench.output_on
     finally:
         server.close()

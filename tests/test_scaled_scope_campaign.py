@@ -28,6 +28,7 @@ POSITIONS = (1.0, 0.7, 0.4)  # channels 2, 3, 4
 @pytest.mark.slow
 def test_the_311_rad_s_scope_multisine_campaign_exits_0_with_every_truth_inside(tmp_path):
     assert main(["run", str(PROCEDURE), "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    assert main(["reprocess", str(tmp_path / "run")]) == 0  # issue 39: the multisine records recompute to the journal's points
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["reached_goal"] and summary["final_mu_peak"] < 1.0
     measurements = read_snapshot(tmp_path / "run").measurements

@@ -49,10 +49,12 @@ from setmem_hil.drivers.instruments.lockin import LockIn, LockInOverload, Refere
 from setmem_hil.drivers.instruments.source import SignalSource, switch_output_off
 from setmem_hil.drivers.safety import check_sine_command
 from setmem_hil.errors import DeviceError, DeviceRejectedError, SafetyLimitError
-from setmem_hil.estimation.phasor_estimate import exponential_gap, exponential_trend, phasor_point, settling_test
+from setmem_hil.estimation.instrument_terms import to_receptance  # noqa: F401 - also imported from here
+from setmem_hil.estimation.phasor_record import OutputSensor, lock_in_record, output_point, reading_ratios, receptance_scale, trend_gap
+from setmem_hil.estimation.phasor_estimate import exponential_trend, settling_test
 from setmem_hil.estimation.ringdown import FreeResponseBound, leak_time_constant, leak_wait_s, ringdown_wait_s, ringing_modes
 from setmem_hil.io.procedure import SafetyLimits
-from setmem_hil.model.experiment import Measurement
+from setmem_hil.model.experiment import Measurement, RawRecord
 
 __all__ = ["SensorChannel", "DriveChannel", "PhasorDwellSettings", "PhasorDwellExperiment", "to_receptance"]
 
@@ -93,14 +95,8 @@ class PhasorDwellSettings:
     reference_tolerance: float = 1e-3
 
 
-def to_receptance(value: complex, omega_rad_s: float, quantity: str) -> complex:
-    """Response per force in the sensor's quantity to displacement per force (receptance)."""
-    jw = 1j * omega_rad_s
-    return {"displacement": value, "velocity": value / jw, "acceleration": value / (jw * jw)}[quantity]
-
-
-def _receptance_scale(omega_rad_s: float, quantity: str) -> float:
-    return {"displacement": 1.0, "velocity": 1.0 / omega_rad_s, "acceleration": 1.0 / omega_rad_s**2}[quantity]
+def _point_sensor(sensor: SensorChannel) -> OutputSensor:
+    return OutputSensor(sensor.volt_per_unit, sensor.calibration_uncertainty, sensor.quantity)
 
 
 @dataclass
@@ -149,6 +145,7 @@ class PhasorDwellExperiment:
         if len(self.other_responses) != len(self.other_sensors):
             raise ValueError(f"{len(self.other_responses)} other response lock-ins but {len(self.other_sensors)} sensors")
         self.gain_estimate = self.drive.newton_per_volt
+        self._raw: list[RawRecord] = []  # raw records not yet taken (take_raw_records)
 
     @property
     def _responses(self) -> tuple[LockIn, ...]:
@@ -191,7 +188,6 @@ class PhasorDwellExperiment:
             window = slice(-2 * self.settings.readings_per_half, None)
             force_v = all_f[window]
             allowances = [self._free_response_allowance(omega_rad_s, tau, times[window], force_v, k) for k in range(len(all_r))]
-            trends = [self._trend_gap(all_f, r, times, k) for k, r in enumerate(all_r)]
             self._ramp_down(target)
         except BaseException:
             self._output_off_keeping_the_cause()  # Ctrl-C stays Ctrl-C, a fault stays that fault
@@ -203,30 +199,23 @@ class PhasorDwellExperiment:
             self.rig_s += self.last_dwell_s
         self.counters["dwells"] += 1
         self.n_measured += 1
-        self.last_ringdown["allowance"], self.last_ringdown["trend"] = allowances[0], trends[0]
-        outputs = [self._output_point(omega_rad_s, force_v, r[window], self._response_sensors[k], allowances[k], trends[k])
+        window_n = 2 * self.settings.readings_per_half
+        extra = float(self.extra_bound(omega_rad_s)) if self.extra_bound is not None else 0.0
+        force, sensors = _point_sensor(self.force_sensor), [_point_sensor(s) for s in self._response_sensors]
+        record = lock_in_record(omega_rad_s, all_f, all_r, times, window_n, force, sensors, self.settings.confidence, allowances,
+                                extra, {"time_constant_s": float(tau), "lock_ins": [li.name for li in self._lockins]})
+        self._raw.append(record)
+        outputs = [output_point(omega_rad_s, all_f, r, times, window_n, force, sensors[k], self.settings.confidence, allowances[k], extra)
                    for k, r in enumerate(all_r)]
+        self.last_ringdown["allowance"] = allowances[0]
+        self.last_ringdown["trend"] = trend_gap(all_f, all_r[0], times, window_n, force, sensors[0], self.settings.confidence)
         (g, bound, point), others = outputs[0], tuple((g_k, b_k) for g_k, b_k, _ in outputs[1:])
         if self._free is not None:  # what the structure did: caps its free ringing from now on
-            own = point.bound * _receptance_scale(omega_rad_s, self.response_sensor.quantity)  # statistical: no allowance fed back
+            own = point.bound * receptance_scale(omega_rad_s, self.response_sensor.quantity)  # statistical: no allowance fed back
             self._free.record_motion(self.clock.now(), (abs(g) + own) * point.force_amplitude)
         log.info("dwell at %.6g rad/s: %d readings, %.1f s, force %.4g N, |g| %.4g, bound %.3g%s", omega_rad_s, point.n_readings,
                  self.last_dwell_s, point.force_amplitude, abs(g), bound, f", {len(others)} more outputs" if others else "")
         return Measurement(float(omega_rad_s), complex(g), float(bound), rig_s=float(self.last_dwell_s), others=others)
-
-    def _output_point(self, omega_rad_s: float, force_v: np.ndarray, response_v: np.ndarray, sensor: SensorChannel,
-                      allowance: float, trend: float):
-        """One output's receptance and its bound: the readings' point (:func:`phasor_point`) and
-        trend gap in the sensor's quantity, the free-response allowance (receptance) and
-        ``extra_bound`` (``|W1|``: the unmodelled modes at every sensor)."""
-        point = phasor_point(force_v, response_v, self.force_sensor.volt_per_unit, sensor.volt_per_unit,
-                             self.force_sensor.calibration_uncertainty, sensor.calibration_uncertainty, self.settings.confidence)
-        g = to_receptance(point.response, omega_rad_s, sensor.quantity)
-        bound = (point.bound + trend) * _receptance_scale(omega_rad_s, sensor.quantity)
-        bound += allowance * _receptance_scale(omega_rad_s, "displacement")
-        if self.extra_bound is not None:
-            bound += float(self.extra_bound(omega_rad_s))
-        return complex(g), float(bound), point
 
     def _expected_response(self, omega_rad_s: float) -> float:
         """|G| of the model's midpoint (nan while residues are unbounded)."""
@@ -282,17 +271,15 @@ class PhasorDwellExperiment:
                                            self.settings.confidence)
         return ringing_now > 0
 
-    def _trend_gap(self, force_v: np.ndarray, response_v: np.ndarray, times: np.ndarray, output: int = 0) -> float:
-        """The exponential trend of every reading of the dwell (:func:`exponential_gap`), in the
-        ratio's units: what a transient slower than the window may still hide."""
-        ratio = self._ratios(force_v, response_v, output)
-        window = ratio[-2 * self.settings.readings_per_half:]
-        return exponential_gap(times, ratio, complex(window.mean()), self.settings.confidence)
-
     def _ratios(self, forces, responses, output: int = 0) -> np.ndarray:
         """Each reading's response per force, in the sensors' units."""
-        sensor = self._response_sensors[output]
-        return (np.asarray(responses) / sensor.volt_per_unit) / (np.asarray(forces) / self.force_sensor.volt_per_unit)
+        return reading_ratios(forces, responses, _point_sensor(self.force_sensor), _point_sensor(self._response_sensors[output]))
+
+    def take_raw_records(self) -> list[RawRecord]:
+        """The raw records of the dwells since the last call (kind ``lock-in-readings``:
+        :mod:`setmem_hil.estimation.phasor_record`)."""
+        taken, self._raw = self._raw, []
+        return taken
 
     @property
     def _filter_order(self) -> int:

@@ -19,7 +19,8 @@ import math
 
 from setmem_hil.drivers.instruments.drive_level import ForceLeveller, LevelledExciter
 from setmem_hil.drivers.instruments.nidaq_sensor import ac_coupling_error
-from setmem_hil.drivers.instruments.sampled_dwell import calibration_scales, scale_structure_terms, with_instrument_terms
+from setmem_hil.drivers.instruments.sampled_dwell import calibration_scales
+from setmem_hil.estimation.instrument_terms import InstrumentTerms, OutputTerms, apply_instrument_terms
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
 from setmem_hil.estimation.channel_errors import ChannelError
@@ -103,11 +104,16 @@ class LevelledDaqSensor:
         """Each output's calibration scale (:func:`~setmem_hil.drivers.instruments.sampled_dwell.calibration_scales`)."""
         return calibration_scales(self.force, self.responses)
 
+    def instrument_terms(self, omega_rad_s: float) -> InstrumentTerms:
+        """The terms of a point at ``omega_rad_s``: each output's calibration scale
+        (:attr:`calibration_scales`), its channel's error and the force channel's, its quantity."""
+        w = omega_rad_s
+        outputs = tuple(OutputTerms(self.force.error_at(w), ch.error_at(w), ch.quantity) for ch in self.responses)
+        return InstrumentTerms(self.calibration_scales, outputs, self.leveller.where)
+
     def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
         """``m`` in its calibration scale (:attr:`calibration_scales`), converted to receptance."""
-        w = m.omega_rad_s
-        return with_instrument_terms(scale_structure_terms(m, self.calibration_scales), force_amplitude_n, self.force.error_at(w),
-                                     [(ch.error_at(w), ch.quantity) for ch in self.responses], self.leveller.where)
+        return apply_instrument_terms(m, force_amplitude_n, self.instrument_terms(m.omega_rad_s))
 
 
 class SampledInstrumentRig:

@@ -31,7 +31,6 @@ cost.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -43,7 +42,8 @@ from setmem_hil.drivers.instruments.drive_level import FORCE_TRIP, LEVEL_TOLERAN
 from setmem_hil.drivers.instruments.scpi_scope import ClippedChannel, ScopeRecord, ScpiScope
 from setmem_hil.drivers.instruments.source import SignalSource
 from setmem_hil.drivers.protocols import RigMetadata, SampleBlock
-from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, calibration_scales, scale_structure_terms, with_instrument_terms
+from setmem_hil.drivers.instruments.sampled_dwell import SampledDwellExperiment, calibration_scales
+from setmem_hil.estimation.instrument_terms import InstrumentTerms, OutputTerms, apply_instrument_terms
 from setmem_hil.errors import DataQualityError
 from setmem_hil.estimation.channel_errors import GAIN_TEST_SPAN, MAX_CLOCK_PHASE_RAD, ChannelError, adc_code, measured_quantization_bias, scope_channel_error
 from setmem_hil.estimation.channel_match import DRIFT_ALLOWANCE
@@ -294,31 +294,27 @@ class ScopeSensor:
                                    noise_v=self.noise_div.get(channel.number, 0.0) * scale,
                                    matched_gain=self.matched_gain(channel) if matched else None)
 
-    def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
-        """``m`` (from the last record) with every output's instrument terms added to its bound,
-        then converted to receptance where a sensor measures velocity or acceleration. Where the
-        channel match covers the force channel's and an output's channel's scales, that ratio is
-        first divided by the two channels' gain ratio and its gain terms are the match's;
-        otherwise the datasheet's (output by output: one channel ranged off the match's steps
-        costs only its own output the match)."""
-        # the ratio is measured in its calibration scale: the parts of the bound in the
-        # structure's units (|W1|) scale with it
-        m = scale_structure_terms(m, self.calibration_scales)
+    def instrument_terms(self, omega_rad_s: float) -> InstrumentTerms:
+        """The terms of a point at ``omega_rad_s`` from the last record. Where the channel match
+        covers the force channel's and an output's channel's scales, that output's ratio is
+        divided by the two channels' gain ratio and its gain terms are the match's; otherwise
+        the datasheet's (output by output: one channel ranged off the match's steps costs only
+        its own output the match)."""
         force_gain = self.matched_gain(self.force)
-        points = []
-        for (g, bound), ch in zip([(m.response, m.bound), *m.others], self.responses):
+        outputs = []
+        for ch in self.responses:
             gain = self.matched_gain(ch)
             matched = force_gain is not None and gain is not None
-            force_n = force_amplitude_n
-            if matched:
-                ratio = gain[0] / force_gain[0]
-                # the bound never shrinks (it also holds |W1|, which is in the structure's units)
-                g, bound, force_n = g / ratio, bound / min(ratio, 1.0), force_amplitude_n / force_gain[0]
-            one = with_instrument_terms(dataclasses.replace(m, response=g, bound=bound, others=()), force_n,
-                                        self.channel_error(self.force, m.omega_rad_s, matched),
-                                        [(self.channel_error(ch, m.omega_rad_s, matched), ch.quantity)], self.scope.where)
-            points.append((one.response, one.bound))
-        return dataclasses.replace(m, response=points[0][0], bound=points[0][1], others=tuple(points[1:]))
+            outputs.append(OutputTerms(self.channel_error(self.force, omega_rad_s, matched), self.channel_error(ch, omega_rad_s, matched),
+                                       ch.quantity, gain[0] / force_gain[0] if matched else None, force_gain[0] if matched else None))
+        return InstrumentTerms(self.calibration_scales, tuple(outputs), self.scope.where)
+
+    def corrected(self, m: Measurement, force_amplitude_n: float) -> Measurement:
+        """``m`` (from the last record) with every output's instrument terms added to its bound
+        (:meth:`instrument_terms`), in its calibration scale (the parts of the bound in the
+        structure's units, ``|W1|``, scale with it), converted to receptance where a sensor
+        measures velocity or acceleration."""
+        return apply_instrument_terms(m, force_amplitude_n, self.instrument_terms(m.omega_rad_s))
 
 
 class ScopeRig:

@@ -180,6 +180,10 @@ class PoleTracker:
         self.updates += 1
         return True
 
+    def state(self) -> tuple:
+        """Every estimate as ``(index, sigma, omega_d, cov)``, by index (``update`` restores them)."""
+        return tuple((index, pole.sigma_per_s, pole.omega_d_rad_s, np.asarray(cov).tolist()) for index, (pole, cov) in sorted(self._est.items()))
+
 
 def pole_bands(model: IntervalModel | ModalParameters | None, relative_band: float = 0.15) -> tuple[PoleSearchBand, ...]:
     """Pole estimates and search bands of the modelled modes.

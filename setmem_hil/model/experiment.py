@@ -4,7 +4,8 @@ Optional capabilities are declared protocols too (checked with ``isinstance``, n
 with ``getattr``): :class:`ResumableExperiment`, :class:`ModelAwareExperiment`,
 :class:`BoundPredictingExperiment`, :class:`CountingExperiment`, :class:`PlanningExperiment`,
 :class:`IdentifiedExperiment`, :class:`MultisineExperiment`, :class:`OutputConfirmingExperiment`,
-:class:`OutputModelsAwareExperiment`, :class:`CalibrationScaledExperiment`.
+:class:`OutputModelsAwareExperiment`, :class:`CalibrationScaledExperiment`,
+:class:`RawRecordingExperiment`.
 
 One call applies a unit-amplitude sinusoid at ``omega_rad_s`` and returns the steady-state
 complex response ``G(j omega)`` with an absolute bound on its total error (noise, estimation
@@ -153,3 +154,29 @@ class CampaignControl(Protocol):
     or raises :class:`setmem_hil.errors.CampaignAborted` to stop (journal closed, resumable)."""
 
     def checkpoint(self, make_safe=None) -> None: ...
+
+
+@dataclass(frozen=True)
+class RawRecord:
+    """What one dwell's points were computed from (issue 39): stored in ``RUN_DIR/raw.h5``
+    before the points are committed, and recomputed from by ``setmem-hil reprocess``.
+
+    ``kind`` names the estimator that turns it into points
+    (:mod:`setmem_hil.estimation.raw_reprocessing`); ``datasets`` are arrays (samples, readings,
+    times: as read, never rounded); ``attrs`` are numbers, strings or JSON-able structures (the
+    stored settings, instrument identities). ``positions``: which of the call's measurements
+    (0-based, in the order returned) it produced; None for all of them (a multisine record split
+    into several records names its lines)."""
+
+    kind: str
+    datasets: Mapping[str, np.ndarray]
+    attrs: Mapping[str, Any] = field(default_factory=dict)
+    positions: tuple[int, ...] | None = None
+
+
+@runtime_checkable
+class RawRecordingExperiment(Protocol):
+    """Keeps what each dwell was computed from: ``take_raw_records()`` returns (and forgets) the
+    records of the measurements made since the last call, in order."""
+
+    def take_raw_records(self) -> list[RawRecord]: ...

@@ -1,0 +1,328 @@
+"""Thesis Algorithm 5.1 as a plan: the iterative identification / control / experiment loop.
+
+:func:`thesis_plan` is a generator of requests (:mod:`setmem_hil.campaign.messages`) that an
+engine performs (:class:`setmem_hil.campaign.engine.RunEngine`); it holds no journal, replay,
+resume or live-view code. It measures the procedure's initial frequencies, then repeats:
+
+2. identify the parameter intervals from all data so far, never loosening the previous bounds
+   (eq. 5.4-5.5; the result is also intersected with them);
+3. design the compensator (H2, or tuned to the mixed-mu bound: ``[design] method``) and compute
+   mu-bar with the monotone safeguard (eq. 5.8-5.12, :mod:`setmem_hil.design.safeguard`), so
+   the reported mu-bar never increases;
+4. stop when mu-bar, certified on the whole band, is below the goal, or when the experiment
+   budget is spent;
+5-7. choose the next frequency with the procedure's strategy (:mod:`setmem_hil.campaign.next_input`;
+   ``"mu"`` is eq. 5.3 via :func:`setmem_hil.design.input_design.choose_input`), measure it, and go on.
+
+**A region that keeps disappointing** (section 6.3.4's trap): after three consecutive
+single-frequency iterations in one region that each lowered mu-bar by less than a quarter of
+the improvement predicted for them, that region is left out of the candidates for the rest of
+the campaign (:mod:`setmem_hil.design.unproductive_region`; event ``left-out``). It depends only
+on the mu-bar values and choices, so a replay leaves out the same regions.
+
+**Model hook.** After every identification the plan hands the iteration's interval model to the
+experiment (:class:`~setmem_hil.campaign.messages.InformModel`), so later dwells fit their
+transients with the narrowed poles. A replay repeats the same identifications in the same order:
+the experiment is in the same state at the first new dwell as in an uninterrupted run.
+
+**Single-threaded BLAS.** The numerics of every iteration run with BLAS pinned to one thread
+(:func:`setmem_hil.numerics.blas_threads.blas_one_thread`): the matrices are small, so this is
+about twice as fast in CPU time on the 2-core target, and results do not depend on how many BLAS
+threads a machine or Dask worker would otherwise use. Nothing depends on the wall clock or a
+global RNG.
+
+The experiment is only read here (its calibration scales, predicted bounds and dwell plans);
+everything that acts on it goes through the engine.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any, Generator
+
+import numpy as np
+
+from setmem_hil.campaign.loop_steps import controller_matrices, goal_certified, identify_sensors, kept_design_of, polished, sensors_document
+from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE, Emit, InformModel, Measure, StoredData
+from setmem_hil.campaign.next_input import batch_frequencies, identify_settings, next_frequency
+from setmem_hil.campaign.summary import CampaignSummary, IterationSummary
+from setmem_hil.design.input_design import InputChoice
+from setmem_hil.design.safeguard import SafeguardOutcome, safeguarded_design
+from setmem_hil.design.strategies import check_strategy
+from setmem_hil.design.unproductive_region import RUN, Outcome, describe, predicted_improvement, unproductive_region
+from setmem_hil.errors import InconsistentDataError
+from setmem_hil.identification.calibration_scale import measured_scale_prior, plant_bounds
+from setmem_hil.io.procedure import Procedure
+from setmem_hil.model.experiment import CalibrationScaledExperiment, Measurement
+from setmem_hil.model.frequency_data import FrequencyData
+from setmem_hil.model.mu_floor import floor_message, floor_modes
+from setmem_hil.numerics.blas_threads import blas_one_thread
+from setmem_hil.robust.robust_design import FINAL_TUNING
+
+__all__ = ["thesis_plan", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT", "BATCH_EVENT"]
+
+EXACT_RESOLVE_EVENT = "exact-resolve"
+"""Event holding, as JSON, the candidates re-identified exactly at an iteration and their
+improvement (the choice is the best of these; the report's figure 6-14 shows them)."""
+FLOOR_EVENT = "floor"
+"""Event of an iteration whose box blocks every compensator (:mod:`setmem_hil.model.mu_floor`)."""
+UNPRODUCTIVE_REGION_EVENT = "left-out"
+"""Event of a frequency region left out of the candidates (:mod:`setmem_hil.design.unproductive_region`)."""
+BATCH_EVENT = "batch"
+"""Event of an iteration that chose several frequencies (``[input_design] per_iteration``)."""
+
+
+def thesis_plan(procedure: Procedure, experiment: Any, *, seed: int | None = None, strategy: str | None = None,
+                design: str | None = None, floor_aware: bool | None = None) -> Generator[Any, Any, CampaignSummary]:
+    """Algorithm 5.1 until mu-bar < goal or the budget is spent (see the module docstring).
+
+    ``strategy`` and ``design`` override the procedure's; ``floor_aware`` ranks the candidates
+    that remove a floor first (default: with the robust design only, so ``--design h2`` stays the
+    thesis's loop bit for bit)."""
+    loop = LoopSettings.of(procedure, experiment, seed, strategy, design, floor_aware)
+    started = time.perf_counter()
+    state = yield from _starting_data(loop)  # step 1: the initial experiments
+    while True:
+        step = yield from _identify(loop, state)  # step 2: eq. 5.4-5.5
+        outcome, kept = _design_and_analyse(loop, state, step.model)  # step 3: eq. 5.8-5.12
+        yield from _announce(loop, state, step, outcome, kept)
+        state.reached = goal_certified(outcome, loop.procedure.goal)  # step 4: stop?
+        spent = state.n_added >= loop.procedure.goal.max_experiments
+        choice = None if state.reached or spent else _choose(loop, state, step, outcome)  # steps 5-6
+        yield from _record(loop, state, step, outcome, kept, choice)
+        if choice is None:
+            return _summary(loop, state, started)
+        yield from _measure_choice(loop, state, step, outcome, choice)  # step 7
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """What stays fixed through the loop. ``procedure`` is the one the data are identified with
+    (with calibration scales: the prior in the sensors' scale); ``plant_procedure`` as given."""
+
+    procedure: Procedure
+    plant_procedure: Procedure
+    experiment: Any
+    seed: int
+    strategy: str
+    method: str
+    floor_aware: bool
+    scales: tuple | None
+    gain: tuple[float, float] | None
+
+    @classmethod
+    def of(cls, procedure: Procedure, experiment: Any, seed, strategy, design, floor_aware) -> "LoopSettings":
+        # the sensors' calibration: one scale per output, on the residues (calibration_scale); the
+        # analysis holds the control output's as one common gain on the plant
+        scales = tuple(experiment.calibration_scales) if isinstance(experiment, CalibrationScaledExperiment) else None
+        method = design or procedure.design_method
+        measured_procedure = procedure if scales is None else replace(procedure, prior=measured_scale_prior(procedure.prior, scales[0]))
+        return cls(measured_procedure, procedure, experiment, procedure.seed if seed is None else int(seed),
+                   check_strategy(strategy or procedure.input_design.strategy), method,
+                   (method == "robust") if floor_aware is None else bool(floor_aware),
+                   scales, None if scales is None else (1.0 / scales[0][1], 1.0 / scales[0][0]))
+
+    def robust_analysis(self, model, **options):
+        from setmem_hil.robust.analysis import ROBUST_CERTIFICATE_RTOL, analyze_robust_performance
+
+        return analyze_robust_performance(model, self.procedure.weights, gain=self.gain, certificate_rtol=ROBUST_CERTIFICATE_RTOL, **options)
+
+    def analyzer(self, state: "LoopState"):
+        """``analyze(model, controller)`` for the safeguard: the thesis's H2 design, or the robust
+        design warm-started from the H2 design or the compensator kept last, the better."""
+        from setmem_hil.robust.analysis import analyze_robust_performance
+
+        def analyze(model, controller):
+            if self.method == "h2":
+                return analyze_robust_performance(model, self.procedure.weights, controller=controller, gain=self.gain)
+            if controller is not None:
+                return self.robust_analysis(model, controller=controller)
+            previous = state.previous_outcome
+            warm = None if previous is None else (previous.analysis.controller, state.rows[-1].design)
+            return self.robust_analysis(model, design="robust", warm_start=warm)
+
+        return analyze
+
+
+@dataclass
+class LoopState:
+    """What the loop carries from one iteration to the next."""
+
+    measured: list[Measurement]
+    k: int = 1
+    n_added: int = 0
+    reached: bool = False
+    previous_model: Any = None
+    previous_sensor_models: Any = None
+    previous_outcome: SafeguardOutcome | None = None
+    rows: list[IterationSummary] = field(default_factory=list)
+    outcomes: list[Outcome] = field(default_factory=list)  # predicted and achieved (section 6.3.4's trap)
+    left_out: list[tuple[float, float]] = field(default_factory=list)
+    last_experiment: tuple[float | None, float] | None = None  # (frequency, or None for several; predicted)
+
+
+@dataclass(frozen=True)
+class Identified:
+    """Step 2's result: the identification, the intersected model, every output's model."""
+
+    result: Any
+    model: Any
+    sensor_models: Any
+    data: FrequencyData
+    started: tuple[float, float]  # wall and CPU clocks when the iteration began
+
+
+def measure_request(procedure: Procedure, omegas, iteration: int, role: str) -> Measure:
+    """The frequencies one after the other (``[dwell] signal = "sine"``) or in one multisine record."""
+    return Measure(tuple(float(w) for w in omegas), iteration, role, record=procedure.dwell_signal == "multisine")
+
+
+def _starting_data(loop: LoopSettings):
+    stored = yield StoredData()
+    if stored is not None:  # a stopped run continued with a changed procedure: its data from the start
+        return LoopState(list(stored.measured), k=stored.next_iteration, n_added=stored.n_added)
+    measured = yield measure_request(loop.procedure, loop.procedure.initial_omegas_rad_s, 0, "initial")
+    return LoopState(list(measured))
+
+
+def _identify(loop: LoopSettings, state: LoopState):
+    started = (time.perf_counter(), time.process_time())
+    data = FrequencyData.from_measurements(state.measured)
+    sensor_models = None
+    try:
+        with blas_one_thread():
+            if state.measured[0].others:  # several sensors: shared poles, the control output's model drives the rest
+                result, sensor_models = identify_sensors(state.measured, loop.plant_procedure, state.previous_sensor_models, loop.scales)
+            else:
+                from setmem_hil.identification.algorithm import identify
+
+                result = identify(data, loop.procedure.prior, previous=state.previous_model, settings=identify_settings())
+    except InconsistentDataError as exc:
+        yield Emit(NOTE, {"kind": "inconsistent-data", "message": f"iteration {state.k}: {exc}"}, state.k)
+        raise
+    model = result.model if state.previous_model is None else result.model.intersect(state.previous_model)
+    yield InformModel(model, sensor_models)  # later dwells model their transients with these poles
+    return Identified(result, model, sensor_models, data, started)
+
+
+def _design_and_analyse(loop: LoopSettings, state: LoopState, model) -> tuple[SafeguardOutcome, str]:
+    previous_design = state.rows[-1].design if state.rows else "h2"
+    with blas_one_thread():
+        outcome = safeguarded_design(model, state.previous_outcome, loop.analyzer(state))
+        if loop.method == "robust" and goal_certified(outcome, loop.procedure.goal):  # the delivered compensator: more margin
+            outcome = polished(outcome, lambda box, warm: loop.robust_analysis(box, design="robust", warm_start=warm, tuning=FINAL_TUNING),
+                               previous_design)
+    return outcome, kept_design_of(outcome, previous_design)
+
+
+def _outputs_document(loop: LoopSettings, step: Identified):
+    return None if step.sensor_models is None else sensors_document(loop.procedure, step.sensor_models, loop.scales)
+
+
+def _announce(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, kept: str):
+    """The iteration's progress document, then the trap of section 6.3.4: the region left out."""
+    k = state.k
+    yield Emit("iteration", dict(k=k, n_points=len(state.measured), mu_peak=outcome.mu_peak,
+                                 mu_peak_omega=float(outcome.analysis.mu_peak_omega), safeguard=outcome.branch, design=kept,
+                                 floor_modes=floor_modes(step.model), rig_s=float(sum(m.rig_s for m in state.measured)),
+                                 mu_peak_certified=outcome.certified, outputs=_outputs_document(loop, step)), k)
+    if state.last_experiment is None or state.previous_outcome is None:
+        return
+    state.outcomes.append(Outcome(state.last_experiment[0], state.last_experiment[1], state.previous_outcome.mu_peak - outcome.mu_peak))
+    region = unproductive_region(state.outcomes)
+    if region is not None:
+        state.left_out.append(region)
+        message = f"iteration {k}: {describe(region, state.outcomes[-RUN:])}"
+        yield Emit(NOTE, {"kind": UNPRODUCTIVE_REGION_EVENT, "message": message}, k)
+        yield Emit("left-out", {"k": k, "region": region, "message": message}, k)
+        state.outcomes.clear()
+
+
+def _choose(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome) -> InputChoice:
+    floor = floor_modes(step.model) if loop.floor_aware else ()
+    with blas_one_thread():
+        return next_frequency(loop.strategy, state.k, state.n_added, loop.procedure, step.result, step.data, outcome, loop.experiment,
+                              state.measured, loop.seed, sensor_models=step.sensor_models, left_out=tuple(state.left_out),
+                              floor_modes=floor)
+
+
+def _record(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, kept: str, choice: InputChoice | None):
+    """The iteration's stored record and its events, and its row of the summary."""
+    k, analysis, floor = state.k, outcome.analysis, floor_modes(step.model)
+    compute_s, compute_cpu_s = time.perf_counter() - step.started[0], time.process_time() - step.started[1]
+    next_omega = None if choice is None else choice.next_omega_rad_s
+    certified_intervals = int(getattr(analysis, "mu_certified_intervals", 0))
+    yield Emit(ITERATION_RECORD, {"fields": _iteration_fields(loop, state, step, outcome, kept, choice, compute_s)}, k)
+    if floor:
+        yield Emit(NOTE, {"kind": FLOOR_EVENT, "message": f"iteration {k}: {floor_message(floor)}"}, k)
+    if choice is not None and np.size(choice.resolved_omega_rad_s):
+        resolved = {"k": k, "omega_rad_s": [float(w) for w in choice.resolved_omega_rad_s],
+                    "improvement": [None if not math.isfinite(v) else float(v) for v in choice.resolved_improvement]}
+        yield Emit(NOTE, {"kind": EXACT_RESOLVE_EVENT, "message": json.dumps(resolved)}, k)
+    if outcome.branch != "new-design":
+        tried = ", ".join(f"{b} {v:.4f}" for b, v in outcome.tried.items())
+        yield Emit(NOTE, {"kind": "safeguard", "message": f"iteration {k}: eq. 5.12 branch {outcome.branch} (mu-bar {tried})"}, k)
+    state.rows.append(IterationSummary(
+        k=k, n_points=len(state.measured), mu_peak=float(outcome.mu_peak), mu_peak_omega=float(analysis.mu_peak_omega),
+        next_omega=next_omega, safeguard=outcome.branch, basis="" if choice is None else choice.basis,
+        compute_s=float(compute_s), compute_cpu_s=float(compute_cpu_s), mu_peak_certified=bool(outcome.certified),
+        mu_certified_intervals=certified_intervals, design=kept, floor_modes=floor,
+    ))
+
+
+def _iteration_fields(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, kept: str,
+                      choice: InputChoice | None, compute_s: float) -> dict:
+    """The journal's ``IterationRecord`` fields (the plant's bounds: with calibration scales, the
+    model's interval hull widened by them)."""
+    model, analysis = step.model, outcome.analysis
+    plant = model if loop.scales is None else plant_bounds(model, loop.scales[0])
+    return dict(
+        k=state.k, n_points=len(state.measured), lower=plant.lower, upper=plant.upper, mu_peak=float(outcome.mu_peak),
+        mu_peak_omega=float(analysis.mu_peak_omega), mu_lower_peak=float(analysis.mu_lower_peak),
+        omega=np.asarray(analysis.omega, dtype=float), mu=np.asarray(analysis.mu, dtype=float),
+        sensitivities={str(key): float(v) for key, v in analysis.sensitivities.items()},
+        next_omega=None if choice is None else choice.next_omega_rad_s,
+        candidate_omega=np.zeros(0) if choice is None else choice.candidate_omega_rad_s,
+        estimated_improvement=np.zeros(0) if choice is None else choice.estimated_improvement,
+        controller_order=int(analysis.controller_order), safeguard=outcome.branch, wall_s=float(compute_s),
+        embedding_gamma=np.asarray(step.result.embedding_gamma, dtype=float),
+        mismatch_ratio=np.asarray(step.result.mismatch_ratio, dtype=float),
+        controller=controller_matrices(analysis.controller), mu_peak_certified=bool(outcome.certified),
+        mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)), outputs=_outputs_document(loop, step),
+        common_gain=None if loop.gain is None else {"gain": list(loop.gain), "lower": model.lower.tolist(), "upper": model.upper.tolist()},
+        design=kept, floor_modes=floor_modes(model),
+    )
+
+
+def _measure_choice(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, choice: InputChoice):
+    """Step 7: measure the chosen frequency (with ``per_iteration``, several), then go on."""
+    p, k = loop.procedure, state.k
+    batch = [choice.next_omega_rad_s]
+    per_iteration = min(p.input_design.per_iteration, p.goal.max_experiments - state.n_added)
+    if per_iteration > 1:
+        batch = batch_frequencies(batch[0], loop.strategy, k, state.n_added, p, step.result, step.data, outcome, loop.experiment,
+                                  state.measured, loop.seed, per_iteration, tuple(state.left_out))
+        if len(batch) > 1:
+            yield Emit(NOTE, {"kind": BATCH_EVENT, "message": f"iteration {k}: " + ", ".join(f"{w:.9g}" for w in batch) + " rad/s"}, k)
+    state.last_experiment = (batch[0] if len(batch) == 1 else None, predicted_improvement(choice))
+    for w in batch:
+        yield Emit("chosen", {"k": k, "next_omega": w}, k)
+    added = yield measure_request(p, batch, k, "added")
+    state.measured.extend(added)
+    state.n_added += len(added)
+    state.rows[-1] = replace(state.rows[-1], rig_s=float(sum(m.rig_s for m in added)))
+    state.previous_model, state.previous_outcome, state.previous_sensor_models = step.model, outcome, step.sensor_models
+    state.k += 1
+
+
+def _summary(loop: LoopSettings, state: LoopState, started: float) -> CampaignSummary:
+    goal = loop.procedure.goal
+    return CampaignSummary(
+        reached_goal=bool(state.reached), final_mu_peak=state.rows[-1].mu_peak, experiments_added=state.n_added,
+        wall_s=time.perf_counter() - started, iterations=tuple(state.rows), strategy=loop.strategy, seed=loop.seed,
+        goal_mu=float(goal.mu_target), max_experiments=int(goal.max_experiments), stop_reason="goal" if state.reached else "budget",
+        rig_s=float(sum(m.rig_s for m in state.measured)),
+    )
