@@ -174,7 +174,8 @@ def test_loopback_procedures_run(tmp_path, monkeypatch, name):
 def test_no_stray_files_left(tmp_path, cheap):
     assert main(["run", str(cheap), "--out", str(tmp_path / "r"), "--quiet"]) == 0
     names = sorted(os.listdir(tmp_path / "r"))
-    assert names == [".run.lock", "journal.sqlite", "procedure.toml", "summary.json"]
+    assert names == [".run.lock", "journal.sqlite", "procedure.toml", "raw", "raw.h5", "summary.json"]  # issue 39: raw records
+    assert all(name.endswith(".h5") and not name.startswith(".") for name in os.listdir(tmp_path / "r" / "raw"))  # no partial file
 
 
 def test_a_second_process_cannot_run_the_same_campaign(tmp_path, cheap, monkeypatch, capsys):
