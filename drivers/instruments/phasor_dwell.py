@@ -50,7 +50,7 @@ from setmem_hil.drivers.instruments.source import SignalSource, switch_output_of
 from setmem_hil.drivers.safety import check_sine_command
 from setmem_hil.errors import DeviceError, DeviceRejectedError, SafetyLimitError
 from setmem_hil.estimation.instrument_terms import to_receptance  # noqa: F401 - also imported from here
-from setmem_hil.estimation.phasor_record import OutputSensor, lock_in_record, output_point, reading_ratios, receptance_scale, trend_gap
+from setmem_hil.estimation.phasor_record import OutputSensor, lock_in_record, output_point, reading_ratios, receptance_scale
 from setmem_hil.estimation.phasor_estimate import exponential_trend, settling_test
 from setmem_hil.estimation.ringdown import FreeResponseBound, leak_time_constant, leak_wait_s, ringdown_wait_s, ringing_modes
 from setmem_hil.io.procedure import SafetyLimits
@@ -207,9 +207,8 @@ class PhasorDwellExperiment:
         self._raw.append(record)
         outputs = [output_point(omega_rad_s, all_f, r, times, window_n, force, sensors[k], self.settings.confidence, allowances[k], extra)
                    for k, r in enumerate(all_r)]
-        self.last_ringdown["allowance"] = allowances[0]
-        self.last_ringdown["trend"] = trend_gap(all_f, all_r[0], times, window_n, force, sensors[0], self.settings.confidence)
-        (g, bound, point), others = outputs[0], tuple((g_k, b_k) for g_k, b_k, _ in outputs[1:])
+        self.last_ringdown["allowance"], self.last_ringdown["trend"] = allowances[0], outputs[0].trend
+        (g, bound, point), others = (outputs[0].response, outputs[0].bound, outputs[0].point), tuple((o.response, o.bound) for o in outputs[1:])
         if self._free is not None:  # what the structure did: caps its free ringing from now on
             own = point.bound * receptance_scale(omega_rad_s, self.response_sensor.quantity)  # statistical: no allowance fed back
             self._free.record_motion(self.clock.now(), (abs(g) + own) * point.force_amplitude)

@@ -173,6 +173,7 @@ class Identified:
     sensor_models: Any
     data: FrequencyData
     started: tuple[float, float]  # wall and CPU clocks when the iteration began
+    floor: tuple[int, ...]  # modes whose box blocks every compensator (setmem_hil.model.mu_floor)
 
 
 def measure_request(procedure: Procedure, omegas, iteration: int, role: str) -> Measure:
@@ -205,7 +206,7 @@ def _identify(loop: LoopSettings, state: LoopState):
         raise
     model = result.model if state.previous_model is None else result.model.intersect(state.previous_model)
     yield InformModel(model, sensor_models)  # later dwells model their transients with these poles
-    return Identified(result, model, sensor_models, data, started)
+    return Identified(result, model, sensor_models, data, started, floor_modes(model))
 
 
 def _design_and_analyse(loop: LoopSettings, state: LoopState, model) -> tuple[SafeguardOutcome, str]:
@@ -227,7 +228,7 @@ def _announce(loop: LoopSettings, state: LoopState, step: Identified, outcome: S
     k = state.k
     yield Emit("iteration", dict(k=k, n_points=len(state.measured), mu_peak=outcome.mu_peak,
                                  mu_peak_omega=float(outcome.analysis.mu_peak_omega), safeguard=outcome.branch, design=kept,
-                                 floor_modes=floor_modes(step.model), rig_s=float(sum(m.rig_s for m in state.measured)),
+                                 floor_modes=step.floor, rig_s=float(sum(m.rig_s for m in state.measured)),
                                  mu_peak_certified=outcome.certified, outputs=_outputs_document(loop, step)), k)
     if state.last_experiment is None or state.previous_outcome is None:
         return
@@ -242,7 +243,7 @@ def _announce(loop: LoopSettings, state: LoopState, step: Identified, outcome: S
 
 
 def _choose(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome) -> InputChoice:
-    floor = floor_modes(step.model) if loop.floor_aware else ()
+    floor = step.floor if loop.floor_aware else ()
     with blas_one_thread():
         return next_frequency(loop.strategy, state.k, state.n_added, loop.procedure, step.result, step.data, outcome, loop.experiment,
                               state.measured, loop.seed, sensor_models=step.sensor_models, left_out=tuple(state.left_out),
@@ -251,7 +252,7 @@ def _choose(loop: LoopSettings, state: LoopState, step: Identified, outcome: Saf
 
 def _record(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, kept: str, choice: InputChoice | None):
     """The iteration's stored record and its events, and its row of the summary."""
-    k, analysis, floor = state.k, outcome.analysis, floor_modes(step.model)
+    k, analysis, floor = state.k, outcome.analysis, step.floor
     compute_s, compute_cpu_s = time.perf_counter() - step.started[0], time.process_time() - step.started[1]
     next_omega = None if choice is None else choice.next_omega_rad_s
     certified_intervals = int(getattr(analysis, "mu_certified_intervals", 0))
@@ -293,7 +294,7 @@ def _iteration_fields(loop: LoopSettings, state: LoopState, step: Identified, ou
         controller=controller_matrices(analysis.controller), mu_peak_certified=bool(outcome.certified),
         mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)), outputs=_outputs_document(loop, step),
         common_gain=None if loop.gain is None else {"gain": list(loop.gain), "lower": model.lower.tolist(), "upper": model.upper.tolist()},
-        design=kept, floor_modes=floor_modes(model),
+        design=kept, floor_modes=step.floor,
     )
 
 

@@ -91,7 +91,7 @@ def dwell_record(inputs: DwellInputs, instrument: Mapping[str, np.ndarray] | Non
     multisine = isinstance(inputs.plan, MultisinePlan)
     attrs = {"rig": rig, "settings": dataclasses.asdict(inputs.settings), "plan": dataclasses.asdict(inputs.plan),
              "plan_kind": "multisine" if multisine else "sine", "attempt": int(inputs.attempt), "dwell_s": float(inputs.dwell_s),
-             "extensions": int(inputs.extensions), "tracker_state": [list(map(_jsonable, s)) for s in inputs.tracker_state],
+             "extensions": int(inputs.extensions), "tracker_state": [list(s) for s in inputs.tracker_state],
              "extra_bound": None if inputs.extra_bound is None else [list(p) for p in inputs.extra_bound],
              "instrument_terms": None if inputs.terms is None else [t.to_document() for t in inputs.terms]}
     return RawRecord(SINE_DWELL, datasets, attrs)
@@ -137,6 +137,3 @@ def _model_from(d: Mapping[str, np.ndarray]):
         return ModalParameters(np.asarray(d["model_values"]), lower_residual, upper_residual)
     return None
 
-
-def _jsonable(value):
-    return value.tolist() if isinstance(value, np.ndarray) else value

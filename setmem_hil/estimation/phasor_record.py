@@ -25,7 +25,7 @@ from setmem_hil.estimation.phasor_estimate import PhasorPoint, exponential_gap, 
 from setmem_hil.estimation.reprocessing import LOCK_IN_READINGS
 from setmem_hil.model.experiment import Measurement, RawRecord
 
-__all__ = ["OutputSensor", "lock_in_points", "output_point", "reading_ratios", "receptance_scale"]
+__all__ = ["OutputPoint", "OutputSensor", "lock_in_points", "output_point", "reading_ratios", "receptance_scale"]
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,16 @@ class OutputSensor:
     volt_per_unit: float
     calibration: float
     quantity: str
+
+
+@dataclass(frozen=True)
+class OutputPoint:
+    """One output's receptance and bound, the window's phasor point and the readings' trend gap."""
+
+    response: complex
+    bound: float
+    point: PhasorPoint
+    trend: float
 
 
 def receptance_scale(omega_rad_s: float, quantity: str) -> float:
@@ -56,7 +66,7 @@ def trend_gap(force_v: np.ndarray, response_v: np.ndarray, times: np.ndarray, wi
 
 def output_point(omega_rad_s: float, force_v: np.ndarray, response_v: np.ndarray, times: np.ndarray, window: int,
                  force: OutputSensor, sensor: OutputSensor, confidence: float, allowance: float,
-                 extra: float) -> tuple[complex, float, PhasorPoint]:
+                 extra: float) -> OutputPoint:
     """One output's receptance and its bound from every reading of the dwell: the window's
     point (:func:`phasor_point`) and the trend gap in the sensor's quantity, the free-response
     ``allowance`` (receptance) and ``extra`` (``|W1|``: the unmodelled modes at every sensor)."""
@@ -68,7 +78,7 @@ def output_point(omega_rad_s: float, force_v: np.ndarray, response_v: np.ndarray
     bound += allowance * receptance_scale(omega_rad_s, "displacement")
     if extra:
         bound += extra
-    return complex(g), float(bound), point
+    return OutputPoint(complex(g), float(bound), point, trend)
 
 
 def lock_in_record(omega_rad_s: float, force_v: np.ndarray, response_v: np.ndarray, times: np.ndarray, window: int,
@@ -94,5 +104,5 @@ def lock_in_points(record: RawRecord) -> list[Measurement]:
                             OutputSensor(float(o["volt_per_unit"]), float(o["calibration"]), o["quantity"]), float(a["confidence"]),
                             float(o["allowance"]), float(a["extra_bound"]))
                for r, o in zip(np.asarray(d["response_v"]), a["outputs"])]
-    (g, bound, _), others = outputs[0], tuple((g_k, b_k) for g_k, b_k, _ in outputs[1:])
-    return [Measurement(w, g, bound, others=others)]
+    others = tuple((o.response, o.bound) for o in outputs[1:])
+    return [Measurement(w, outputs[0].response, outputs[0].bound, others=others)]
