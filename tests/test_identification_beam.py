@@ -63,5 +63,6 @@ def test_result_document_has_contract_keys(results_b1_fixed):
     doc = results_b1_fixed[0][0].to_document()
     assert set(doc) >= {"modes", "conservatism", "iterations"}
     assert set(doc["conservatism"]) == {"embedding_gamma", "mismatch_ratio"}
-    assert [set(m) - {"verified", "unverified_reason"} for m in doc["modes"]] == [set(PARAM_NAMES)] * 3
+    assert [set(m) - {"verified", "unverified_reason", "group"} for m in doc["modes"]] == [set(PARAM_NAMES)] * 3
+    assert [m["group"] for m in doc["modes"]] == [[1], [2], [3]]  # separated modes: each alone (issue 47)
     assert all(isinstance(m["verified"], bool) for m in doc["modes"])

@@ -28,12 +28,15 @@ from setmem_hil.identification.embedding import conservatism_ratio, embedding_bo
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import A0, A1, B0, B1, IntervalModel
+from setmem_hil.identification.mode_group import GroupSettings, close_groups, identify_group
 from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 from setmem_hil.identification.one_mode_solver import OneModeProblem
 from setmem_hil.identification.partitioning import PartitionPlan, minimal_partition, partition_boxes
 from setmem_hil.model.prior import Prior
 from setmem_hil.identification.residual_terms import bound_residual, residual_midpoint_response, residual_mismatch
 from setmem_hil.identification.residue_bootstrap import bootstrap_residue_bounds
+
+POLISH_BOXES = 24  # boxes the final all-modes contraction may use (it rarely needs more than one)
 
 __all__ = [
     "IdentifySettings",
@@ -58,6 +61,8 @@ class IdentifySettings:
     max_inner_iterations: int = 3
     tolerance: float = 1e-3
     partition: bool = True
+    groups: bool = True  # closely spaced modes identified together where the split cannot narrow (issue 47)
+    group_rounds: int = 2
 
 
 @dataclass(frozen=True)
@@ -78,22 +83,35 @@ class IdentificationResult:
     unverified_reason: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()  # why gamma exceeds the target, per mode where it does
     residuals: dict = field(default_factory=dict)  # enabled residual terms: name -> (lo, hi)
+    groups: tuple[tuple[int, ...], ...] = ()  # 0-based modes identified together (issue 47); others alone
+
+    def group_of(self, i: int) -> tuple[int, ...]:
+        """The modes (0-based) mode ``i`` was identified with, itself included."""
+        return next((grp for grp in self.groups if i in grp), (i,))
 
     def to_document(self) -> dict:
-        """The identify RESULT.json dict (public contract)."""
+        """The identify RESULT.json dict (public contract); each mode also gets ``group``, the
+        1-based modes it was identified with (``[i]`` when alone)."""
         from setmem_hil.io.result_file import result_document
 
-        return result_document(
+        doc = result_document(
             self.model, self.embedding_gamma, self.mismatch_ratio, self.iterations,
             n_solves=int(self.n_solves), partitions=[list(p) for p in self.partitions],
             verified=[bool(v) for v in self.verified], unverified_reason=list(self.unverified_reason),
             conservatism_notes=list(self.notes), residuals=self.residuals or None,
         )
+        for i, mode in enumerate(doc["modes"]):
+            mode["group"] = [k + 1 for k in self.group_of(i)]
+        return doc
+
+
+def _band_centres(prior: Prior) -> np.ndarray:
+    return np.array([np.sqrt(m.omega_min * m.omega_max) for m in prior.modes])
 
 
 def _assign_points_to_modes(prior: Prior, omega: np.ndarray) -> np.ndarray:
     """Index of the mode whose prior band centre is nearest each point in log frequency."""
-    centres = np.array([np.sqrt(m.omega_min * m.omega_max) for m in prior.modes])
+    centres = _band_centres(prior)
     return np.argmin(np.abs(np.log(omega[:, None] / centres[None, :])), axis=1)
 
 
@@ -324,6 +342,22 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
     last_unverified: list[tuple[str, ...]] = [()] * n
     R = data.bound
     iterations = _outer_loop([data], lo, hi, res, prior, settings, counter, optimizers, gammas, plans, last_unverified, ())
+    groups = []
+    if settings.groups and n > 1:
+        groups = close_groups(mode_mismatch_bounds(IntervalModel(lo, hi), data.omega_rad_s), data.bound,
+                              _assign_points_to_modes(prior, data.omega_rad_s), _band_centres(prior))
+    group_unverified: dict[int, str] = {}
+    for _ in range(settings.group_rounds if groups else 0):
+        for group in groups:
+            _identify_group_in_place(data, lo, hi, res, list(group), prior, counter, group_unverified)
+        iterations += _outer_loop([data], lo, hi, res, prior, settings, counter, optimizers, gammas, plans, last_unverified, ())
+    if groups:
+        # every mode together, once, from the box reached: a contraction that removes the rest of
+        # the split's conservatism (a far mode's box bounded by the pair's mismatch); no deep search
+        _identify_group_in_place(data, lo, hi, res, list(range(n)), prior, counter, group_unverified,
+                                 GroupSettings(max_boxes=POLISH_BOXES))
+    for i, reason in group_unverified.items():
+        last_unverified[i] = tuple(last_unverified[i]) + (reason,)
 
     model = IntervalModel(lo, hi)
     mismatch = mode_mismatch_bounds(model, data.omega_rad_s)
@@ -348,7 +382,38 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         unverified_reason=tuple("; ".join(u) for u in last_unverified),
         notes=tuple(note for note in notes if note),
         residuals={name: (float(a), float(b)) for name, (a, b) in res.items()},
+        groups=tuple(tuple(grp) for grp in groups),
     )
+
+
+def _identify_group_in_place(data: FrequencyData, lo: np.ndarray, hi: np.ndarray, res: dict, group: list[int],
+                             prior: Prior, counter: _SolveCounter, unverified: dict,
+                             group_settings: GroupSettings = GroupSettings()) -> None:
+    """The group's modes bounded jointly (:mod:`setmem_hil.identification.mode_group`): the data
+    minus every other mode's midpoint, the bound plus their worst-case mismatch (eq. 3.11 with the
+    group in place of one mode); the result is intersected with ``lo, hi`` (never loosens)."""
+    current = IntervalModel(lo, hi)
+    w = data.omega_rad_s
+    mismatch = mode_mismatch_bounds(current, w)
+    outside = [k for k in range(lo.shape[0]) if k not in group]
+    estimates = current.midpoint.mode_responses(w)
+    g_group = data.response - estimates[outside].sum(axis=0) - residual_midpoint_response(res, w)
+    E = data.bound + mismatch[outside].sum(axis=0) + residual_mismatch(res, w)
+    try:
+        found = identify_group(w, g_group, E, lo[group], hi[group], group_settings)
+    except ValueError:
+        raise InconsistentDataError(
+            f"modes {', '.join(str(k + 1) for k in group)} (identified together): no parameters within the prior fit the "
+            f"data points at omega = {_by_band(w, prior, group[0])} within their error bounds "
+            "(check those measurements and bounds, or widen the prior)",
+            omegas_rad_s=w, mode_index=group[0],
+        ) from None
+    counter.n_solves += found.n_solves
+    lo[group] = np.maximum(lo[group], found.lower)
+    hi[group] = np.maximum(lo[group], np.minimum(hi[group], found.upper))
+    for k in group:
+        if not found.verified:
+            unverified[k] = f"group {[j + 1 for j in group]}: {found.unverified_reason}"
 
 
 def _mismatch_ratios(prior: Prior, data: FrequencyData, E_all: np.ndarray) -> np.ndarray:

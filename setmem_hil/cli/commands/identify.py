@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"rejected {len(rejected)} point(s) at omega = {', '.join(f'{w:.6g}' for w in rejected)} rad/s", file=sys.stderr)
     else:
         doc = identify(data, prior).to_document()
+    _add_exact_ratios(doc, data, prior)
     write_json(doc, args.out)
     unverified = [i + 1 for i, m in enumerate(doc["modes"]) if m.get("verified") is False]
     used = len(data.omega_rad_s) - len(doc.get("rejected_points", []))
@@ -56,6 +57,21 @@ def run(args: argparse.Namespace) -> int:
     print(f"identified {len(doc['modes'])} mode(s) from {used} points{dropped} in {doc['iterations']} iteration(s): "
           f"{args.out}" + (f"; bounds of mode(s) {unverified} NOT verified (see unverified_reason)" if unverified else ""))
     return 0
+
+
+def _add_exact_ratios(doc: dict, data, prior) -> None:
+    """``modes[i].exact_ratio`` (issue 47): each interval over the linearised exact feasible set's
+    extent around the box's centre, so a user sees where the method is conservative (thesis 3.6)."""
+    if prior.residuals.enabled or doc.get("rejected_points"):
+        return  # the reference models neither residual terms nor rejected points
+    from setmem_hil.identification.exact_set import exact_ratios
+    from setmem_hil.io.result_file import parse_result_mapping
+
+    model = parse_result_mapping(doc, "result")
+    box = prior.initial_bounds()
+    for mode, ratio in zip(doc["modes"], exact_ratios(data.omega_rad_s, data.response, data.bound, model.lower,
+                                                        model.upper, box.lower, box.upper)):
+        mode["exact_ratio"] = ratio
 
 
 def _run_outputs(args: argparse.Namespace, outputs) -> int:

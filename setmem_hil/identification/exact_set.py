@@ -1,0 +1,128 @@
+"""The exact feasible set's extent, linearised: the reference a guaranteed interval is held against.
+
+The exact feasible set is every parameter vector, inside the prior, that fits every point within
+its bound: ``|g_j - G(x; j w_j)| <= R_j``. It is not convex, but where the data determine the
+modes it is tiny, and the model linearised at a point ``x*`` of it,
+``G(x) ~ G(x*) + J (x - x*)``, describes it to many digits. Each parameter's extent over the
+linearised set is then a linear program: every point's disc ``|r_j - J_j dx| <= R_j`` is replaced by
+the inscribed regular polygon of ``sides`` sides (so the reference is never wider than the disc's
+set; ``cos(pi / sides)`` of it at worst), and HiGHS (scipy) finds the extremes.
+
+This is independent of the identification's conic programs (another solver, another relaxation)
+and is what ``modes[i].exact_ratio`` in RESULT.json and ``benchmarks/close_modes.py`` compare
+against (issue 47). Thesis section 3.6 asks the user to check the conservatism of the split; this
+is the check.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linprog
+
+from setmem_hil.model.modal_model import A0, A1, B0, B1
+
+
+def model_jacobian(values: np.ndarray, omega_rad_s) -> tuple[np.ndarray, np.ndarray]:
+    """``G(x; j w)`` and its derivative with respect to every ``(a1, a0, b1, b0)`` of every mode.
+
+    Returns ``(G (N,), J (N, 4 n))``, parameters in the model's row-major order.
+    """
+    p = np.asarray(values, dtype=float).reshape(-1, 4)
+    w = np.asarray(omega_rad_s, dtype=float)
+    s = 1j * w
+    J = np.zeros((w.size, p.size), dtype=complex)
+    G = np.zeros(w.size, dtype=complex)
+    for i, (a1, a0, b1, b0) in enumerate(p):
+        D = s * s + a1 * s + a0
+        N = b1 * s + b0
+        G += N / D
+        J[:, 4 * i + A1] = -N * s / D**2
+        J[:, 4 * i + A0] = -N / D**2
+        J[:, 4 * i + B1] = s / D
+        J[:, 4 * i + B0] = 1.0 / D
+    return G, J
+
+
+def linearised_extent(omega_rad_s, g, bound, at: np.ndarray, lower: np.ndarray | None = None,
+                      upper: np.ndarray | None = None, sides: int = 64):
+    """Per-parameter extent of the feasible set linearised at ``at`` (module docstring).
+
+    Parameters
+    ----------
+    omega_rad_s, g, bound : arrays (N,)
+    at : array (n, 4)
+        The linearisation point (the truth, or the identified box's centre).
+    lower, upper : arrays (n, 4), optional
+        The prior box; parameters with ``lower == upper`` are fixed.
+
+    Returns
+    -------
+    (lo, hi) arrays (n, 4), or ``None`` when the linearised set is empty (``at`` too far from the
+    data for the linearisation to mean anything).
+    """
+    x0 = np.asarray(at, dtype=float).reshape(-1)
+    n_par = x0.size
+    lower = np.full(n_par, -np.inf) if lower is None else np.asarray(lower, dtype=float).reshape(-1)
+    upper = np.full(n_par, np.inf) if upper is None else np.asarray(upper, dtype=float).reshape(-1)
+    free = upper > lower
+    G, J = model_jacobian(x0, omega_rad_s)
+    r = np.asarray(g, dtype=complex) - G
+    R = np.asarray(bound, dtype=float)
+    keep = np.isfinite(R)
+    r, Jf, R = r[keep], J[keep][:, free], R[keep]
+    # unknowns dx / scale with a unit step moving the worst point by one bound: a well-scaled LP
+    # whatever the parameters' magnitudes (b1 = 0 beside a0 = 1e6)
+    scale = 1.0 / np.maximum(np.max(np.abs(Jf) / R[:, None], axis=0), 1e-300)
+    Jf = Jf * scale[None, :]
+    phis = np.pi * 2 * np.arange(sides) / sides
+    rot = np.exp(-1j * phis)
+    # Re(e^{-j phi} (r - J dx)) <= R cos(pi / sides)  <=>  -Re(e^{-j phi} J) dx <= R cos - Re(e^{-j phi} r)
+    A = -(rot[:, None, None] * Jf[None, :, :]).real.reshape(-1, Jf.shape[1])
+    b = (R[None, :] * np.cos(np.pi / sides) - (rot[:, None] * r[None, :]).real).reshape(-1)
+    norm = np.maximum(np.abs(A).max(axis=1), 1e-300)
+    A, b = A / norm[:, None], b / norm
+    bounds = [((lo - x) / s if np.isfinite(lo) else None, (hi - x) / s if np.isfinite(hi) else None)
+              for lo, hi, x, s in zip(lower[free], upper[free], x0[free], scale)]
+    lo_out, hi_out = x0.copy(), x0.copy()
+    idx = np.flatnonzero(free)
+    for k in range(idx.size):
+        for sign in (1.0, -1.0):
+            c = np.zeros(idx.size)
+            c[k] = sign
+            res = linprog(c, A_ub=A, b_ub=b, bounds=bounds, method="highs")
+            if res.status == 2:
+                return None
+            if res.status != 0:
+                value = -np.inf if sign > 0 else np.inf
+            else:
+                value = float(res.x[k])
+            if sign > 0:
+                lo_out[idx[k]] = x0[idx[k]] + scale[k] * value
+            else:
+                hi_out[idx[k]] = x0[idx[k]] + scale[k] * value
+    return lo_out.reshape(-1, 4), hi_out.reshape(-1, 4)
+
+
+def exact_ratios(omega_rad_s, g, bound, lower: np.ndarray, upper: np.ndarray, prior_lower: np.ndarray,
+                 prior_upper: np.ndarray, sides: int = 32) -> list[dict | None]:
+    """Per mode, each interval's width over the linearised exact set's, linearised at the box's
+    centre (``modes[i].exact_ratio`` of RESULT.json); ``None`` for every mode when the linearised set
+    is empty, and a parameter is left out where the exact set has no width (a fixed parameter).
+
+    ``sides = 32`` keeps it quick (a few seconds beside the identification); the polygon then holds
+    at least ``cos(pi / 32) = 0.995`` of each disc, so a ratio may read up to 0.5 % high, never low.
+    """
+    centre = 0.5 * (np.asarray(lower, dtype=float) + np.asarray(upper, dtype=float))
+    extent = linearised_extent(omega_rad_s, g, bound, centre, prior_lower, prior_upper, sides=sides)
+    if extent is None:
+        return [None] * centre.shape[0]
+    ex_lo, ex_hi = extent
+    out = []
+    for i in range(centre.shape[0]):
+        ratios = {}
+        for name, col in (("a0", A0), ("a1", A1), ("b0", B0), ("b1", B1)):
+            exact = ex_hi[i, col] - ex_lo[i, col]
+            if exact > 0 and np.isfinite(exact):
+                ratios[name] = float((upper[i, col] - lower[i, col]) / exact)
+        out.append(ratios)
+    return out

@@ -1,0 +1,445 @@
+"""Closely spaced modes identified together: a certified branch-and-bound (thesis 7.2, our method).
+
+Chapter 3 splits the multi-mode problem into one-mode problems (eq. 3.11): mode ``i`` is fitted
+with its neighbours' responses treated as uncertainty bounded by their current boxes (Lemma 3.1).
+When two modes are a few percent apart, each one's mismatch at the other's resonance exceeds the
+data's bound, neither box shrinks, and the iteration stops at the prior (the thesis's first item of
+future work, section 7.2: "identify the parameters of more than one mode at a time").
+
+Here the modes of a group are bounded jointly. The parameters ``x`` are the group's
+``(a1, a0, b1, b0)`` per mode; each point requires (eq. 3.10 for the group, the other modes'
+mismatch already in ``E``)
+
+    |g_j - sum_i N_i(j w_j) / D_i(j w_j)| <= E_j,   N_i = b1_i j w + b0_i,  D_i = -w^2 + a1_i j w + a0_i.
+
+Relaxation of one box (mean-value form, our choice). Around the box centre ``c`` each mode's
+term is its first-order Taylor expansion plus a remainder whose size has a closed form:
+
+    N / D = N_c / D_c + dN / D_c - N_c dD / D_c^2 + R,   R = -(dN D_c - N_c dD) dD / (D D_c^2),
+
+so ``|R| <= (|dN| |D_c| + |N_c| |dD|) |dD| / (min_box |D| |D_c|^2)`` with ``|dN|, |dD|`` their
+largest values over the box and ``min |D|`` that of eq. (3.35). Every point becomes the affine
+second-order cone ``|r_c + J (x - c)| <= E_j + rho_j`` (``rho_j`` the remainders summed over the
+group): a convex outer set of the box's feasible set, whose bounds are certified by the conic
+program's dual (:mod:`setmem_hil.identification.certified_cone_program`). A box proved empty by a
+checked Farkas certificate is pruned; the others are contracted (bounds intersected, the
+expansion re-centred) and split where the remainders are large compared with the data's bound.
+The remainder shrinks with the square of the box, so the leaves' bounds approach the linearised
+exact feasible set (:mod:`setmem_hil.identification.exact_set`) as they get small.
+
+Why not the convex embedding of eq. (3.26) over the group's denominator product: the pair's
+quartic is affine in its coefficients, but the map from those coefficients back to two close
+poles is ill-conditioned exactly where the modes crowd (a root's sensitivity grows as the inverse
+of the poles' distance), so its boxes would be loose where they are needed.
+
+Result: the hull of the surviving leaves; every parameter of the group that fits every point
+within its bound (and the prior) lies inside it. Leaves whose bounds were not all certified keep
+their box's own bound and are reported unverified.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from setmem_hil.identification.certified_cone_program import AffineConeProgram
+from setmem_hil.identification.embedding import denominator_max, denominator_min
+from setmem_hil.model.modal_model import A0, A1, B0, B1
+
+_EPS = np.finfo(float).eps
+SPLIT_POLES_ONLY = False
+UNUSABLE_RATIO = 50.0  # a point whose remainder exceeds this many bounds counts as unusable when choosing a split
+
+
+@dataclass(frozen=True)
+class GroupSettings:
+    """Limits of the branch-and-bound (our choices, documented in docs/closely-spaced-modes.md).
+
+    ``fine_ratio``: a leaf is fine when every used point's remainder is at most this fraction of its
+    bound (then the relaxation is within about ``1 + fine_ratio`` of the exact set there).
+    ``max_boxes``: boxes processed at most; past it the open boxes' hull is kept (still guaranteed).
+    ``contraction_tolerance``: relative shrink of the box (any width) that counts as progress.
+    """
+
+    fine_ratio: float = 0.25
+    max_boxes: int = 400
+    max_contractions: int = 8
+    contraction_tolerance: float = 0.02
+    coarse_contraction_tolerance: float = 0.25
+    max_depth: int = 40
+    search_points: int = 160
+
+
+@dataclass(frozen=True)
+class GroupResult:
+    """Bounds of a group's parameters, shape ``(m, 4)`` each, and the search's figures."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+    verified: bool
+    unverified_reason: str
+    boxes: int
+    leaves: int
+    pruned: int
+    n_solves: int
+    exhausted: bool  # max_boxes reached: the open boxes' hull was kept
+
+
+GROUP_MISMATCH_RATIO = 1.0  # a neighbour's worst-case mismatch above the data's bound in a mode's band
+CLOSE_BAND_RATIO = 1.25  # neighbours whose prior band centres are within this factor can be grouped
+MAX_GROUP_SIZE = 3  # the search's dimension is 4 per mode: longer chains are cut into consecutive groups
+
+
+def close_groups(mismatch: np.ndarray, bound: np.ndarray, owner: np.ndarray, centres: np.ndarray) -> list[tuple[int, ...]]:
+    """Modes to identify together: neighbours in frequency whose worst-case mismatch (Lemma 3.1)
+    exceeds the data's bound at some point of the other's band, after the one-mode iteration has
+    reached its fixed point, and whose prior bands' centres are within ``CLOSE_BAND_RATIO``. There
+    the split of eq. (3.11) cannot narrow either mode (our criterion for the thesis's 7.2). The
+    band condition keeps separated modes on chapter 3's path whatever their data: with a few
+    points (a campaign's start) a far neighbour's box can be wide, but then more data, not a joint
+    search, is what narrows it.
+
+    Parameters
+    ----------
+    mismatch : (n, N)
+        Each mode's worst-case mismatch at each point.
+    bound : (N,)
+        The data's bound.
+    owner : (N,) int
+        The mode whose band each point is in.
+    centres : (n,)
+        The modes' band centres (to order them in frequency).
+    """
+    order = [int(i) for i in np.argsort(centres)]
+    positive = bound > 0
+    linked = []
+    for i, k in zip(order, order[1:]):
+        if centres[k] > CLOSE_BAND_RATIO * centres[i]:
+            linked.append(False)
+            continue
+        ratio = 0.0
+        for a, b in ((i, k), (k, i)):
+            pts = (owner == a) & positive
+            if pts.any():
+                ratio = max(ratio, float(np.max(mismatch[b, pts] / bound[pts])))
+        linked.append(ratio > GROUP_MISMATCH_RATIO)
+    groups, current = [], [order[0]] if order else []
+    for k, link in zip(order[1:], linked):
+        if link and len(current) < MAX_GROUP_SIZE:
+            current.append(k)
+        else:
+            if len(current) > 1:
+                groups.append(tuple(sorted(current)))
+            current = [k]
+    if len(current) > 1:
+        groups.append(tuple(sorted(current)))
+    return groups
+
+
+def _split_modes(x: np.ndarray) -> np.ndarray:
+    return np.asarray(x, dtype=float).reshape(-1, 4)
+
+
+def linearised_group(omega_rad_s, g, lo, hi, with_jacobian: bool = True):
+    """The mean-value form of one box (module docstring), or for a mode at a point where it is
+    tighter, the disc form: ``1 / D`` in the disc of centre ``1 / D_c`` and radius
+    ``|dD| / (min |D| |D_c|)``, so ``N / D = N / D_c + R`` with ``|R| <= (|N_c| + |dN|) |dD| /
+    (min |D| |D_c|)`` (no pole term in ``J``; smaller than the mean-value remainder when the box
+    spans more than the distance to resonance, ``|dD| > |D_c|``).
+
+    Parameters
+    ----------
+    omega_rad_s, g : arrays (N,)
+    lo, hi : arrays (4 m,)
+        The box, per mode ``(a1, a0, b1, b0)``.
+
+    Returns
+    -------
+    r_c : complex (N,)
+        ``g - sum_i N_i / D_i`` at the box centre.
+    J : complex (N, 4 m)
+        Derivative of the residual ``g - f(x)`` at the centre (``None`` without ``with_jacobian``).
+    err : float array (N,)
+        Rounding allowance of ``r_c``.
+    rho : float array (N,)
+        Rigorous bound of the remainder over the box (``inf`` where a denominator can vanish).
+    """
+    w = np.asarray(omega_rad_s, dtype=float)
+    jw = 1j * w
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    c, h = _split_modes(0.5 * (lo + hi)), _split_modes(0.5 * (hi - lo))
+    L, H = _split_modes(lo), _split_modes(hi)
+    m = c.shape[0]
+    r_c = np.asarray(g, dtype=complex).copy()
+    J = np.zeros((w.size, 4 * m), dtype=complex) if with_jacobian else None
+    rho = np.zeros(w.size)
+    err = 8 * _EPS * np.abs(r_c)
+    for i in range(m):
+        D_c = (c[i, A0] - w * w) + jw * c[i, A1]
+        N_c = c[i, B0] + jw * c[i, B1]
+        T_c = N_c / D_c
+        r_c -= T_c
+        abs_D = np.abs(D_c)
+        err += 8 * _EPS * np.abs(T_c) * (1.0 + (c[i, A0] + w * w + w * c[i, A1]) / abs_D)
+        dN = np.hypot(h[i, B0], w * h[i, B1])
+        dD = np.hypot(h[i, A0], w * h[i, A1])
+        d_min = denominator_min(w, L[i, A0], H[i, A0], L[i, A1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean_value = (dN * abs_D + np.abs(N_c) * dD) * dD / (d_min * abs_D * abs_D)
+            disc = (np.abs(N_c) + dN) * dD / (d_min * abs_D)
+        use_disc = disc < mean_value
+        term = np.where(use_disc, disc, mean_value)
+        term = np.where(dD == 0, 0.0, np.where(d_min > 0, term, np.inf))
+        rho += term * (1.0 + 1e-12)  # outward: the bound's own rounding
+        if with_jacobian:
+            # residual r = g - f: minus the derivative of N / D (no pole term where the disc is used)
+            pole = np.where(use_disc, 0.0, 1.0)
+            J[:, 4 * i + A1] = pole * N_c * jw / (D_c * D_c)
+            J[:, 4 * i + A0] = pole * N_c / (D_c * D_c)
+            J[:, 4 * i + B1] = -jw / D_c
+            J[:, 4 * i + B0] = -1.0 / D_c
+    return r_c, J, err, rho
+
+
+def _product_remainder(centres: list, deviations: list) -> np.ndarray:
+    """Bound of the terms of order >= 2 of ``prod_k (F_k,c + dF_k)`` given ``|F_k,c|`` and the
+    largest ``|dF_k|``: ``prod (|F_c| + |dF|) - prod |F_c| - sum_k |dF_k| prod_{l != k} |F_l,c|``."""
+    full = np.prod([a + d for a, d in zip(centres, deviations)], axis=0)
+    zeroth = np.prod(centres, axis=0)
+    first = sum(d * np.prod([a for l, a in enumerate(centres) if l != k], axis=0) if len(centres) > 1 else d
+                for k, d in enumerate(deviations))
+    return np.maximum(full - zeroth - first, 0.0)
+
+
+def multiplied_group(omega_rad_s, g, lo, hi):
+    """The group's constraint multiplied through by every denominator of the group (the thesis's
+    embedding, eq. 3.26, for several modes at once):
+
+        |g prod_i D_i - sum_i N_i prod_{k != i} D_k| <= E prod_i max_box |D_i|.
+
+    The left side is multilinear in the modes' parameter blocks, so its first-order expansion at the
+    box centre has a remainder bounded without any division (``_product_remainder``): unlike the
+    divided form it stays finite at a resonance inside the box, which is where coarse boxes of
+    close modes carry their information. Returns ``(P_c, J, err, rho, scale)``: the cone is
+    ``|P_c + J (x - c)| <= scale E + rho``.
+    """
+    w = np.asarray(omega_rad_s, dtype=float)
+    jw = 1j * w
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    c, h = _split_modes(0.5 * (lo + hi)), _split_modes(0.5 * (hi - lo))
+    L, H = _split_modes(lo), _split_modes(hi)
+    m = c.shape[0]
+    g = np.asarray(g, dtype=complex)
+    D = [(c[i, A0] - w * w) + jw * c[i, A1] for i in range(m)]
+    N = [c[i, B0] + jw * c[i, B1] for i in range(m)]
+    dD = [np.hypot(h[i, A0], w * h[i, A1]) for i in range(m)]
+    dN = [np.hypot(h[i, B0], w * h[i, B1]) for i in range(m)]
+    aD = [np.abs(d) for d in D]
+    aN = [np.abs(n) for n in N]
+
+    def prod_except(values, skip):
+        out = np.ones(w.size, dtype=values[0].dtype)
+        for k, v in enumerate(values):
+            if k not in skip:
+                out = out * v
+        return out
+
+    P_c = g * prod_except(D, ()) - sum(N[i] * prod_except(D, (i,)) for i in range(m))
+    J = np.zeros((w.size, 4 * m), dtype=complex)
+    for i in range(m):
+        # d/d a0_i and d/d a1_i of g prod D - sum_k N_k prod_{l != k} D_l: D_i' = 1 and j w
+        dP_dDi = g * prod_except(D, (i,)) - sum(N[k] * prod_except(D, (k, i)) for k in range(m) if k != i)
+        J[:, 4 * i + A0] = dP_dDi
+        J[:, 4 * i + A1] = dP_dDi * jw
+        dP_dNi = -prod_except(D, (i,))
+        J[:, 4 * i + B0] = dP_dNi
+        J[:, 4 * i + B1] = dP_dNi * jw
+    ag = np.abs(g)
+    rho = _product_remainder([ag * np.ones_like(w)] + aD, [np.zeros_like(w)] + dD)
+    for i in range(m):
+        rho = rho + _product_remainder([aN[i]] + [aD[k] for k in range(m) if k != i],
+                                       [dN[i]] + [dD[k] for k in range(m) if k != i])
+    # rounding of the formed products: a few ulps of every term's size before cancellation
+    # (a0 - w^2 cancels near resonance, so the terms are sized with a0 + w^2)
+    big_D = [np.abs(c[i, A0]) + w * w + w * np.abs(c[i, A1]) for i in range(m)]
+    err = 16 * (m + 1) * _EPS * (ag * prod_except(big_D, ()) + sum(aN[i] * prod_except(big_D, (i,)) for i in range(m)))
+    scale = np.ones(w.size)
+    for i in range(m):
+        scale = scale * denominator_max(w, L[i, A0], H[i, A0], H[i, A1])
+    return P_c, J, err, rho * (1.0 + 1e-12), scale
+
+
+def _remainders(omega, lo, hi) -> np.ndarray:
+    return linearised_group(omega, np.zeros(np.size(omega), dtype=complex), lo, hi, with_jacobian=False)[3]
+
+
+def _score(omega, E, lo, hi) -> float:
+    """How much the remainders blur the box's points (lower is better; for choosing a split)."""
+    ratio = np.minimum(_remainders(omega, lo, hi) / E, UNUSABLE_RATIO)
+    return float(np.sum(np.log1p(ratio)))
+
+
+def _split_dimension(omega, E, lo, hi) -> int:
+    """The free parameter whose halving blurs the points least (by the remainders' score)."""
+    best, best_score = -1, np.inf
+    poles = (np.arange(lo.size) % 4 == A1) | (np.arange(lo.size) % 4 == A0)
+    candidates = np.flatnonzero((hi > lo) & poles)
+    if SPLIT_POLES_ONLY and candidates.size:
+        pass
+    else:
+        candidates = np.flatnonzero(hi > lo)
+    for k in candidates:
+        mid = 0.5 * (lo[k] + hi[k])
+        scores = []
+        for a, b in ((lo[k], mid), (mid, hi[k])):
+            l2, h2 = lo.copy(), hi.copy()
+            l2[k], h2[k] = a, b
+            scores.append(_score(omega, E, l2, h2))
+        s = max(scores)
+        if s < best_score:
+            best, best_score = int(k), s
+    return best
+
+
+class _Search:
+    """The branch-and-bound's state: counters and the certified contraction of one box."""
+
+    def __init__(self, omega, g, E, settings: GroupSettings):
+        self.omega, self.g, self.E = omega, g, E
+        self.settings = settings
+        self.n_solves = 0
+        self.unverified: list[str] = []
+
+    def _cones(self, lo, hi):
+        """Each point's cone: the divided form where its remainder is below the point's bound, the
+        multiplied form elsewhere (both are outer relaxations; the choice only picks the tighter)."""
+        r_c, J, err, rho = linearised_group(self.omega, self.g, lo, hi)
+        C = self.E + rho
+        divided = rho <= self.E
+        if not divided.all():
+            P_c, J_m, err_m, rho_m, scale = multiplied_group(self.omega, self.g, lo, hi)
+            mult = ~divided
+            r_c, J, err, C = r_c.copy(), J.copy(), err.copy(), C.copy()
+            r_c[mult], J[mult], err[mult] = P_c[mult], J_m[mult], err_m[mult]
+            C[mult] = scale[mult] * self.E[mult] + rho_m[mult]
+        return r_c, J, err, np.where(np.isfinite(self.E), C, np.inf)
+
+    def contract(self, lo, hi):
+        """Certified bounds of the box's feasible set, repeated while it shrinks (by more than the
+        coarse tolerance while its remainders are large, the fine one after).
+
+        Returns ``(lo, hi, fine)`` or ``None`` when the box is proved empty.
+        """
+        finite = np.isfinite(self.E)
+        for _ in range(self.settings.max_contractions):
+            r_c, J, err, C = self._cones(lo, hi)
+            use = np.isfinite(C)
+            if not use.any():
+                return lo, hi, False
+            program = AffineConeProgram(r_c[use], J[use], err[use], lo, hi, self.omega[use])
+            sol = program.bound_box(C[use], lo, hi)
+            self.n_solves += program.n_solves
+            if not sol.feasible:
+                return None
+            if sol.unverified:
+                self.unverified.extend(sol.unverified)
+            new_lo, new_hi = np.maximum(lo, sol.lower), np.minimum(hi, sol.upper)
+            new_hi = np.maximum(new_lo, new_hi)
+            width = np.maximum(hi - lo, 1e-300)
+            shrink = np.max(((hi - lo) - (new_hi - new_lo)) / width)
+            lo, hi = new_lo, new_hi
+            fine = bool(np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.fine_ratio * self.E[finite]))
+            if shrink < (self.settings.contraction_tolerance if fine else self.settings.coarse_contraction_tolerance):
+                break
+        fine = bool(np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.fine_ratio * self.E[finite]))
+        return lo, hi, fine
+
+
+def _search_subset(omega: np.ndarray, n_max: int) -> np.ndarray:
+    """Indices of at most ``n_max`` points spread evenly in frequency order (any subset gives a
+    valid outer bound: fewer constraints, a larger set)."""
+    if omega.size <= n_max:
+        return np.arange(omega.size)
+    order = np.argsort(omega, kind="stable")
+    return np.sort(order[np.unique(np.linspace(0, omega.size - 1, n_max).round().astype(int))])
+
+
+def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings: GroupSettings, counts: dict):
+    """Depth-first search of the box; returns the leaves (contracted, not proved empty)."""
+    stack = [(lo, hi, 0)]
+    leaves: list[tuple[np.ndarray, np.ndarray]] = []
+    while stack:
+        if counts["boxes"] >= settings.max_boxes:
+            counts["exhausted"] = True
+            leaves.extend((b_lo, b_hi) for b_lo, b_hi, _ in stack)
+            break
+        b_lo, b_hi, depth = stack.pop()
+        counts["boxes"] += 1
+        out = search.contract(b_lo, b_hi)
+        if out is None:
+            counts["pruned"] += 1
+            continue
+        b_lo, b_hi, fine = out
+        k = -1 if fine or depth >= settings.max_depth else _split_dimension(search.omega, search.E, b_lo, b_hi)
+        if k < 0:
+            leaves.append((b_lo, b_hi))
+            continue
+        mid = 0.5 * (b_lo[k] + b_hi[k])
+        left_hi, right_lo = b_hi.copy(), b_lo.copy()
+        left_hi[k], right_lo[k] = mid, mid
+        stack.append((right_lo, b_hi, depth + 1))
+        stack.append((b_lo, left_hi, depth + 1))
+    return leaves
+
+
+def _hull(leaves):
+    return np.min([l for l, _ in leaves], axis=0), np.max([h for _, h in leaves], axis=0)
+
+
+def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSettings()) -> GroupResult:
+    """Certified bounds of a group of modes' parameters (module docstring).
+
+    The search runs on at most ``settings.search_points`` points (a subset: its set contains the
+    whole data's), then the hull of its leaves is searched again with every point.
+
+    Parameters
+    ----------
+    omega_rad_s, g, E : arrays (N,)
+        Points, the data with every mode outside the group subtracted at its midpoint, and the
+        bound on each point's error (the data's bound plus the outside modes' mismatch, eq. 3.11).
+    lo, hi : arrays (m, 4)
+        The group's current box (the prior intersected with earlier bounds); finite.
+
+    Returns
+    -------
+    GroupResult
+        Bounds inside ``[lo, hi]``.
+
+    Raises
+    ------
+    ValueError
+        When every box is proved empty (the caller names the data points).
+    """
+    omega = np.asarray(omega_rad_s, dtype=float)
+    g = np.asarray(g, dtype=complex)
+    E = np.asarray(E, dtype=float)
+    m = np.asarray(lo).shape[0]
+    box_lo = np.asarray(lo, dtype=float).reshape(-1).copy()
+    box_hi = np.asarray(hi, dtype=float).reshape(-1).copy()
+    counts = {"boxes": 0, "pruned": 0, "exhausted": False}
+    n_solves, unverified = 0, []
+    subsets = [_search_subset(omega, settings.search_points)]
+    if subsets[0].size < omega.size:
+        subsets.append(np.arange(omega.size))
+    for idx in subsets:
+        search = _Search(omega[idx], g[idx], E[idx], settings)
+        leaves = _branch_and_bound(search, box_lo, box_hi, settings, counts)
+        n_solves += search.n_solves
+        unverified.extend(search.unverified)
+        if not leaves:
+            raise ValueError("every box of the group was proved empty")
+        box_lo, box_hi = _hull(leaves)
+    reason = "; ".join(dict.fromkeys(unverified))
+    return GroupResult(box_lo.reshape(m, 4), box_hi.reshape(m, 4), not unverified, reason, counts["boxes"],
+                       len(leaves), counts["pruned"], n_solves, counts["exhausted"])
