@@ -15,25 +15,7 @@ from setmem_hil.identification.algorithm import identify
 from setmem_hil.identification.exact_set import linearised_extent, model_jacobian
 from setmem_hil.identification.mode_group import close_groups, linearised_group, multiplied_group
 from setmem_hil.model.frequency_data import FrequencyData
-from setmem_hil.model.modal_model import ModalParameters
-from setmem_hil.model.prior import ModePrior, Prior
-
-
-def close_pair_case(separation, residues=(4.0, -2.5), noise=1.0, n=300, seed=0):
-    """The issue's synthetic structure: modes at 10 rad/s and 10 (1 + separation), zeta 0.005, a
-    third at 31 rad/s; lines from 6 to 40 rad/s, bound 2 % |G| + 1e-4 (times ``noise``), errors
-    uniform in the disc of the bound; brackets meeting between the pair."""
-    w1, w2 = 10.0, 10.0 * (1 + separation)
-    truth = ModalParameters.from_modal([w1, w2, 31.0], [0.005] * 3, [residues[0], residues[1], 3.0])
-    w = np.linspace(6.0, 40.0, n)
-    G = truth.frequency_response(w)
-    bound = noise * (0.02 * np.abs(G) + 1e-4)
-    rng = np.random.default_rng(seed)
-    g = G + bound * np.sqrt(rng.uniform(0, 1, n)) * np.exp(2j * np.pi * rng.uniform(0, 1, n))
-    mid = np.sqrt(w1 * w2)
-    brackets = [(0.95 * w1, mid), (mid, 1.05 * w2), (0.9 * 31.0, 1.1 * 31.0)]
-    prior = Prior(tuple(ModePrior(a, b, 0.05, -0.1, 0.1, -10.0, 10.0) for a, b in brackets))
-    return truth, FrequencyData(w, g, bound), prior
+from setmem_hil.sim_backends.close_pair import close_pair_case
 
 
 def _direct(x, w, g):

@@ -6,8 +6,11 @@ widens them into the brackets of a prior (``setmem_hil.io.prior_proposal``).
 
 1. Poles: the least-squares complex-frequency method (LSCF, Guillaume et al. 2003) of sdypy-EMA
    (``sdypy.EMA.Model``, ``get_poles``) over the model orders up to ``max_order``; the physical
-   poles are the stable poles closest to the largest peaks of ``|G|`` in the band
-   (``select_closest_poles``). sdypy-EMA is the maintained continuation of pyEMA (LADISK).
+   poles are the columns of the stability diagram (:func:`stable_poles`: a pole that recurs from
+   one order to the next within 0.5 % in frequency and 25 % in damping, over at least three
+   orders), the columns held over most orders first (issue 47: the peaks of ``|G|`` merge for
+   close modes, where the diagram still separates them). sdypy-EMA is the maintained
+   continuation of pyEMA (LADISK).
 2. Residues: with the poles fixed, the real residues ``b0`` (``b1 = 0``: receptance) are the
    weighted least-squares solution (weights ``1 / bound``) of ``sum_i b0_i / (s^2 + 2 zeta_i
    omega_i s + omega_i^2)`` plus, when chosen, a low pseudo-mode (what lies below the band:
@@ -22,19 +25,129 @@ computes are guaranteed relative to that prior.
 from __future__ import annotations
 
 import contextlib
+import math
 import io
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
+
 from scipy.signal import find_peaks
 
 from setmem_hil.model.frequency_data import FrequencyData
 
-__all__ = ["ModeEstimate", "ModalEstimate", "estimate_modes", "estimate_common_modes", "with_complex_residues"]
+__all__ = ["ModeEstimate", "ModalEstimate", "StablePole", "stable_poles", "estimate_modes", "estimate_common_modes", "with_complex_residues"]
 
 LOW_MODE_FRACTION = 0.1
 """The low pseudo-mode's natural frequency as a fraction of the band's lowest frequency."""
+
+STABLE_FREQUENCY_TOL = 0.005
+STABLE_DAMPING_TOL = 0.25
+MIN_STABLE_ORDERS = 3
+MAX_STABLE_ZETA = 0.2
+"""A pole is stable when the previous order has one within ``STABLE_FREQUENCY_TOL`` (relative) in
+frequency and ``STABLE_DAMPING_TOL`` (relative) in damping, with ``0 < zeta < MAX_STABLE_ZETA``; a
+column of the diagram is stable over at least ``MIN_STABLE_ORDERS`` orders. The usual criteria of
+modal-analysis practice are 1 % and 5 %; LSCF's damping on coarse lines wanders more, and the
+frequency tolerance is halved so that modes 1 % apart stay in two columns."""
+
+
+@dataclass(frozen=True)
+class StablePole:
+    """A column of the stability diagram: its median frequency and damping, and over how many
+    orders it is stable."""
+
+    omega_rad_s: float
+    zeta: float
+    orders: int
+
+
+def stable_poles(pole_omegas, pole_zetas, band_rad_s: tuple[float, float]) -> list[StablePole]:
+    """The stability diagram's stable columns in the band, in ascending frequency (see the
+    constants above). Stable poles are clustered in frequency: two stable poles closer than half
+    the frequency tolerance are one column."""
+    lo, hi = band_rad_s
+    points: list[tuple[float, float, int]] = []
+    previous = None
+    for k, (w, z) in enumerate(zip(pole_omegas, pole_zetas)):
+        w, z = np.asarray(w, dtype=float), np.asarray(z, dtype=float)
+        keep = (w >= lo) & (w <= hi) & (z > 0) & (z < MAX_STABLE_ZETA)
+        w, z = w[keep], z[keep]
+        if previous is not None and previous[0].size:
+            for wi, zi in zip(w, z):
+                j = int(np.argmin(np.abs(previous[0] - wi)))
+                if abs(previous[0][j] - wi) <= STABLE_FREQUENCY_TOL * wi and abs(previous[1][j] - zi) <= STABLE_DAMPING_TOL * zi:
+                    points.append((float(wi), float(zi), k))
+        previous = (w, z)
+    points.sort()
+    columns: list[list[tuple[float, float, int]]] = []
+    for p in points:
+        if columns and p[0] - columns[-1][-1][0] <= 0.5 * STABLE_FREQUENCY_TOL * p[0]:
+            columns[-1].append(p)
+        else:
+            columns.append([p])
+    out = []
+    for col in columns:
+        orders = len({p[2] for p in col})
+        if orders >= MIN_STABLE_ORDERS:
+            out.append(StablePole(float(np.median([p[0] for p in col])), float(np.median([p[1] for p in col])), orders))
+    return out
+
+
+STABILITY_ORDER = 60
+DUPLICATE_TOL = 0.002  # two estimates closer than this (relative) are one pole proposed twice
+SPURIOUS_ZETA_RATIO = 5.0
+
+
+def _repaired(wn: list, zeta: list, columns: list[StablePole], bands: list[FrequencyData]) -> tuple[list, list]:
+    """The peak-based estimates checked against the stability diagram (issue 47): an estimate that
+    repeats another (within ``DUPLICATE_TOL``), or that has no stable column within 1 % and a
+    damping unlike a mode's (at the fit's floor, or over ``SPURIOUS_ZETA_RATIO`` times the others'
+    median: the hammer test's 876.5 Hz, the synthetic pair's 14.05 rad/s), is replaced by the
+    strongest stable column no estimate holds, refined within half the gap to its neighbours.
+    Every other estimate is kept as it is (the path of the real beam data, whose resonances lie
+    between coarse lines and whose columns wander)."""
+    if not columns or not wn:
+        return wn, zeta
+    wn, zeta = list(wn), list(zeta)
+
+    def held(w):
+        return [c for c in columns if abs(c.omega_rad_s - w) <= 0.01 * w]
+
+    bad = []
+    for i, w in enumerate(wn):
+        repeat = any(abs(wn[j] - w) <= DUPLICATE_TOL * w for j in range(i))
+        others = [z for j, z in enumerate(zeta) if j != i]
+        typical = float(np.median(others)) if others else math.nan
+        odd_damping = zeta[i] <= 1e-5 or zeta[i] > SPURIOUS_ZETA_RATIO * typical
+        if repeat or (not held(w) and odd_damping):
+            bad.append(i)
+    if not bad:
+        return wn, zeta
+    good = [wn[i] for i in range(len(wn)) if i not in bad]
+    free = [c for c in columns if all(abs(c.omega_rad_s - w) > 0.01 * w for w in good)]
+    data = bands[0] if len(bands) == 1 else _combined_magnitude(bands)
+    for i, col in zip(bad, _strongest_columns(free, len(bad), data)):
+        wn[i], zeta[i] = col.omega_rad_s, min(max(col.zeta, 1e-6), 0.5)
+    order = np.argsort(wn)
+    wn, zeta = [wn[k] for k in order], [zeta[k] for k in order]
+    replaced = {int(np.flatnonzero(order == i)[0]) for i in bad[: len(free)]}
+    for i in sorted(replaced):
+        gaps = [abs(np.log(wn[j] / wn[i])) for j in (i - 1, i + 1) if 0 <= j < len(wn)]
+        reach = min([0.03] + [0.45 * gap for gap in gaps])
+        wn[i], zeta[i] = _refine_pole(_strongest_at(bands, wn[i]), wn[i], zeta[i], reach)
+    return wn, zeta
+
+
+def _strongest_columns(stable: list[StablePole], count: int, data: FrequencyData) -> list[StablePole]:
+    """The ``count`` columns held over most orders (ties: the larger ``|G|`` at the column), in
+    ascending frequency."""
+    mag = np.abs(data.response)
+
+    def strength(p: StablePole):
+        return (p.orders, float(mag[int(np.argmin(np.abs(data.omega_rad_s - p.omega_rad_s)))]))
+
+    return sorted(sorted(stable, key=strength, reverse=True)[:count], key=lambda p: p.omega_rad_s)
 
 
 @dataclass(frozen=True)
@@ -58,6 +171,7 @@ class ModalEstimate:
     pole_omegas: tuple[np.ndarray, ...]
     pole_zetas: tuple[np.ndarray, ...]
     residuals: dict = None  # fitted residual terms: {"lower": r (of r/s^2), "upper": r (constant)}
+    stable: tuple = ()  # the stability diagram's stable columns (StablePole), for the figure
 
 
 def _lscf_poles(datas: list[FrequencyData], max_order: int):
@@ -84,15 +198,17 @@ def _peaks(data: FrequencyData, count: int) -> np.ndarray:
     return np.sort(data.omega_rad_s[idx[order]])
 
 
-def _refine_pole(data: FrequencyData, wn: float, zeta: float) -> tuple[float, float]:
+def _refine_pole(data: FrequencyData, wn: float, zeta: float, reach: float = 0.03) -> tuple[float, float]:
     """Local refinement of one pole: a single mode plus a complex constant (the other modes)
-    fitted by nonlinear least squares to the lines within 3% of ``wn`` (weights ``1 / bound``).
-    Lightly damped poles must be placed to a fraction of their half-power width, which the
-    global polynomial fit does not always reach on coarse spectral lines."""
+    fitted by nonlinear least squares to the lines within ``reach`` (3 %) of ``wn`` (weights
+    ``1 / bound``). Lightly damped poles must be placed to a fraction of their half-power width,
+    which the global polynomial fit does not always reach on coarse spectral lines. With a close
+    neighbour the caller narrows ``reach`` to less than half the gap, so that two poles are never
+    refined onto the same resonance (issue 47: 810.3 Hz proposed twice)."""
     from scipy.optimize import least_squares
 
     w = data.omega_rad_s
-    near = np.abs(w - wn) <= 0.03 * wn
+    near = np.abs(w - wn) <= reach * wn
     if near.sum() < 5:
         return wn, zeta
     ww, gg, rr = w[near], data.response[near], np.maximum(data.bound[near], 1e-300)
@@ -108,8 +224,10 @@ def _refine_pole(data: FrequencyData, wn: float, zeta: float) -> tuple[float, fl
     k = int(np.argmax(np.abs(gg)))
     x0 = np.array([ww[k] / wn - 1.0, np.log(max(zeta, 1e-5)), 2 * max(zeta, 1e-5) * 0.0, 2 * max(zeta, 1e-5), 0.0, 0.0])
     try:
-        fit = least_squares(residual, x0, bounds=([-0.03, np.log(1e-7), -np.inf, -np.inf, -np.inf, -np.inf],
-                                                  [0.03, np.log(0.5), np.inf, np.inf, np.inf, np.inf]))
+        if reach < 0.03:  # a close neighbour's bound: start inside it
+            x0[0] = float(np.clip(x0[0], -0.99 * reach, 0.99 * reach))
+        fit = least_squares(residual, x0, bounds=([-reach, np.log(1e-7), -np.inf, -np.inf, -np.inf, -np.inf],
+                                                  [reach, np.log(0.5), np.inf, np.inf, np.inf, np.inf]))
     except ValueError:
         return wn, zeta
     return float(wn * (1.0 + fit.x[0])), float(np.exp(fit.x[1]))
@@ -179,6 +297,18 @@ def estimate_common_modes(datas: list[FrequencyData], n_modes: int, band_rad_s: 
     model = _lscf_poles(bands, order)
     peak_data = bands[0] if len(bands) == 1 else _combined_magnitude(bands)  # one output: its own |G|, as always
     candidates = []
+    columns: list[StablePole] | None = None
+
+    def stable_columns() -> list[StablePole]:
+        """The diagram's stable columns, from a second LSCF run to order 60 (a close pair's
+        columns settle only at higher orders: the hammer test's 851 Hz column holds over 11 orders
+        up to 60, none up to 26); computed once, when first needed."""
+        nonlocal columns
+        if columns is None:
+            deep = model if order >= STABILITY_ORDER else _lscf_poles(bands, STABILITY_ORDER)
+            columns = stable_poles([2 * np.pi * np.asarray(p, dtype=float) for p in deep.pole_freq], deep.pole_xi, (lo, hi))
+        return columns
+
     for n_in_band in (n_modes, n_modes - 1):  # all in band, or one low pseudo-mode below the band
         if n_in_band < 0:
             continue
@@ -196,6 +326,7 @@ def estimate_common_modes(datas: list[FrequencyData], n_modes: int, band_rad_s: 
                 if abs(wn[i] - peak) > 0.02 * peak:  # LSCF settled on another pole: start at the peak
                     wn[i], zeta[i] = float(peak), 1e-3
                 wn[i], zeta[i] = _refine_pole(_strongest_at(bands, peak), wn[i], zeta[i])
+            wn, zeta = _repaired(wn, zeta, stable_columns(), bands)
         low = n_in_band < n_modes
         if low:
             wn, zeta = [LOW_MODE_FRACTION * lo] + wn, [0.1] + zeta
@@ -214,7 +345,7 @@ def estimate_common_modes(datas: list[FrequencyData], n_modes: int, band_rad_s: 
     return [ModalEstimate(
         modes=tuple(sorted(modes, key=lambda m: m.omega_n_rad_s)), max_normalized_residual=residual, band_rad_s=(float(lo), float(hi)),
         orders=orders, pole_omegas=tuple(2 * np.pi * np.asarray(p, dtype=float) for p in model.pole_freq),
-        pole_zetas=tuple(np.asarray(z, dtype=float) for z in model.pole_xi), residuals=fitted,
+        pole_zetas=tuple(np.asarray(z, dtype=float) for z in model.pole_xi), residuals=fitted, stable=tuple(columns or ()),
     ) for residual, modes, fitted in per_output]
 
 
@@ -243,7 +374,7 @@ def with_complex_residues(datas: list[FrequencyData], estimates: list[ModalEstim
         modes = tuple(ModeEstimate(m.omega_n_rad_s, m.zeta, float(b0[i]), m.low_pseudo_mode, float(b1[i]))
                       for i, m in enumerate(est.modes))
         out.append(ModalEstimate(modes, worst, est.band_rad_s, est.orders, est.pole_omegas, est.pole_zetas,
-                                 dict(zip(names, (float(c) for c in fitted)))))
+                                 dict(zip(names, (float(c) for c in fitted))), est.stable))
     return out
 
 

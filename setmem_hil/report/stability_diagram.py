@@ -24,6 +24,9 @@ def plot_stability_diagram(estimate: ModalEstimate, data: FrequencyData, path: s
     for order, w, z in zip(estimate.orders, estimate.pole_omegas, estimate.pole_zetas):
         keep = (w >= lo) & (w <= hi) & (z > 0) & (z < 0.3)
         ax.plot(w[keep] / (2 * math.pi), order[keep], ".", color="0.55", ms=3)
+    top = max((float(np.max(o)) for o in estimate.orders if len(o)), default=1.0)
+    for col in estimate.stable:  # the diagram's stable columns (issue 47), chosen or not
+        ax.plot([col.omega_rad_s / (2 * math.pi)], [top + 1.5], "v", color="tab:green", ms=7)
     for m in estimate.modes:
         if not m.low_pseudo_mode:
             ax.axvline(m.omega_n_rad_s / (2 * math.pi), color="tab:red", lw=1, alpha=0.8)
@@ -34,7 +37,7 @@ def plot_stability_diagram(estimate: ModalEstimate, data: FrequencyData, path: s
     inside = (data.omega_rad_s >= lo) & (data.omega_rad_s <= hi)
     twin.semilogy(data.omega_rad_s[inside] / (2 * math.pi), np.abs(data.response[inside]), color="tab:blue", lw=1)
     twin.set_ylabel("|G| (receptance, data units)")
-    ax.set_title("Stability diagram: poles per order (grey), chosen poles (red), |G| (blue)")
+    ax.set_title("Stability diagram: poles per order (grey), stable columns (green), chosen (red), |G| (blue)", fontsize=10)
     fig.tight_layout()
     out = Path(path)
     with atomic_path(out) as tmp:
