@@ -28,7 +28,7 @@ from setmem_hil.identification.embedding import conservatism_ratio, embedding_bo
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import A0, A1, B0, B1, IntervalModel
-from setmem_hil.identification.mode_group import STUCK_FRACTION, GroupSettings, close_groups, identify_group
+from setmem_hil.identification.mode_group import GroupSettings, close_groups, identify_group
 from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 from setmem_hil.identification.one_mode_solver import OneModeProblem
 from setmem_hil.identification.partitioning import PartitionPlan, minimal_partition, partition_boxes
@@ -344,10 +344,9 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
     iterations = _outer_loop([data], lo, hi, res, prior, settings, counter, optimizers, gammas, plans, last_unverified, ())
     groups = []
     if settings.groups and n > 1:
-        prior_width = prior.initial_bounds().width[:, A0]
-        stuck = (hi[:, A0] - lo[:, A0]) >= STUCK_FRACTION * prior_width
         groups = close_groups(mode_mismatch_bounds(IntervalModel(lo, hi), data.omega_rad_s), data.bound,
-                              _assign_points_to_modes(prior, data.omega_rad_s), _band_centres(prior), stuck)
+                              _assign_points_to_modes(prior, data.omega_rad_s), _band_centres(prior),
+                              np.array([m.zeta_max for m in prior.modes]))
     group_unverified: dict[int, str] = {}
     for _ in range(settings.group_rounds if groups else 0):
         for group in groups:
