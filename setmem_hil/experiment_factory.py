@@ -189,6 +189,7 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
             sensors=tuple(sim.sensors),
             actuator=sim.actuator,
             control_output=sim.control_output - 1,
+            truth_modes=tuple(sim.truth_modes),
             dwell_model=procedure.prior.initial_bounds(),
         )
     if kind == "instruments":
@@ -219,6 +220,11 @@ def true_structure(procedure: Procedure):
         damping = backend.emulation.damping if backend.emulation.damping is not None else BEAM_DAMPING_RATIO
         return scaled_beam(ModalParameters.from_modal(beam_natural_frequencies(), damping, BEAM_RESIDUE, 0.0), backend.emulation.first_mode_rad_s)
     sim = backend.simulation
+    if sim.truth_modes:  # a truth file's structure (issue 47)
+        modes = sorted(sim.truth_modes)
+        full = ModalParameters.from_modal(*(np.array([m[k] for m in modes], dtype=float) for k in (0, 1, 2)),
+                                          np.array([m[3] for m in modes], dtype=float))
+        return full if sim.unmodelled_dynamics else full.truncated(min(procedure.prior.n_modes, full.n_modes))
     control = sim.sensors[sim.control_output - 1]
     if (control, sim.actuator) == (1.0, 1.0):
         full = beam_parameters()

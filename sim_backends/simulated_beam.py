@@ -54,6 +54,7 @@ class SimulatedBeamExperiment:
     sensors: tuple = (1.0,)
     actuator: float = 1.0
     control_output: int = 0  # index into sensors (0-based) of the sensor returned as ``response``
+    truth_modes: tuple = ()  # ((omega_rad_s, zeta, b0, b1), ...): a structure replacing the beam (issue 47)
     truth: ModalParameters = field(init=False)
     n_measured: int = 0  # measurements taken so far; set it when resuming from a journal
 
@@ -64,6 +65,9 @@ class SimulatedBeamExperiment:
             raise ValueError(f"control_output: expected an index into {len(self.sensors)} sensor(s), found {self.control_output!r}")
         S = float(self.first_mode_rad_s)
         self._truths, self._noise_bounds = [], []
+        if self.truth_modes:
+            self._use_truth_modes()
+            return
         for x in self.sensors:
             # the thesis's beam exactly for the tip sensor and tip force; mode shapes elsewhere (issue 25)
             full = beam_parameters() if (x, self.actuator) == (1.0, 1.0) else beam_parameters_at(x, self.actuator)
@@ -77,6 +81,36 @@ class SimulatedBeamExperiment:
         self._noise_bound = self._noise_bounds[self.control_output]
         self.truth = self._truths[self.control_output]
         self._raw: list[RawRecord] = []
+
+    def _use_truth_modes(self) -> None:
+        """A truth file's structure (:mod:`setmem_hil.io.truth_file`): its modes sorted by
+        frequency, the lowest ``n_modelled`` modelled. The noise profile applies to it as to the
+        beam (its fully damped version, its response). The higher modes are the unmodelled
+        dynamics, and their own response's magnitude is added to each point's bound: the
+        procedure's ``|W1|`` was shaped for the cantilever, so it need not cover another
+        structure's modes."""
+        if tuple(self.sensors) != (1.0,) or self.first_mode_rad_s != 1.0:
+            raise ValueError("truth_modes: one sensor (the file's), unscaled")
+        modes = sorted(self.truth_modes)
+        w, z, b0, b1 = (np.array([m[k] for m in modes], dtype=float) for k in range(4))
+        full = ModalParameters.from_modal(w, z, b0, b1)
+        self._noise_bounds.append(noise_bound_function(self.noise_profile, full, self.noise_scale))
+        self._truths.append(full if self.unmodelled_dynamics else full.truncated(min(self.n_modelled, full.n_modes)))
+        self._noise_bound = self._noise_bounds[0]
+        self.truth = self._truths[0]
+        self._raw: list[RawRecord] = []
+
+    def unmodelled_magnitude(self, w: np.ndarray) -> np.ndarray:
+        """What the modelled modes leave out at ``w``: ``|W1|`` for the beam, the truth file's
+        higher modes' own response for a truth file (zero without unmodelled dynamics)."""
+        if not self.unmodelled_dynamics:
+            return np.zeros(np.size(w))
+        if self.truth_modes:
+            if self.truth.n_modes <= self.n_modelled:
+                return np.zeros(np.size(w))
+            rest = ModalParameters(self.truth.values[self.n_modelled:])
+            return np.abs(rest.frequency_response(w)).reshape(np.shape(w))
+        return polynomial_magnitude(self.w1_num, self.w1_den, w)
 
     @property
     def truths(self) -> tuple[ModalParameters, ...]:
@@ -97,9 +131,7 @@ class SimulatedBeamExperiment:
         """A noise bound plus ``|W1|`` when the truth has unmodelled modes. ``|W1|`` bounds them
         at every sensor position: a cantilever's mass-normalised shapes are largest at the tip,
         so ``|phi_i(a) phi_i(x)| <= 4``, the thesis's tip residue."""
-        if self.unmodelled_dynamics:
-            return noise_bound + polynomial_magnitude(self.w1_num, self.w1_den, w)
-        return noise_bound
+        return noise_bound + self.unmodelled_magnitude(w)
 
     def noise_generator(self, index: int, sensor: int | None = None) -> np.random.Generator:
         """Generator for the ``index``-th measurement (0-based) of a sensor.
@@ -125,7 +157,7 @@ class SimulatedBeamExperiment:
         w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
         gain = np.broadcast_to(np.asarray(noise_gain, dtype=float), w.shape)
         readings = [self._reading(k, w, gain) for k in range(len(self.sensors))]
-        unmodelled = polynomial_magnitude(self.w1_num, self.w1_den, w) if self.unmodelled_dynamics else np.zeros(w.size)
+        unmodelled = self.unmodelled_magnitude(w)
         record = RawRecord(SIMULATED_PHASOR, {
             "omega_rad_s": w.copy(), "phasor": np.array([r[0] for r in readings]), "noise_bound": np.array([r[1] for r in readings]),
             "unmodelled_bound": np.broadcast_to(unmodelled, (len(readings), w.size)).copy(),

@@ -94,6 +94,7 @@ def redundant_points(omega_rad_s, g, E, lo, hi) -> np.ndarray:
     r_c = g * ((c[1] - w * w) + jw * c[0]) - (jw * c[2] + c[3])
     spread = np.abs(g) * (w * h[0] + h[1]) + w * h[2] + h[3]
     worst = np.abs(r_c) + spread
-    floor = denominator_min(w, lo[1], hi[1], lo[0]) * E
+    with np.errstate(invalid="ignore"):  # an infinite bound at a zero denominator: NaN, never redundant
+        floor = denominator_min(w, lo[1], hi[1], lo[0]) * E
     # a relative margin far above rounding keeps the test safe in floating point
     return np.isfinite(E) & (worst * (1.0 + 1e-9) + 1e-300 < floor * (1.0 - 1e-9))

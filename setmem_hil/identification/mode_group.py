@@ -91,6 +91,7 @@ class GroupResult:
 
 GROUP_MISMATCH_RATIO = 1.0  # a neighbour's worst-case mismatch above the data's bound in a mode's band
 OVERLAP_BANDWIDTHS = 3.0  # neighbours closer than this many of their widest admissible half-power bandwidths
+MAX_GROUP_SEPARATION = 0.25  # ... and never further apart than this in ln(frequency) (a prior's zeta_max of 0.5)
 MAX_GROUP_SIZE = 2  # the search's dimension is 4 per mode: longer chains are cut into consecutive groups
 
 
@@ -99,7 +100,8 @@ def close_groups(mismatch: np.ndarray, bound: np.ndarray, owner: np.ndarray, cen
     """Modes to identify together: neighbours in frequency whose worst-case mismatch (Lemma 3.1)
     exceeds the data's bound at some point of the other's band, after the one-mode iteration has
     reached its fixed point, and whose band centres are closer than ``OVERLAP_BANDWIDTHS`` of the
-    wider of their admissible half-power bandwidths (``ln(w_k / w_i) <= 3 max(zeta_max)``). There
+    wider of their admissible half-power bandwidths (``ln(w_k / w_i) <= 3 max(zeta_max)``, and at
+    most ``MAX_GROUP_SEPARATION``: the thesis beam's prior allows zeta up to 0.5). There
     the split of eq. (3.11) treats the neighbour's whole resonance as uncertainty and cannot narrow
     either mode (our criterion for the thesis's 7.2). Modes further apart keep chapter 3's path
     whatever their data: with few points (a campaign's start) a neighbour's box can be wide, but
@@ -125,7 +127,7 @@ def close_groups(mismatch: np.ndarray, bound: np.ndarray, owner: np.ndarray, cen
     linked = []
     for i, k in zip(order, order[1:]):
         zeta = 0.05 if zeta_max is None else max(float(zeta_max[i]), float(zeta_max[k]))
-        if np.log(centres[k] / centres[i]) > OVERLAP_BANDWIDTHS * zeta:
+        if np.log(centres[k] / centres[i]) > min(OVERLAP_BANDWIDTHS * zeta, MAX_GROUP_SEPARATION):
             linked.append(False)
             continue
         ratio = 0.0
@@ -149,6 +151,14 @@ def close_groups(mismatch: np.ndarray, bound: np.ndarray, owner: np.ndarray, cen
 
 def _split_modes(x: np.ndarray) -> np.ndarray:
     return np.asarray(x, dtype=float).reshape(-1, 4)
+
+
+def _box_terms(omega_rad_s, lo, hi):
+    """``w, j w``, the box's centre, half-width, lower and upper ends per mode, and the mode count."""
+    w = np.asarray(omega_rad_s, dtype=float)
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    c = _split_modes(0.5 * (lo + hi))
+    return w, 1j * w, c, _split_modes(0.5 * (hi - lo)), _split_modes(lo), _split_modes(hi), c.shape[0]
 
 
 def linearised_group(omega_rad_s, g, lo, hi, with_jacobian: bool = True):
@@ -175,12 +185,7 @@ def linearised_group(omega_rad_s, g, lo, hi, with_jacobian: bool = True):
     rho : float array (N,)
         Rigorous bound of the remainder over the box (``inf`` where a denominator can vanish).
     """
-    w = np.asarray(omega_rad_s, dtype=float)
-    jw = 1j * w
-    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
-    c, h = _split_modes(0.5 * (lo + hi)), _split_modes(0.5 * (hi - lo))
-    L, H = _split_modes(lo), _split_modes(hi)
-    m = c.shape[0]
+    w, jw, c, h, L, H, m = _box_terms(omega_rad_s, lo, hi)
     r_c = np.asarray(g, dtype=complex).copy()
     J = np.zeros((w.size, 4 * m), dtype=complex) if with_jacobian else None
     rho = np.zeros(w.size)
@@ -234,12 +239,7 @@ def multiplied_group(omega_rad_s, g, lo, hi):
     close modes carry their information. Returns ``(P_c, J, err, rho, scale)``: the cone is
     ``|P_c + J (x - c)| <= scale E + rho``.
     """
-    w = np.asarray(omega_rad_s, dtype=float)
-    jw = 1j * w
-    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
-    c, h = _split_modes(0.5 * (lo + hi)), _split_modes(0.5 * (hi - lo))
-    L, H = _split_modes(lo), _split_modes(hi)
-    m = c.shape[0]
+    w, jw, c, h, L, H, m = _box_terms(omega_rad_s, lo, hi)
     g = np.asarray(g, dtype=complex)
     D = [(c[i, A0] - w * w) + jw * c[i, A1] for i in range(m)]
     N = [c[i, B0] + jw * c[i, B1] for i in range(m)]

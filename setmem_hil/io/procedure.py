@@ -53,6 +53,8 @@ class SimulationSettings:
     sensors: tuple[float, ...] = (1.0,)  # displacement sensors along the cantilever (fraction of its length; issue 25)
     actuator: float = 1.0  # where the force acts (the thesis: the tip)
     control_output: int = 1  # which sensor (from 1) the robust analysis and the H2 design use
+    truth: str = ""  # a truth file (relative to the procedure file) replacing the beam (issue 47)
+    truth_modes: tuple = ()  # its modes, ((omega_rad_s, zeta, b0, b1), ...) sorted by frequency
 
     def sensor_names(self) -> tuple[str, ...]:
         """``x=0.4`` etc., in the order of ``sensors``."""

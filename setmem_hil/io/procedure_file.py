@@ -139,6 +139,7 @@ SCHEMA: tuple[KeySpec, ...] = (
     KeySpec("backend.simulation", "unmodelled_dynamics", "bool", "", _SIM.unmodelled_dynamics, "Keep modes 4-8 in the simulated truth and add |W1| to each point's bound."),
     KeySpec("backend.simulation", "sensors", "numbers", "", list(_SIM.sensors), "Displacement sensors along the cantilever, as fractions of its length from the clamp; every dwell reads all of them (shared poles, issue 25). kind = \"sim\" and \"time-domain\".", gt=0.0, le=1.0),
     KeySpec("backend.simulation", "actuator", "number", "", _SIM.actuator, "Where the force acts, as a fraction of the length from the clamp (the thesis: the tip).", gt=0.0, le=1.0),
+    KeySpec("backend.simulation", "truth", "string", "", "", "A truth file (TOML, relative to this file) whose [[mode]] tables (omega_rad_s or omega_hz, zeta, b0, b1) replace the simulated beam: rehearse a campaign on your own structure. The prior models the lowest modes; higher ones are unmodelled dynamics. kind = \"sim\" only."),
     KeySpec("backend.simulation", "control_output", "output", "", _SIM.control_output, "The sensor whose model the robust analysis, the H2 design and the input design use (the collocated one): its index from 1 in the order of sensors, or its name \"x=<position>\"; the others tighten the shared poles.", ge=1),
     # [backend.transport]: one schema per backend kind, the same limits for every transport
     *(spec for kind in LOOPBACK_BACKENDS for spec in (
@@ -340,6 +341,19 @@ class _Table:
         return x
 
 
+def _truth_modes(top: _Table, s: "_Table", kind: str, sim: SimulationSettings) -> tuple:
+    """The truth file's modes (issue 47): kind = "sim", one sensor at the tip, unscaled."""
+    from setmem_hil.io.truth_file import read_truth_file
+
+    if kind != "sim":
+        raise s.error(f"truth: a truth file is simulated by kind = \"sim\" only; kind is {kind!r}")
+    if tuple(sim.sensors) != _SIM.sensors or sim.actuator != _SIM.actuator or sim.first_mode_rad_s != _SIM.first_mode_rad_s:
+        raise s.error("truth: the file's modes are the structure as the sensor sees it; sensors, actuator and "
+                      "first_mode_rad_s are the cantilever's and cannot be combined with it")
+    base = Path(top.source).parent if top.source and not str(top.source).startswith("<") else Path.cwd()
+    return read_truth_file(base / sim.truth, top.source)
+
+
 def _backend(top: _Table) -> BackendSettings:
     t = top.sub("backend")
     kind = t.get("kind", "sim")
@@ -352,7 +366,10 @@ def _backend(top: _Table) -> BackendSettings:
         sensors=tuple(float(x) for x in s.get("sensors", list(_SIM.sensors))),
         actuator=s.get("actuator", _SIM.actuator),
         control_output=s.get("control_output", _SIM.control_output),
+        truth=s.get("truth", ""),
     )
+    if sim.truth:
+        sim = replace(sim, truth_modes=_truth_modes(top, s, kind, sim))
     if isinstance(sim.control_output, str):
         names = sim.sensor_names()
         if sim.control_output not in names:
