@@ -104,10 +104,10 @@ class SimulatedBeamExperiment:
         """What the modelled modes leave out at ``w``: ``|W1|`` for the beam, the truth file's
         higher modes' own response for a truth file (zero without unmodelled dynamics)."""
         if not self.unmodelled_dynamics:
-            return np.zeros(np.size(w))
+            return np.zeros(np.shape(w))
         if self.truth_modes:
             if self.truth.n_modes <= self.n_modelled:
-                return np.zeros(np.size(w))
+                return np.zeros(np.shape(w))
             rest = ModalParameters(self.truth.values[self.n_modelled:])
             return np.abs(rest.frequency_response(w)).reshape(np.shape(w))
         return polynomial_magnitude(self.w1_num, self.w1_den, w)
