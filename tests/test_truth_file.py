@@ -102,7 +102,7 @@ def test_a_missing_truth_file_and_a_non_sim_backend_are_named(tmp_path, capsys):
 def test_the_shipped_two_plane_beam_procedure_checks():
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "procedures" / "two_plane_beam.toml"
+    path = Path(__file__).resolve().parents[1] / "procedures" / "close_modes" / "two_plane_beam.toml"
     assert main(["run", "--check", str(path)]) == 0
     procedure = load_procedure(path)
     w = true_structure(procedure).natural_frequencies
