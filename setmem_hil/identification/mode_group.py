@@ -50,7 +50,6 @@ from setmem_hil.identification.embedding import denominator_max, denominator_min
 from setmem_hil.model.modal_model import A0, A1, B0, B1
 
 _EPS = np.finfo(float).eps
-SPLIT_POLES_ONLY = False
 UNUSABLE_RATIO = 50.0  # a point whose remainder exceeds this many bounds counts as unusable when choosing a split
 
 
@@ -293,13 +292,7 @@ def _score(omega, E, lo, hi) -> float:
 def _split_dimension(omega, E, lo, hi) -> int:
     """The free parameter whose halving blurs the points least (by the remainders' score)."""
     best, best_score = -1, np.inf
-    poles = (np.arange(lo.size) % 4 == A1) | (np.arange(lo.size) % 4 == A0)
-    candidates = np.flatnonzero((hi > lo) & poles)
-    if SPLIT_POLES_ONLY and candidates.size:
-        pass
-    else:
-        candidates = np.flatnonzero(hi > lo)
-    for k in candidates:
+    for k in np.flatnonzero(hi > lo):
         mid = 0.5 * (lo[k] + hi[k])
         scores = []
         for a, b in ((lo[k], mid), (mid, hi[k])):
