@@ -143,8 +143,9 @@ class JournalError(SetmemError, RuntimeError):
     """The journal cannot be opened, is locked by another run, or holds inconsistent records."""
 
 
-class CampaignReplayError(SetmemError, RuntimeError):
-    """A journal whose stored measurements do not match what the procedure would measure now.
+class ReplayError(SetmemError, RuntimeError):
+    """A stopped run whose stored record does not match what its plan does now (a resumed
+    campaign's journal: a measurement at another frequency, an iteration choosing differently).
 
     Not malformed input: the stored run and the procedure (or software) disagree. Exit 1; the
     message names the journal and the measurement.
@@ -155,7 +156,15 @@ class CampaignReplayError(SetmemError, RuntimeError):
         super().__init__(f"{source}: {location}: {problem}")
 
 
-class CampaignAborted(SetmemError, RuntimeError):
+CampaignReplayError = ReplayError
+"""The campaign's name for :class:`ReplayError` (the same class)."""
+
+
+class RunAborted(SetmemError, RuntimeError):
+    """A run stopped on request (an operator's Abort); the run engine's ``stop`` document says ``abort``."""
+
+
+class CampaignAborted(RunAborted):
     """A campaign stopped on request (live-view Abort): exciter off, journal closed, exit 130."""
 
 

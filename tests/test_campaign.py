@@ -99,7 +99,8 @@ def test_journal_holds_every_measurement_and_each_added_point_is_the_chosen_one(
     assert np.max(iterations[0].estimated_improvement) > 0
     kinds = [e for e, _ in events]
     assert kinds.count("measure") == len(rows) and kinds.count("iteration") == len(iterations)
-    assert kinds.count("chosen") == len(iterations) - 1 and kinds[-1] == "finished"
+    assert kinds.count("chosen") == len(iterations) - 1 and kinds[-2:] == ["finished", "stop"] and kinds[0] == "start"
+    assert dict(events[-1][1])["exit_status"] == "success"
 
 
 @pytest.mark.slow

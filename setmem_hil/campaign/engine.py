@@ -1,232 +1,231 @@
-"""The run engine: performs a plan's requests against an experiment (Bluesky's RunEngine).
+"""The run engine: performs a plan's requests and sends the run's documents (Bluesky's RunEngine).
 
-A plan (:mod:`setmem_hil.campaign.plan`) says what to measure and what it found; the engine
-owns how a run goes, whichever plan it runs:
+A plan is a generator: it ``yield``\\ s a request and receives the engine's reply as the value of
+the ``yield`` expression. The plan says *what* to do; the engine runs it, whichever plan it is:
 
-* **replay** (resume after a stop): whenever the plan needs measurement ``n`` and the run's
-  history holds it, the stored one is served (its frequency must match, else
-  :class:`~setmem_hil.errors.CampaignReplayError`); an iteration the history holds is checked
-  against it (the same next frequency) and its documents are marked ``replayed`` so the journal
-  does not store them twice. Before the first new dwell the experiment's ``n_measured`` (if it
-  has one) is set to the number of stored measurements, so the simulated noise continues
-  exactly;
-* **continuation** with a changed procedure: every stored measurement is the plan's data from
-  the start (:class:`~setmem_hil.campaign.messages.Continuation`), nothing is replayed;
-* **pause and abort**: ``control.checkpoint`` before every new dwell (the live view); a pause
-  holds with every exciter output confirmed off and is reported (``paused`` / ``unpaused``);
-* **raw records**: what each new dwell was computed from
-  (:class:`~setmem_hil.model.experiment.RawRecordingExperiment`) goes to the subscribers as a
-  ``raw-record`` document *before* its measurements' ``measured`` documents, so a store of raw
-  records is written before the journal commits the point.
+* **commands**: each request type has a handler, ``handler(engine, request) -> reply``. The
+  engine knows three (:class:`Emit`, :class:`Checkpoint`, :class:`Replayed`); a plan brings its
+  own with :meth:`RunEngine.register_command` (e.g. the thesis loop's, in ``measurement_service``)
+  without touching this module;
+* **errors go back into the plan**: a handler that raises has its exception thrown into the plan
+  at its ``yield``, so the plan's ``try/finally`` runs; unhandled, it leaves :meth:`RunEngine.run`
+  unchanged;
+* **one lifecycle in the documents**: ``start`` (plan name, its arguments as JSON, software
+  version, seed, run id, the planned number of points, UTC time) before the first request
+  and ``stop`` (run id, ``exit_status`` ``success``, ``abort`` or ``fail``, ``reason``, UTC time)
+  after the last, however the run ends;
+* **pause points the plan declares** (:class:`Checkpoint`): the operator's pause holds there with
+  the rig made safe (``make_safe``), reported as ``note`` documents ``paused`` and ``unpaused``;
+  an abort raises there;
+* **replay marks** (:class:`Emit` ``key``): a document whose key the stopped run already holds is
+  sent marked ``replayed`` (stores do not store it twice), and its ``check`` values must equal the
+  stored ones, else :class:`~setmem_hil.errors.ReplayError`;
+* **the plan's own computation** runs inside ``compute`` (by default single-threaded BLAS,
+  :func:`setmem_hil.numerics.blas_threads.blas_one_thread`: small matrices, results independent of
+  the machine's thread count); the handlers run outside it.
 
-Subscribers are called in order as ``subscriber(name, **info)``; the stores (raw records,
-journal) come first so that displays and checks that read them see every document's effect.
-Documents: ``measure`` (index, total, omega_rad_s, replayed[, record_omegas]), ``raw-record``
-(seqs, record), ``measured`` (measurement, seq, iteration, role, replayed), ``note`` (kind,
-message, replayed), ``iteration-record`` (fields, replayed), ``finished`` (summary) and whatever
-else the plan emits (``iteration``, ``left-out``, ``chosen``).
+Subscribers are called in order as ``subscriber(name, **info)``; stores come first so that
+displays and checks that read them see every document's effect.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import json
 import math
 import time
-from typing import Any, Callable, Generator, Protocol, Sequence
+import uuid
+from contextlib import AbstractContextManager
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Any, Callable, Generator, Hashable, Mapping, Sequence
 
-from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE, Continuation, Emit, InformModel, Measure, StoredData
-from setmem_hil.errors import CampaignReplayError, DeviceError
-from setmem_hil.model.experiment import (
-    Measurement,
-    ModelAwareExperiment,
-    MultisineExperiment,
-    OutputConfirmingExperiment,
-    OutputModelsAwareExperiment,
-    RawRecordingExperiment,
-    ResumableExperiment,
-)
+from setmem_hil.errors import ReplayError, RunAborted
+from setmem_hil.numerics.blas_threads import blas_one_thread
 
-__all__ = ["RunEngine", "RunHistory", "Subscriber"]
+__all__ = ["RunEngine", "RunStart", "Emit", "Checkpoint", "Replayed", "Subscriber", "START", "STOP", "NOTE",
+           "EXIT_SUCCESS", "EXIT_ABORT", "EXIT_FAIL"]
 
 Subscriber = Callable[..., None]
+Handler = Callable[["RunEngine", Any], Any]
+
+START, STOP, NOTE = "start", "stop", "note"
+"""Documents: the run's start and stop, and a note (``kind``, ``message``, ``replayed``) for the record."""
+EXIT_SUCCESS, EXIT_ABORT, EXIT_FAIL = "success", "abort", "fail"
 
 
-class RunHistory(Protocol):
-    """What the engine reads of a stopped run (the journal has it)."""
+@dataclass(frozen=True)
+class Emit:
+    """A document for the subscribers: ``subscriber(name, **info)``.
 
-    path: Any
+    ``key`` names what the document records (e.g. ``("k", 3)``): when the stopped run being
+    replayed holds that key, the document is sent with ``replayed=True``; ``check`` holds values
+    that must then equal the stored ones (a replay that chooses differently stops)."""
 
-    def measurements(self) -> list[Measurement]: ...
+    name: str
+    info: dict = field(default_factory=dict)
+    key: Hashable | None = None
+    check: Mapping[str, Any] = field(default_factory=dict)
 
-    def measurement_rows(self) -> list[dict]: ...
 
-    def iterations(self) -> list[Any]: ...
+@dataclass(frozen=True)
+class Checkpoint:
+    """A point where the run may pause (the rig made safe first) or be aborted; ``before`` says
+    what comes next, for the pause's note (e.g. ``"point 4"``)."""
+
+    before: str = ""
+
+
+@dataclass(frozen=True)
+class Replayed:
+    """Ask whether a stored document holds ``key`` (reply: bool)."""
+
+    key: Hashable
+
+
+@dataclass(frozen=True)
+class RunStart:
+    """What the ``start`` document says about a run: the plan's name and arguments (JSON-able),
+    the seed, and the number of points it plans (the progress display's total)."""
+
+    plan: str
+    arguments: Mapping[str, Any] = field(default_factory=dict)
+    seed: int | None = None
+    planned: int = 0
 
 
 class RunEngine:
-    """Runs plans on ``experiment`` (see the module docstring).
+    """Runs plans (see the module docstring).
 
-    ``history``: a stopped run to replay (or, with ``continue_stored``, to continue from);
-    ``total``: the number of measurements the progress display counts to; ``control``: the
-    live view's pause/abort (``checkpoint(make_safe)``).
+    ``stored``: the keys of a stopped run's documents, each with the values a replay must repeat;
+    ``control``: the operator's pause/abort (``checkpoint(make_safe)``, the live view);
+    ``make_safe``: what a pause does first (e.g. confirm every exciter output off), described by
+    ``safe_state`` in the pause's note.
     """
 
-    def __init__(self, experiment: Any, subscribers: Sequence[Subscriber] = (), *, history: RunHistory | None = None,
-                 control=None, total: int = 0, continue_stored: bool = False):
-        self.experiment, self.control, self.total = experiment, control, total
-        self.subscribers = tuple(subscribers)
-        self.source = str(getattr(history, "path", "journal"))
-        self.stored = history.measurements() if history is not None else []
-        self.stored_iterations = {rec.k: rec for rec in history.iterations()} if history is not None else {}
-        self.count = 0  # measurements served so far (stored or new)
-        self._synced = False  # the experiment's n_measured set after a replay
-        self.continuation = self._continuation(history) if continue_stored and history is not None else None
-        self.replayed_before = len(self.stored)
+    def __init__(self, subscribers: Sequence[Subscriber] = (), *, control=None, stored: Mapping[Hashable, Mapping] | None = None,
+                 make_safe: Callable[[], None] | None = None, safe_state: str = "the rig made safe",
+                 compute: Callable[[], AbstractContextManager] = blas_one_thread, source: str = "the stored run"):
+        self.subscribers = list(subscribers)
+        self.control, self.make_safe, self.safe_state = control, make_safe, safe_state
+        self.stored = dict(stored or {})
+        self.compute, self.source = compute, source
+        self.run_id: str | None = None
+        self._commands: dict[type, Handler] = {}
+        self.register_command(Emit, RunEngine._emit_request)
+        self.register_command(Checkpoint, RunEngine._checkpoint)
+        self.register_command(Replayed, lambda engine, request: request.key in engine.stored)
 
-    def _continuation(self, history: RunHistory) -> Continuation:
-        measured = tuple(self.stored)
-        n_added = sum(1 for row in history.measurement_rows() if row["role"] == "added")
-        next_k = max(self.stored_iterations, default=0) + 1
-        self.count, self.stored, self.stored_iterations, self._synced = len(measured), [], {}, True
-        if isinstance(self.experiment, ResumableExperiment):
-            self.experiment.n_measured = len(measured)  # simulated noise goes on, never repeats
-        return Continuation(measured, n_added, next_k)
+    def register_command(self, request_type: type, handler: Handler) -> None:
+        """Perform every ``request_type`` request with ``handler(engine, request)``; its return
+        value is the plan's reply. A later registration replaces an earlier one."""
+        self._commands[request_type] = handler
 
-    # -- running a plan ---------------------------------------------------------------------------
-    def run(self, plan: Generator) -> Any:
-        """Perform every request of ``plan``; its return value (a summary dataclass gets the
-        engine's ``replayed_measurements``) is sent as the ``finished`` document and returned."""
-        reply = None
-        while True:
-            try:
-                request = plan.send(reply)
-            except StopIteration as done:
-                return self._finished(done.value)
-            reply = self._perform(request)
-
-    def _finished(self, result: Any) -> Any:
-        if dataclasses.is_dataclass(result) and any(f.name == "replayed_measurements" for f in dataclasses.fields(result)):
-            result = dataclasses.replace(result, replayed_measurements=min(self.replayed_before, self.count))
-        self.emit("finished", summary=result)
-        return result
-
-    def _perform(self, request: Any) -> Any:
-        if isinstance(request, Measure):
-            return self.measure(request)
-        if isinstance(request, Emit):
-            return self._emit_document(request)
-        if isinstance(request, InformModel):
-            return self._inform(request)
-        if isinstance(request, StoredData):
-            return self.continuation
-        raise TypeError(f"the run engine cannot perform {request!r}")
+    def subscribe(self, subscriber: Subscriber) -> None:
+        self.subscribers.append(subscriber)
 
     def emit(self, name: str, **info: Any) -> None:
         for subscriber in self.subscribers:
             subscriber(name, **info)
 
-    def _emit_document(self, request: Emit) -> None:
+    # -- running a plan ---------------------------------------------------------------------------
+    def run(self, plan: Generator, start: RunStart | None = None) -> Any:
+        """Perform every request of ``plan`` between a ``start`` and a ``stop`` document and
+        return the plan's return value; an exception that leaves the plan leaves here too."""
+        start = start or RunStart(getattr(plan, "__name__", "plan"))
+        self.run_id = uuid.uuid4().hex
+        self.emit(START, **_start_document(start, self.run_id))
+        try:
+            result = self._drive(plan)
+        except BaseException as exc:
+            try:
+                self._stop(EXIT_ABORT if isinstance(exc, (KeyboardInterrupt, RunAborted)) else EXIT_FAIL, _reason(exc))
+            except Exception as store_error:  # noqa: BLE001 - a store that fails now must not hide why the run stopped
+                _add_note(exc, f"the run's stop document could not be stored: {_reason(store_error)}")
+            raise
+        self._stop(EXIT_SUCCESS, "")
+        return result
+
+    def _drive(self, plan: Generator) -> Any:
+        reply: Any = None
+        error: BaseException | None = None
+        while True:
+            try:
+                with self.compute():
+                    request = plan.send(reply) if error is None else plan.throw(error)
+            except StopIteration as done:
+                return done.value
+            try:
+                reply, error = self._perform(request), None
+            except BaseException as exc:  # noqa: BLE001 - thrown into the plan, so its finally runs
+                reply, error = None, exc
+
+    def _perform(self, request: Any) -> Any:
+        for kind in type(request).__mro__:
+            handler = self._commands.get(kind)
+            if handler is not None:
+                return handler(self, request)
+        raise TypeError(f"the run engine has no command for {type(request).__name__} (register_command)")
+
+    def _stop(self, status: str, reason: str) -> None:
+        self.emit(STOP, run_id=self.run_id, exit_status=status, reason=reason, utc=_utc_now())
+
+    # -- the built-in commands --------------------------------------------------------------------
+    def _emit_request(self, request: Emit) -> None:
         info = dict(request.info)
-        if request.name in (NOTE, ITERATION_RECORD):
-            info["replayed"] = request.iteration in self.stored_iterations
-        if request.name == ITERATION_RECORD and info["replayed"]:
-            self._check_replayed_choice(request.iteration, info["fields"].get("next_omega"))
+        if request.key is not None:
+            info["replayed"] = request.key in self.stored
+            if info["replayed"]:
+                self._check_replay(request.key, request.check)
         self.emit(request.name, **info)
 
-    def _check_replayed_choice(self, k: int, next_omega: float | None) -> None:
-        stored = self.stored_iterations[k].next_omega
-        if not _same_choice(stored, next_omega):
-            raise CampaignReplayError(self.source, f"iteration {k}",
-                                      f"stored next frequency {stored} rad/s but the replay chose {next_omega} rad/s")
+    def _check_replay(self, key: Hashable, check: Mapping[str, Any]) -> None:
+        stored = self.stored[key]
+        for name, now in check.items():
+            if not _same(stored.get(name), now):
+                where = " ".join(str(part) for part in key) if isinstance(key, tuple) else str(key)
+                raise ReplayError(self.source, where, f"stored {name} {stored.get(name)} but the replay gave {now}")
 
-    def _inform(self, request: InformModel) -> None:
-        if isinstance(self.experiment, ModelAwareExperiment):
-            self.experiment.update_model(request.model)
-        if request.output_models is not None and isinstance(self.experiment, OutputModelsAwareExperiment):
-            self.experiment.update_output_models(request.output_models)
-
-    # -- measuring --------------------------------------------------------------------------------
-    def measure(self, request: Measure) -> list[Measurement]:
-        """Stored points first; the rest one dwell each, or one multisine record for all of them
-        (a record with a line missing, a kill while its lines were written, is measured again
-        from its first line's index, which reproduces the stored lines exactly)."""
-        lines = list(request.omegas_rad_s)
-        if not request.record or len(lines) == 1:
-            return [self._measure_one(w, request) for w in lines]
-        start = self.count
-        stored = [self._replayed(w, request) for w in lines[: max(0, len(self.stored) - start)]]
-        if len(stored) == len(lines):
-            return stored
-        if not isinstance(self.experiment, MultisineExperiment):
-            raise DeviceError(f"{type(self.experiment).__name__} cannot measure a multisine record "
-                              "([dwell] signal = \"multisine\" needs backend kind 'sim' or 'time-domain')")
-        self._checkpoint()
-        if isinstance(self.experiment, ResumableExperiment):
-            self.experiment.n_measured = start  # the record's noise is seeded with its first line's index
-        self._synced, self.count = True, start + len(lines)
-        self.emit("measure", index=start + 1, total=self.total, omega_rad_s=lines[0], replayed=False, record_omegas=tuple(lines))
-        record = self.experiment.measure_multisine(lines)
-        self._commit(record, start, request, first_new=len(stored))
-        return stored + list(record[len(stored):])
-
-    def _measure_one(self, omega_rad_s: float, request: Measure) -> Measurement:
-        if self.count < len(self.stored):
-            return self._replayed(omega_rad_s, request)
-        self._checkpoint()  # between dwells: may wait (paused) or raise CampaignAborted
-        if not self._synced:
-            if self.stored and isinstance(self.experiment, ResumableExperiment):
-                self.experiment.n_measured = len(self.stored)
-            self._synced = True
-        index = self.count
-        self.count += 1
-        self.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=False)
-        m = self.experiment.measure(float(omega_rad_s))
-        self._commit([m], index, request)
-        return m
-
-    def _replayed(self, omega_rad_s: float, request: Measure) -> Measurement:
-        index = self.count
-        self.count += 1
-        m = self.stored[index]
-        if not math.isclose(m.omega_rad_s, omega_rad_s, rel_tol=1e-9, abs_tol=1e-12):
-            raise CampaignReplayError(self.source, f"measurement {index + 1}",
-                                      f"stored at {m.omega_rad_s:.9g} rad/s but the procedure now asks for {omega_rad_s:.9g} rad/s "
-                                      "(different procedure, seed, strategy or software version?)")
-        self.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=True)
-        return m
-
-    def _commit(self, measurements: list[Measurement], first_index: int, request: Measure, first_new: int = 0) -> None:
-        """The dwell's raw records, then each new point: ``seq`` is the point's 1-based index in the
-        run (the journal's sequence number)."""
-        seqs = tuple(first_index + 1 + i for i in range(len(measurements)))
-        if isinstance(self.experiment, RawRecordingExperiment):
-            for record in self.experiment.take_raw_records():
-                mine = seqs if record.positions is None else tuple(seqs[i] for i in record.positions)
-                self.emit("raw-record", seqs=mine, record=record)
-        for m, seq in list(zip(measurements, seqs))[first_new:]:
-            self.emit("measured", measurement=m, seq=seq, iteration=request.iteration, role=request.role, replayed=False)
-
-    # -- pause ------------------------------------------------------------------------------------
-    def _checkpoint(self) -> None:
-        """The live view's checkpoint between dwells; a pause is reported when it holds (the
-        outputs confirmed off) and when it ends, each with its time (issue 39, item 4)."""
+    def _checkpoint(self, request: Checkpoint) -> None:
+        """The operator's pause holds here with the rig made safe, reported when it holds and when
+        it ends, each with its time; an abort raises here."""
         if self.control is None:
             return
-        held_since = []
+        held_since: list[float] = []
 
         def safe_and_reported() -> None:
-            if isinstance(self.experiment, OutputConfirmingExperiment):
-                self.experiment.confirm_output_off()
+            if self.make_safe is not None:
+                self.make_safe()
             held_since.append(time.monotonic())
-            self.emit(NOTE, kind="paused", message=f"paused before measurement {self.count + 1}: every exciter output confirmed off",
-                      replayed=False)
+            where = f" before {request.before}" if request.before else ""
+            self.emit(NOTE, kind="paused", message=f"paused{where}: {self.safe_state}", replayed=False)
 
-        self.control.checkpoint(safe_and_reported)  # may wait (paused) or raise CampaignAborted
+        self.control.checkpoint(safe_and_reported)  # may wait (paused) or raise (abort)
         if held_since:
             self.emit(NOTE, kind="unpaused", message=f"went on after {time.monotonic() - held_since[0]:.1f} s paused", replayed=False)
 
 
-def _same_choice(a: float | None, b: float | None) -> bool:
-    if a is None or b is None:
-        return a is None and b is None
-    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+def _start_document(start: RunStart, run_id: str) -> dict:
+    from setmem_hil import __version__
+
+    return dict(run_id=run_id, plan=start.plan, arguments=json.dumps(dict(start.arguments), sort_keys=True, default=str),
+                version=__version__, seed=start.seed, planned=int(start.planned), utc=_utc_now())
+
+
+def _reason(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _add_note(exc: BaseException, note: str) -> None:
+    if hasattr(exc, "add_note"):  # Python 3.11+
+        exc.add_note(note)
+
+
+def _utc_now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+    return a == b

@@ -1,9 +1,11 @@
-"""The messages a plan yields to the engine (Bluesky's split of plans and the RunEngine).
+"""The campaign's requests to the run engine (Bluesky's split of plans and the RunEngine).
 
 A plan is a generator: it ``yield``\\ s a request and receives the engine's reply as the value of
 the ``yield`` expression. The plan decides *what* to do; the engine
-(:class:`setmem_hil.campaign.engine.RunEngine`) decides *how*: a stored measurement or a new
-dwell, a pause before it, the raw records and the journal behind it.
+(:class:`setmem_hil.campaign.engine.RunEngine`) performs it: its own requests (:class:`Emit`,
+:class:`Checkpoint`) and the campaign's, registered by
+:func:`setmem_hil.campaign.measurement_service.register_measurements` (a stored measurement or a
+new dwell, the raw records and the journal behind it).
 
 ========================  ================================================  ==========================
 request                   what the engine does                              reply
@@ -12,24 +14,24 @@ request                   what the engine does                              repl
 :class:`Measure`          takes the points (replayed, or dwells)            ``list[Measurement]``
 :class:`InformModel`      gives the experiment the latest interval models   None
 :class:`Emit`             sends a document to every subscriber              None
+:class:`Checkpoint`       a pause point (the live view's pause and abort)   None
 ========================  ================================================  ==========================
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
+from setmem_hil.campaign.engine import NOTE, Checkpoint, Emit
 from setmem_hil.model.experiment import Measurement
 
-__all__ = ["Continuation", "Emit", "InformModel", "Measure", "StoredData", "ITERATION_RECORD", "NOTE"]
+__all__ = ["Checkpoint", "Continuation", "Emit", "InformModel", "Measure", "StoredData", "ITERATION_RECORD", "NOTE"]
 
 ITERATION_RECORD = "iteration-record"
 """Document: one iteration's stored result (``fields``: the journal's ``IterationRecord``); the
 engine compares a replayed iteration's choice with the stored one."""
 
-NOTE = "note"
-"""Document: a journal event (``kind``, ``message``) of iteration ``k`` (None: of the run)."""
 
 
 @dataclass(frozen=True)
@@ -63,13 +65,3 @@ class InformModel:
 
     model: Any
     output_models: Any = None
-
-
-@dataclass(frozen=True)
-class Emit:
-    """A document for the subscribers: ``subscriber(name, **info)``; ``iteration`` tells the
-    engine which iteration it belongs to (a replayed iteration's documents are marked so)."""
-
-    name: str
-    info: dict = field(default_factory=dict)
-    iteration: int | None = None

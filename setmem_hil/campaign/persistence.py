@@ -2,7 +2,8 @@
 
 :class:`RawRecordWriter` writes every ``raw-record`` document to ``RUN_DIR/raw.h5``
 (:mod:`setmem_hil.io.raw_store`); :class:`JournalWriter` commits every new ``measured``,
-``note`` and ``iteration-record`` document to the journal and finishes it. The engine sends a
+``note`` and ``iteration-record`` document to the journal, the run's ``start`` and ``stop`` as
+events ``run-start`` and ``run-stop`` (the document as JSON), and finishes it. The engine sends a
 dwell's raw records before its points, and both writers are subscribed before any display, so
 a point is in the journal only once its record is on disk, and a display or check that reads the
 journal sees every document's effect. Replayed documents (a resumed run's stored points and
@@ -11,8 +12,10 @@ iterations) are not stored twice.
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
+from setmem_hil.campaign.engine import START, STOP
 from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE
 from setmem_hil.io.journal import IterationRecord, Journal
 from setmem_hil.io.raw_store import RawStore
@@ -40,6 +43,8 @@ class JournalWriter:
             self.journal.add_iteration(IterationRecord(**info["fields"]))
         elif event == "finished" and not self.already_finished:
             self.journal.finish(info["summary"].to_document())
+        elif event in (START, STOP):  # the run's lifecycle: one event each, the document as JSON
+            self.journal.add_event(f"run-{event}", json.dumps(info, sort_keys=True, default=str))
 
 
 class RawRecordWriter:

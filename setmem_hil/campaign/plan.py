@@ -25,10 +25,9 @@ experiment (:class:`~setmem_hil.campaign.messages.InformModel`), so later dwells
 transients with the narrowed poles. A replay repeats the same identifications in the same order:
 the experiment is in the same state at the first new dwell as in an uninterrupted run.
 
-**Single-threaded BLAS.** The numerics of every iteration run with BLAS pinned to one thread
-(:func:`setmem_hil.numerics.blas_threads.blas_one_thread`): the matrices are small, so this is
-about twice as fast in CPU time on the 2-core target, and results do not depend on how many BLAS
-threads a machine or Dask worker would otherwise use. Nothing depends on the wall clock or a
+**Pause points.** The plan declares them (:class:`~setmem_hil.campaign.engine.Checkpoint`): before
+every dwell, and before a multisine record. The engine runs the plan's numerics with
+single-threaded BLAS (its ``compute``). Nothing the loop chooses depends on the wall clock or a
 global RNG.
 
 The experiment is only read here (its calibration scales, predicted bounds and dwell plans);
@@ -46,7 +45,7 @@ from typing import Any, Generator
 import numpy as np
 
 from setmem_hil.campaign.loop_steps import controller_matrices, goal_certified, identify_sensors, kept_design_of, polished, sensors_document
-from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE, Emit, InformModel, Measure, StoredData
+from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE, Checkpoint, Emit, InformModel, Measure, StoredData
 from setmem_hil.campaign.next_input import batch_frequencies, identify_settings, next_frequency
 from setmem_hil.campaign.summary import CampaignSummary, IterationSummary
 from setmem_hil.design.input_design import InputChoice
@@ -59,10 +58,9 @@ from setmem_hil.io.procedure import Procedure
 from setmem_hil.model.experiment import CalibrationScaledExperiment, Measurement
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.mu_floor import floor_message, floor_modes
-from setmem_hil.numerics.blas_threads import blas_one_thread
 from setmem_hil.robust.robust_design import FINAL_TUNING
 
-__all__ = ["thesis_plan", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT", "BATCH_EVENT"]
+__all__ = ["thesis_plan", "planned_measurements", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT", "BATCH_EVENT"]
 
 EXACT_RESOLVE_EVENT = "exact-resolve"
 """Event holding, as JSON, the candidates re-identified exactly at an iteration and their
@@ -89,6 +87,7 @@ def thesis_plan(procedure: Procedure, experiment: Any, *, seed: int | None = Non
         step = yield from _identify(loop, state)  # step 2: eq. 5.4-5.5
         outcome, kept = _design_and_analyse(loop, state, step.model)  # step 3: eq. 5.8-5.12
         yield from _announce(loop, state, step, outcome, kept)
+        yield from _leave_out_unproductive_region(state, outcome)  # section 6.3.4's trap
         state.reached = goal_certified(outcome, loop.procedure.goal)  # step 4: stop?
         spent = state.n_added >= loop.procedure.goal.max_experiments
         choice = None if state.reached or spent else _choose(loop, state, step, outcome)  # steps 5-6
@@ -176,16 +175,35 @@ class Identified:
     floor: tuple[int, ...]  # modes whose box blocks every compensator (setmem_hil.model.mu_floor)
 
 
-def measure_request(procedure: Procedure, omegas, iteration: int, role: str) -> Measure:
-    """The frequencies one after the other (``[dwell] signal = "sine"``) or in one multisine record."""
-    return Measure(tuple(float(w) for w in omegas), iteration, role, record=procedure.dwell_signal == "multisine")
+def planned_measurements(procedure: Procedure) -> int:
+    """The most measurements the loop takes: the initial ones and the budget (the progress total)."""
+    return len(procedure.initial_omegas_rad_s) + int(procedure.goal.max_experiments)
+
+
+def measure_points(procedure: Procedure, omegas, iteration: int, role: str, done: int):
+    """The frequencies one after the other (``[dwell] signal = "sine"``), each after a pause point,
+    or in one multisine record after one; ``done`` measurements were taken before."""
+    request = Measure(tuple(float(w) for w in omegas), iteration, role, record=procedure.dwell_signal == "multisine")
+    if request.record and len(request.omegas_rad_s) > 1:
+        yield Checkpoint(f"measurement {done + 1}")
+        return list((yield request))
+    measured: list[Measurement] = []
+    for w in request.omegas_rad_s:
+        yield Checkpoint(f"measurement {done + len(measured) + 1}")
+        measured += yield replace(request, omegas_rad_s=(w,))
+    return measured
+
+
+def _document(name: str, info: dict, k: int, **check) -> Emit:
+    """A document of iteration ``k``: a replay marks it (stored already) and checks ``check``."""
+    return Emit(name, info, key=("iteration", k), check=check)
 
 
 def _starting_data(loop: LoopSettings):
     stored = yield StoredData()
     if stored is not None:  # a stopped run continued with a changed procedure: its data from the start
         return LoopState(list(stored.measured), k=stored.next_iteration, n_added=stored.n_added)
-    measured = yield measure_request(loop.procedure, loop.procedure.initial_omegas_rad_s, 0, "initial")
+    measured = yield from measure_points(loop.procedure, loop.procedure.initial_omegas_rad_s, 0, "initial", 0)
     return LoopState(list(measured))
 
 
@@ -194,15 +212,14 @@ def _identify(loop: LoopSettings, state: LoopState):
     data = FrequencyData.from_measurements(state.measured)
     sensor_models = None
     try:
-        with blas_one_thread():
-            if state.measured[0].others:  # several sensors: shared poles, the control output's model drives the rest
-                result, sensor_models = identify_sensors(state.measured, loop.plant_procedure, state.previous_sensor_models, loop.scales)
-            else:
-                from setmem_hil.identification.algorithm import identify
+        if state.measured[0].others:  # several sensors: shared poles, the control output's model drives the rest
+            result, sensor_models = identify_sensors(state.measured, loop.plant_procedure, state.previous_sensor_models, loop.scales)
+        else:
+            from setmem_hil.identification.algorithm import identify
 
-                result = identify(data, loop.procedure.prior, previous=state.previous_model, settings=identify_settings())
+            result = identify(data, loop.procedure.prior, previous=state.previous_model, settings=identify_settings())
     except InconsistentDataError as exc:
-        yield Emit(NOTE, {"kind": "inconsistent-data", "message": f"iteration {state.k}: {exc}"}, state.k)
+        yield _document(NOTE, {"kind": "inconsistent-data", "message": f"iteration {state.k}: {exc}"}, state.k)
         raise
     model = result.model if state.previous_model is None else result.model.intersect(state.previous_model)
     yield InformModel(model, sensor_models)  # later dwells model their transients with these poles
@@ -211,11 +228,10 @@ def _identify(loop: LoopSettings, state: LoopState):
 
 def _design_and_analyse(loop: LoopSettings, state: LoopState, model) -> tuple[SafeguardOutcome, str]:
     previous_design = state.rows[-1].design if state.rows else "h2"
-    with blas_one_thread():
-        outcome = safeguarded_design(model, state.previous_outcome, loop.analyzer(state))
-        if loop.method == "robust" and goal_certified(outcome, loop.procedure.goal):  # the delivered compensator: more margin
-            outcome = polished(outcome, lambda box, warm: loop.robust_analysis(box, design="robust", warm_start=warm, tuning=FINAL_TUNING),
-                               previous_design)
+    outcome = safeguarded_design(model, state.previous_outcome, loop.analyzer(state))
+    if loop.method == "robust" and goal_certified(outcome, loop.procedure.goal):  # the delivered compensator: more margin
+        outcome = polished(outcome, lambda box, warm: loop.robust_analysis(box, design="robust", warm_start=warm, tuning=FINAL_TUNING),
+                           previous_design)
     return outcome, kept_design_of(outcome, previous_design)
 
 
@@ -224,30 +240,33 @@ def _outputs_document(loop: LoopSettings, step: Identified):
 
 
 def _announce(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, kept: str):
-    """The iteration's progress document, then the trap of section 6.3.4: the region left out."""
-    k = state.k
-    yield Emit("iteration", dict(k=k, n_points=len(state.measured), mu_peak=outcome.mu_peak,
+    """The iteration's progress document (before the choice, which takes a while)."""
+    yield Emit("iteration", dict(k=state.k, n_points=len(state.measured), mu_peak=outcome.mu_peak,
                                  mu_peak_omega=float(outcome.analysis.mu_peak_omega), safeguard=outcome.branch, design=kept,
                                  floor_modes=step.floor, rig_s=float(sum(m.rig_s for m in state.measured)),
-                                 mu_peak_certified=outcome.certified, outputs=_outputs_document(loop, step)), k)
+                                 mu_peak_certified=outcome.certified, outputs=_outputs_document(loop, step)))
+
+
+def _leave_out_unproductive_region(state: LoopState, outcome: SafeguardOutcome):
+    """Section 6.3.4's trap: after ``RUN`` disappointing single-frequency experiments in one region,
+    that region is left out of the candidates from now on (it changes later choices)."""
     if state.last_experiment is None or state.previous_outcome is None:
         return
     state.outcomes.append(Outcome(state.last_experiment[0], state.last_experiment[1], state.previous_outcome.mu_peak - outcome.mu_peak))
     region = unproductive_region(state.outcomes)
     if region is not None:
         state.left_out.append(region)
-        message = f"iteration {k}: {describe(region, state.outcomes[-RUN:])}"
-        yield Emit(NOTE, {"kind": UNPRODUCTIVE_REGION_EVENT, "message": message}, k)
-        yield Emit("left-out", {"k": k, "region": region, "message": message}, k)
+        message = f"iteration {state.k}: {describe(region, state.outcomes[-RUN:])}"
+        yield _document(NOTE, {"kind": UNPRODUCTIVE_REGION_EVENT, "message": message}, state.k)
+        yield Emit("left-out", {"k": state.k, "region": region, "message": message})
         state.outcomes.clear()
 
 
 def _choose(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome) -> InputChoice:
     floor = step.floor if loop.floor_aware else ()
-    with blas_one_thread():
-        return next_frequency(loop.strategy, state.k, state.n_added, loop.procedure, step.result, step.data, outcome, loop.experiment,
-                              state.measured, loop.seed, sensor_models=step.sensor_models, left_out=tuple(state.left_out),
-                              floor_modes=floor)
+    return next_frequency(loop.strategy, state.k, state.n_added, loop.procedure, step.result, step.data, outcome, loop.experiment,
+                          state.measured, loop.seed, sensor_models=step.sensor_models, left_out=tuple(state.left_out),
+                          floor_modes=floor)
 
 
 def _record(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, kept: str, choice: InputChoice | None):
@@ -256,16 +275,17 @@ def _record(loop: LoopSettings, state: LoopState, step: Identified, outcome: Saf
     compute_s, compute_cpu_s = time.perf_counter() - step.started[0], time.process_time() - step.started[1]
     next_omega = None if choice is None else choice.next_omega_rad_s
     certified_intervals = int(getattr(analysis, "mu_certified_intervals", 0))
-    yield Emit(ITERATION_RECORD, {"fields": _iteration_fields(loop, state, step, outcome, kept, choice, compute_s)}, k)
+    yield _document(ITERATION_RECORD, {"fields": _iteration_fields(loop, state, step, outcome, kept, choice, compute_s)}, k,
+                    next_omega=next_omega)
     if floor:
-        yield Emit(NOTE, {"kind": FLOOR_EVENT, "message": f"iteration {k}: {floor_message(floor)}"}, k)
+        yield _document(NOTE, {"kind": FLOOR_EVENT, "message": f"iteration {k}: {floor_message(floor)}"}, k)
     if choice is not None and np.size(choice.resolved_omega_rad_s):
         resolved = {"k": k, "omega_rad_s": [float(w) for w in choice.resolved_omega_rad_s],
                     "improvement": [None if not math.isfinite(v) else float(v) for v in choice.resolved_improvement]}
-        yield Emit(NOTE, {"kind": EXACT_RESOLVE_EVENT, "message": json.dumps(resolved)}, k)
+        yield _document(NOTE, {"kind": EXACT_RESOLVE_EVENT, "message": json.dumps(resolved)}, k)
     if outcome.branch != "new-design":
         tried = ", ".join(f"{b} {v:.4f}" for b, v in outcome.tried.items())
-        yield Emit(NOTE, {"kind": "safeguard", "message": f"iteration {k}: eq. 5.12 branch {outcome.branch} (mu-bar {tried})"}, k)
+        yield _document(NOTE, {"kind": "safeguard", "message": f"iteration {k}: eq. 5.12 branch {outcome.branch} (mu-bar {tried})"}, k)
     state.rows.append(IterationSummary(
         k=k, n_points=len(state.measured), mu_peak=float(outcome.mu_peak), mu_peak_omega=float(analysis.mu_peak_omega),
         next_omega=next_omega, safeguard=outcome.branch, basis="" if choice is None else choice.basis,
@@ -307,11 +327,11 @@ def _measure_choice(loop: LoopSettings, state: LoopState, step: Identified, outc
         batch = batch_frequencies(batch[0], loop.strategy, k, state.n_added, p, step.result, step.data, outcome, loop.experiment,
                                   state.measured, loop.seed, per_iteration, tuple(state.left_out))
         if len(batch) > 1:
-            yield Emit(NOTE, {"kind": BATCH_EVENT, "message": f"iteration {k}: " + ", ".join(f"{w:.9g}" for w in batch) + " rad/s"}, k)
+            yield _document(NOTE, {"kind": BATCH_EVENT, "message": f"iteration {k}: " + ", ".join(f"{w:.9g}" for w in batch) + " rad/s"}, k)
     state.last_experiment = (batch[0] if len(batch) == 1 else None, predicted_improvement(choice))
     for w in batch:
-        yield Emit("chosen", {"k": k, "next_omega": w}, k)
-    added = yield measure_request(p, batch, k, "added")
+        yield Emit("chosen", {"k": k, "next_omega": w})
+    added = yield from measure_points(p, batch, k, "added", len(state.measured))
     state.measured.extend(added)
     state.n_added += len(added)
     state.rows[-1] = replace(state.rows[-1], rig_s=float(sum(m.rig_s for m in added)))

@@ -16,10 +16,11 @@ The names other modules import from here (the loop's pieces) are re-exported.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
-from setmem_hil.campaign.engine import RunEngine
+from setmem_hil.campaign.engine import Emit, RunEngine, RunStart
 from setmem_hil.campaign.loop_steps import controller_matrices, goal_certified, identify_sensors, kept_design_of, polished, sensors_document
 from setmem_hil.campaign.next_input import (
     EXACT_RESOLVE_OUTER_ITERATIONS,
@@ -29,12 +30,13 @@ from setmem_hil.campaign.next_input import (
     next_frequency,
     other_outputs,
 )
+from setmem_hil.campaign.measurement_service import MeasurementService, register_measurements, stored_iterations
 from setmem_hil.campaign.persistence import JournalWriter, RawRecordWriter
-from setmem_hil.campaign.plan import BATCH_EVENT, EXACT_RESOLVE_EVENT, FLOOR_EVENT, UNPRODUCTIVE_REGION_EVENT, thesis_plan
+from setmem_hil.campaign.plan import BATCH_EVENT, EXACT_RESOLVE_EVENT, FLOOR_EVENT, UNPRODUCTIVE_REGION_EVENT, planned_measurements, thesis_plan
 from setmem_hil.campaign.summary import CampaignSummary, IterationSummary
 from setmem_hil.errors import CampaignReplayError
 from setmem_hil.io.procedure import Procedure
-from setmem_hil.model.experiment import Experiment
+from setmem_hil.model.experiment import Experiment, OutputConfirmingExperiment
 
 ProgressFn = Callable[..., None]
 
@@ -111,9 +113,29 @@ def run_campaign(
         subscribers += [RawRecordWriter(Path(journal.path).parent), JournalWriter(journal)]
     if progress is not None:
         subscribers.append(progress)
-    total = len(procedure.initial_omegas_rad_s) + int(procedure.goal.max_experiments)
-    engine = RunEngine(experiment, subscribers, history=journal, control=control, total=total, continue_stored=continue_stored)
-    return engine.run(thesis_plan(procedure, experiment, seed=seed, strategy=strategy, design=design, floor_aware=floor_aware))
+    planned = planned_measurements(procedure)
+    engine = RunEngine(subscribers, control=control, stored={} if continue_stored else stored_iterations(journal),
+                       make_safe=_confirm_output_off(experiment), safe_state="every exciter output confirmed off",
+                       source=str(getattr(journal, "path", "journal")))
+    service = register_measurements(engine, MeasurementService(experiment, history=journal, total=planned, continue_stored=continue_stored))
+    plan = thesis_plan(procedure, experiment, seed=seed, strategy=strategy, design=design, floor_aware=floor_aware)
+    arguments = dict(procedure=procedure.name, strategy=strategy or procedure.input_design.strategy,
+                     design=design or procedure.design_method, floor_aware=floor_aware, continue_stored=continue_stored)
+    return engine.run(_finished(plan, service), RunStart("thesis-algorithm-5.1", arguments,
+                                                       procedure.seed if seed is None else int(seed), planned))
+
+
+def _finished(plan, service: MeasurementService):
+    """The plan, then its summary (with how many stored measurements were served) as the
+    ``finished`` document that marks the journal finished."""
+    summary = yield from plan
+    summary = replace(summary, replayed_measurements=service.replayed)
+    yield Emit("finished", {"summary": summary})
+    return summary
+
+
+def _confirm_output_off(experiment):
+    return experiment.confirm_output_off if isinstance(experiment, OutputConfirmingExperiment) else None
 
 
 __all__ = [
