@@ -47,27 +47,28 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from setmem_hil.model.experiment import Experiment
-from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
-from setmem_hil.estimation.dwell_estimate import plan_dwell, plan_multisine, record_duration_s
-from setmem_hil.estimation.multisine import design_multisine
+from typing import TYPE_CHECKING
+
 from setmem_hil.errors import ProcedureError
 from setmem_hil.io.procedure import BACKENDS, Procedure
-from setmem_hil.drivers.instruments.instrument_set import open_instrument_experiment
-from setmem_hil.loopback.instrument_emulation import open_emulated_instruments
-from setmem_hil.loopback.rigs import open_can_virtual_rig, open_modbus_loopback_rig, open_serial_loopback_rig
+from setmem_hil.model.experiment import Experiment
 from setmem_hil.sim_backends.beam import BEAM_N_MODES, scaled_beam
-from setmem_hil.sim_backends.core_rig import CoreRig
-from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
+
+if TYPE_CHECKING:  # each backend's stack is imported when that backend opens (a run's journal exists at once)
+    from setmem_hil.drivers.sine_dwell import DwellSettings, SineDwellExperiment
 
 __all__ = ["open_experiment", "dwell_settings", "dwell_experiment", "ManagedSimulatedBeam"]
 
-LOOPBACK_RIGS = {
-    "serial-loopback": open_serial_loopback_rig,
-    "can-virtual": open_can_virtual_rig,
-    "modbus-loopback": open_modbus_loopback_rig,
-}
+LOOPBACK_RIGS = ("serial-loopback", "can-virtual", "modbus-loopback")
+
+
+def _open_loopback_rig(kind: str, procedure: Procedure, seed: int):
+    from setmem_hil.loopback import rigs
+
+    opener = {"serial-loopback": rigs.open_serial_loopback_rig, "can-virtual": rigs.open_can_virtual_rig,
+              "modbus-loopback": rigs.open_modbus_loopback_rig}[kind]
+    return opener(procedure, seed)
 
 
 @dataclass
@@ -89,6 +90,9 @@ class ManagedSimulatedBeam(SimulatedBeamExperiment):
         self.dwell_model = model
 
     def measure_many(self, omega_rad_s, noise_gain=1.0):
+        from setmem_hil.drivers.sine_dwell import DwellSettings
+        from setmem_hil.estimation.dwell_estimate import plan_dwell
+
         measured = super().measure_many(omega_rad_s, noise_gain)
         if self.dwell_model is None:
             return measured
@@ -100,6 +104,10 @@ class ManagedSimulatedBeam(SimulatedBeamExperiment):
         """One multisine record (as the time-domain dwell would play it): each line carries the
         force share of :func:`~setmem_hil.estimation.multisine.design_multisine` (peak 1 N), so
         its noise and bound grow by ``1 / a_k``; the record's planned time is shared equally."""
+        from setmem_hil.drivers.sine_dwell import DwellSettings
+        from setmem_hil.estimation.dwell_estimate import plan_multisine, record_duration_s
+        from setmem_hil.estimation.multisine import design_multisine
+
         lines = [float(w) for w in omegas_rad_s]
         if len(lines) == 1:
             return self.measure_many(lines)
@@ -117,6 +125,8 @@ class ManagedSimulatedBeam(SimulatedBeamExperiment):
 
 def dwell_settings(procedure: Procedure) -> DwellSettings:
     """DwellSettings from the procedure (amplitude, ``learn_poles``, ``max_window_s``)."""
+    from setmem_hil.drivers.sine_dwell import DwellSettings
+
     transport = procedure.backend.transport
     source = procedure.source_path or procedure.name
     learn = transport.get("learn_poles", False)
@@ -130,6 +140,8 @@ def dwell_settings(procedure: Procedure) -> DwellSettings:
 
 def dwell_experiment(procedure: Procedure, rig, settings: DwellSettings | None = None) -> SineDwellExperiment:
     """A SineDwellExperiment on ``rig`` configured from the procedure (see the module docs)."""
+    from setmem_hil.drivers.sine_dwell import SineDwellExperiment
+
     sim = procedure.backend.simulation
     n_modelled = procedure.prior.n_modes
     extra = None
@@ -159,7 +171,11 @@ def open_instruments(procedure: Procedure, seed: int):
     """Real instruments, or their emulators when the procedure has ``[backend.emulation]``."""
     extra = unmodelled_bound(procedure)
     if procedure.backend.emulation is not None:
+        from setmem_hil.loopback.instrument_emulation import open_emulated_instruments
+
         return open_emulated_instruments(procedure, seed, extra_bound=extra)
+    from setmem_hil.drivers.instruments.instrument_set import open_instrument_experiment
+
     return open_instrument_experiment(procedure, extra_bound=extra)
 
 
@@ -195,11 +211,14 @@ def open_experiment(procedure: Procedure, seed: int) -> Experiment:
     if kind == "instruments":
         return open_instruments(procedure, seed)
     if kind == "time-domain":
+        from setmem_hil.sim_backends.core_rig import CoreRig
+        from setmem_hil.sim_backends.fake_device_core import FakeDeviceCore
+
         return dwell_experiment(procedure, CoreRig(FakeDeviceCore.from_procedure(procedure, seed)))
     if kind not in LOOPBACK_RIGS:
         raise ProcedureError(source, "[backend] key 'kind'", f"expected one of {list(BACKENDS)}, found {kind!r}")
     settings = dwell_settings(procedure)  # validated before any device is started
-    rig = LOOPBACK_RIGS[kind](procedure, seed)
+    rig = _open_loopback_rig(kind, procedure, seed)
     try:
         return dwell_experiment(procedure, rig, settings)
     except BaseException:

@@ -10,7 +10,6 @@ other five are unmodelled dynamics, bounded by ``W1`` of eq. (6.1).
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import brentq
 
 from setmem_hil.model.modal_model import ModalParameters
 
@@ -34,6 +33,8 @@ def cantilever_eigenvalues(n_modes: int) -> np.ndarray:
     the equation is written as
     ``cos(x) + 1/cosh(x) = 0`` so it stays well scaled for large x.
     """
+    from scipy.optimize import brentq  # here: importing scipy.optimize costs a second (fast --help, run --check)
+
     f = lambda x: np.cos(x) + 1.0 / np.cosh(x)  # noqa: E731
     return np.array([brentq(f, (k - 1) * np.pi, k * np.pi, xtol=1e-15) for k in range(1, n_modes + 1)])
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from setmem_hil.estimation.reprocessing import SIMULATED_PHASOR, simulated_points
+from setmem_hil.estimation.simulated_record import SIMULATED_PHASOR, simulated_points
 from setmem_hil.model.experiment import Measurement, RawRecord
 from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.sim_backends.beam import W1_DEN, W1_NUM, beam_parameters, beam_parameters_at, polynomial_magnitude, scaled_beam
@@ -169,7 +169,7 @@ class SimulatedBeamExperiment:
 
     def take_raw_records(self) -> list[RawRecord]:
         """The raw records of the measurements since the last call (the simulated phasors and
-        their bounds' terms, :data:`~setmem_hil.estimation.reprocessing.SIMULATED_PHASOR`)."""
+        their bounds' terms, :data:`~setmem_hil.estimation.simulated_record.SIMULATED_PHASOR`)."""
         taken, self._raw = self._raw, []
         return taken
 

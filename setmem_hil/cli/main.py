@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import pkgutil
 import sys
 import traceback
 
@@ -46,8 +45,7 @@ DESCRIPTION = (
 )
 
 
-SAFE_STOP = "interrupted; exciter at zero, journal closed"
-"""What commands that drive an exciter and write a journal say on Ctrl-C, SIGTERM or Abort."""
+from setmem_hil.cli.campaign_options import SAFE_STOP  # noqa: E402 (re-exported: commands name it)
 
 
 def exit_code_and_message(exc: BaseException, interrupted: str = "interrupted") -> tuple[int, str]:
@@ -87,7 +85,9 @@ def one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; only the command ``argv`` asks for is imported (the others are listed by name
+    and help, :data:`setmem_hil.cli.commands.COMMANDS`), so ``--help`` answers at once."""
     parser = argparse.ArgumentParser(
         prog="setmem-hil", description=DESCRIPTION,
         epilog="run 'setmem-hil COMMAND --help' for a command's options; exit codes: 0 ok, 2 malformed input, "
@@ -96,13 +96,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"setmem-hil {__version__}")
     parser.add_argument("--debug", action="store_true", help="show the Python traceback of a failure")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    import setmem_hil.cli.commands as commands
+    from setmem_hil.cli.commands import COMMANDS
 
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"setmem_hil.cli.commands.{info.name}")
-        module.register(subparsers)
+    wanted = next((a for a in (argv or []) if not a.startswith("-")), None)
+    for name, (module, summary) in sorted(COMMANDS.items()):
+        if name == wanted or argv is None:
+            importlib.import_module(f"setmem_hil.cli.commands.{module}").register(subparsers)
+        else:
+            subparsers.add_parser(name, help=summary)
     return parser
 
 
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     debug = "--debug" in argv  # also honoured after the command name
     if debug:
         argv = [a for a in argv if a != "--debug"]
-    parser = build_parser()
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

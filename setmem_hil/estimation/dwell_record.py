@@ -28,10 +28,12 @@ from setmem_hil.estimation.dwell_estimate import DwellPlan, DwellResult, DwellSe
 from setmem_hil.estimation.instrument_terms import InstrumentTerms, apply_instrument_terms
 from setmem_hil.estimation.sine_fit import DampedPole
 from setmem_hil.model.experiment import Measurement, RawRecord
-from setmem_hil.estimation.reprocessing import SINE_DWELL
 from setmem_hil.model.modal_model import IntervalModel, ModalParameters
 
 __all__ = ["DwellInputs", "corrected_points", "dwell_points", "dwell_record", "inputs_from_record", "results_from_inputs"]
+
+SINE_DWELL = "sine-dwell"
+"""Raw-record kind of a sampled sine dwell (:func:`dwell_record`, recomputed by :func:`dwell_points`)."""
 
 
 

@@ -22,10 +22,12 @@ import numpy as np
 
 from setmem_hil.estimation.instrument_terms import to_receptance
 from setmem_hil.estimation.phasor_estimate import PhasorPoint, exponential_gap, phasor_point
-from setmem_hil.estimation.reprocessing import LOCK_IN_READINGS
 from setmem_hil.model.experiment import Measurement, RawRecord
 
 __all__ = ["OutputPoint", "OutputSensor", "lock_in_points", "output_point", "reading_ratios", "receptance_scale"]
+
+LOCK_IN_READINGS = "lock-in-readings"
+"""Raw-record kind of lock-in X, Y readings with their times (recomputed by :func:`lock_in_points`)."""
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
-from setmem_hil.cli.main import SAFE_STOP
+from setmem_hil.cli.campaign_options import SAFE_STOP
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -22,7 +22,7 @@ from pathlib import Path
 from rich.console import Console
 
 from setmem_hil.io.procedure import BACKENDS, DESIGN_METHODS, STRATEGIES
-from setmem_hil.cli.main import SAFE_STOP
+from setmem_hil.cli.campaign_options import DESIGN_HELP, SAFE_STOP
 
 __all__ = ["register", "campaign", "print_iteration_table"]
 
@@ -33,8 +33,6 @@ CAMPAIGN_HELP = (
 )
 
 
-DESIGN_HELP = ("override the procedure's [design] method: robust (the compensator tuned to the mixed-mu bound, "
-               "the default) or h2 (the thesis's H2 design)")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -16,8 +16,8 @@ from pathlib import Path
 
 from rich.console import Console
 from setmem_hil.cli.live_options import add_live_options, live_view
-from setmem_hil.cli.main import SAFE_STOP
-from setmem_hil.cli.commands.campaign import DESIGN_HELP
+from setmem_hil.cli.campaign_options import SAFE_STOP
+from setmem_hil.cli.campaign_options import DESIGN_HELP
 from setmem_hil.io.procedure import DESIGN_METHODS
 
 

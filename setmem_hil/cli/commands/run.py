@@ -15,20 +15,20 @@ import argparse
 import os
 from pathlib import Path
 
-from rich.console import Console
+from typing import TYPE_CHECKING
 
-from setmem_hil.campaign import session
-from setmem_hil.campaign.session import RunOutcome, default_run_dir, describe_procedure
+from setmem_hil.cli.campaign_options import DESIGN_HELP, SAFE_STOP
 from setmem_hil.cli.live_options import add_live_options, live_view
-from setmem_hil.cli.progress import terminal_display
 from setmem_hil.errors import InputFormatError
-from setmem_hil.experiment_factory import open_experiment
-from setmem_hil.io.procedure import DESIGN_METHODS, STRATEGIES, Procedure
-from setmem_hil.cli.commands.campaign import DESIGN_HELP
-from setmem_hil.io.procedure_file import load_procedure
-from setmem_hil.cli.main import SAFE_STOP
+from setmem_hil.io.procedure import DESIGN_METHODS, STRATEGIES
 
-__all__ = ["register", "run", "start_run", "resume_run", "default_run_dir", "RunOutcome", "open_backend"]
+if TYPE_CHECKING:  # the campaign's modules load the numerics: imported when a run starts, not for --help
+    from rich.console import Console
+
+    from setmem_hil.campaign.journaled_run import RunOutcome
+    from setmem_hil.io.procedure import Procedure
+
+__all__ = ["register", "run", "start_run", "resume_run", "open_backend"]
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -61,6 +61,10 @@ def _arguments_error(problem: str) -> InputFormatError:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from setmem_hil.io.procedure_file import load_procedure
+
     console = Console(stderr=False, quiet=bool(args.quiet), soft_wrap=True)
     if args.resume:
         if args.procedure or args.out or args.seed is not None or args.strategy or args.design or args.check:
@@ -75,7 +79,10 @@ def run(args: argparse.Namespace) -> int:
             raise _arguments_error("--procedure FIXED.toml goes with --resume DIR")
         procedure = load_procedure(args.procedure)
         if args.check:
-            session.preflight(procedure)
+            from setmem_hil.campaign.preflight import preflight
+            from setmem_hil.campaign.run_directory import describe_procedure
+
+            preflight(procedure)
             describe_procedure(procedure, console)
             if procedure.backend.kind == "instruments":
                 from setmem_hil.drivers.instruments.instrument_set import instrument_warnings
@@ -84,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
                     console.print(f"warning: {warning}", highlight=False, markup=False)
             console.print(f"{args.procedure}: OK", highlight=False)
             return 0
+        from setmem_hil.campaign.run_directory import default_run_dir
+
         out = Path(args.out) if args.out else default_run_dir(procedure)
         with live_view(args, out) as live:
             outcome = start_run(procedure, out, seed=args.seed, strategy=args.strategy, console=console,
@@ -98,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
 
 def open_backend(procedure: Procedure, seed: int):
     """The experiment the CLI runs: :func:`setmem_hil.experiment_factory.open_experiment`."""
+    from setmem_hil.experiment_factory import open_experiment
+
     return open_experiment(procedure, seed)
 
 
@@ -105,6 +116,11 @@ def start_run(procedure: Procedure, run_dir: str | os.PathLike, *, seed: int | N
               console: Console | None = None, report_follows: bool = False, design: str | None = None, **live) -> RunOutcome:
     """:func:`setmem_hil.campaign.session.start_run` with the terminal display (``report_follows``:
     the caller writes the report, so no hint how to)."""
+    from rich.console import Console
+
+    from setmem_hil.campaign import session
+    from setmem_hil.cli.progress import terminal_display
+
     console = console or Console(soft_wrap=True)
     return session.start_run(procedure, run_dir, seed=seed, strategy=strategy, console=console,
                              opener=lambda p, s: open_backend(p, s), display=terminal_display(console),
@@ -112,7 +128,12 @@ def start_run(procedure: Procedure, run_dir: str | os.PathLike, *, seed: int | N
 
 
 def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, procedure_path=None, **live) -> RunOutcome:
-    """:func:`setmem_hil.campaign.session.resume_run` with the terminal display."""
+    """:func:`setmem_hil.campaign.resume.resume_run` with the terminal display."""
+    from rich.console import Console
+
+    from setmem_hil.campaign.resume import resume_run as resume
+    from setmem_hil.cli.progress import terminal_display
+
     console = console or Console(soft_wrap=True)
-    return session.resume_run(run_dir, console=console, opener=lambda p, s: open_backend(p, s),
+    return resume(run_dir, console=console, opener=lambda p, s: open_backend(p, s),
                               display=terminal_display(console), procedure_path=procedure_path, **live)

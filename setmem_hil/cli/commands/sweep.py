@@ -28,7 +28,7 @@ from setmem_hil.io.procedure import STRATEGIES, Goal
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("sweep", help="many campaigns (seeds x input-design strategies) on Dask, resumable",
+    p = subparsers.add_parser("sweep", help="many campaigns (seeds x input-design strategies x designs) on Dask, resumable",
                               description="Run the procedure's campaign for every seed and input-design strategy (on a local "
                               "Dask cluster, a scheduler, or serially), store each run in DIR/runs/, and write the per-strategy "
                               "statistics (DIR/sweep.json) and figure (DIR/sweep.png). Interrupted sweeps resume only what is missing.")
