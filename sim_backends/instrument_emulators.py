@@ -767,7 +767,9 @@ class InstrumentServer:
 
     * :meth:`drop_link` closes the connection after ``after`` more commands, and with
       ``reconnectable = False`` every later connection too (the link stays down);
-    * :meth:`garble_replies` sends the next ``count`` replies as line noise.
+    * :meth:`garble_replies` sends the next ``count`` replies as line noise;
+    * :meth:`delay_replies` sends the next ``count`` replies to queries matching a pattern
+      ``seconds`` late (wall clock: a reply the driver's timeout gives up on).
     """
 
     GARBLE = "#\x15?~\x7f"
@@ -781,6 +783,7 @@ class InstrumentServer:
         self._drop_in: int | None = None
         self._link_down = False
         self._garble = 0
+        self._delay: tuple[float, int, str] | None = None  # (seconds, replies left, pattern)
 
         class Handler(socketserver.StreamRequestHandler):
             def handle(self):  # noqa: D401 - socketserver API
@@ -798,6 +801,7 @@ class InstrumentServer:
                         with lock:
                             reply = emu.handle_line(line, payload)
                         if reply is not None:
+                            time.sleep(server._delay_for(line))  # outside the lock: the instrument goes on
                             if server._garble > 0:
                                 server._garble -= 1
                                 reply = server.GARBLE
@@ -824,6 +828,21 @@ class InstrumentServer:
 
     def garble_replies(self, count: int = 1) -> None:
         self._garble = count
+
+    def delay_replies(self, seconds: float, count: int = 1, matching: str = "") -> None:
+        """Send the next ``count`` replies to commands matching the regular expression
+        ``matching`` (any: ``""``) ``seconds`` late."""
+        self._delay = (float(seconds), int(count), matching)
+
+    def _delay_for(self, line) -> float:
+        if self._delay is None:
+            return 0.0
+        seconds, left, pattern = self._delay
+        text = line.decode("ascii", "replace") if isinstance(line, bytes) else str(line)
+        if not re.search(pattern, text):
+            return 0.0
+        self._delay = (seconds, left - 1, pattern) if left > 1 else None
+        return seconds
 
     def _dropping_now(self) -> bool:
         if self._drop_in is None:

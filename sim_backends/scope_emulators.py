@@ -139,7 +139,14 @@ class ScopeEmulator(_Emulator):
 
     def arm(self) -> None:
         """Find the trigger instant and take the record from the bench at once (the bench
-        cannot go back in time); it becomes readable when the clock passes its end."""
+        cannot go back in time); it becomes readable when the clock passes its end. Armed again
+        before an earlier record's end (a driver that gave up waiting for a reply and retries),
+        the scope first finishes that acquisition: the clock is advanced to its end (virtual
+        time; a scope busy acquiring answers its next command late). In the normal order, the
+        record read before the next arm, nothing changes."""
+        behind = self.bench.t - self.bench.clock.now()
+        if behind > 0:
+            self.bench.clock.sleep(behind)
         now = self.bench.clock.now()
         self.armed = True
         self.ready_at = math.inf

@@ -390,3 +390,61 @@ def test_a_line_near_a_lightly_damped_mode_driven_from_rest_beats_up_to_twice_it
     y = zero_state_response(model, [line], [1.0], [(0.0, 1.0)], t)
     steady = abs(1.0 / (omega_n**2 - line**2 + 2j * zeta * omega_n * line))
     assert 1.9 * steady < np.max(np.abs(y)) <= (1.0 + line / omega_n) * steady
+
+
+def test_a_reply_late_past_its_timeout_mid_campaign_is_retried_with_the_whole_setup_restored(tmp_path, monkeypatch, capsys):
+    """Issue 46: one `:TRIG:STAT?` reply arrives after the link gave up on it (the scope emulator
+    sends it late, on purpose). The dwell's retry opens a fresh session, sends the scope's whole
+    setup again (the profile's init, every channel, the trigger, the waveform format, the time
+    base) before it arms, and the campaign finishes: exit 0, every point kept, the fault and
+    the reconnect journaled. The truth is the emulator's transcript and the beam."""
+    from setmem_hil.cli.main import main
+    from setmem_hil.io.journal import Journal
+    from setmem_hil.loopback import instrument_emulation
+
+    monkeypatch.setattr(instrument_emulation, "EMULATED_LINK_TIMEOUT_S", 1.0)
+    servers, armed = [], []
+    start = instrument_emulation.start_emulators
+
+    def capturing(procedure, seed, tee=False):
+        wired, bench, started = start(procedure, seed, tee)
+        servers.extend(s for s in started if type(s.emulator).__name__ == "RigolScopeEmulator")
+        return wired, bench, started
+
+    monkeypatch.setattr(instrument_emulation, "start_emulators", capturing)
+    from setmem_hil.campaign import journaled_run
+
+    original = journaled_run.run_journaled_campaign
+
+    def with_late_reply(procedure, experiment, journal, **kw):
+        def late_on_the_fourth_dwell(event, **info):
+            if event == "measure" and info["index"] == 4 and not armed:
+                scope = servers[-1]
+                armed.append(len(scope.emulator.commands))
+                scope.delay_replies(2.5, count=1, matching=r"TRIG:STAT\?")
+        kw["observers"] = [*kw.get("observers", ()), late_on_the_fourth_dwell]
+        return original(procedure, experiment, journal, **kw)
+
+    monkeypatch.setattr(journaled_run, "run_journaled_campaign", with_late_reply)
+    text = DATASHEET_TEXT.replace("max_experiments = 30", "max_experiments = 0")
+    (tmp_path / "scope.toml").write_text(text)
+    code = main(["run", str(tmp_path / "scope.toml"), "--out", str(tmp_path / "run"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    after = servers[-1].emulator.commands[armed[0]:]
+    late = next(i for i, c in enumerate(after) if c.startswith(":TRIG:STAT?"))
+    # after the late reply: the init again (its *CLS and :TRIG:SWE SING), channels and trigger before the next :SING
+    rest = after[late + 1:]
+    restored = rest[: rest.index(":SING")]
+    for needed in ("*CLS", ":TRIG:SWE SING", ":CHAN1:DISP ON", ":WAV:MODE RAW", ":TIM:MAIN:SCAL"):
+        assert any(c.startswith(needed) for c in restored), (needed, restored)
+    journal = Journal.open(tmp_path / "run")
+    try:
+        kinds = [e["kind"] for e in journal.events()]
+        measured = journal.measurements()
+    finally:
+        journal.close()
+    assert "device_error" in kinds and "reconnect" in kinds
+    assert len(measured) == 15
+    ratios = [abs(m.response - _truth(1.0, m.omega_rad_s)) / m.bound for m in measured]
+    assert max(ratios) <= 1.0, max(ratios)

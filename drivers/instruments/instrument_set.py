@@ -178,7 +178,7 @@ def open_instrument(settings: InstrumentSettings, profile: Profile, clock: Clock
 
         return DbcGenerator(settings.name, profile, settings.resource)
     link = VisaLink(settings.name, settings.resource, visa_library=settings.visa_library,
-                    termination=profile.termination, timeout_s=profile.timeout_s)
+                    termination=profile.termination, timeout_s=settings.timeout_s or profile.timeout_s)
     try:
         if isinstance(profile, ScpiGeneratorProfile):
             return ScpiGenerator(settings.name, profile, link, channel=settings.channel, load_ohms=settings.load_ohms)

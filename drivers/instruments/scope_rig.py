@@ -329,6 +329,13 @@ class ScopeRig:
         # the dwell's own clipping check must never fire before the scope's: infinite ranges here
         self.metadata = RigMetadata(1000.0, math.inf, math.inf, name=f"{source.name} + {scope.name}")
 
+    def reconnect(self) -> None:
+        """After a device fault (a reply that never came): a fresh session to the scope with its
+        whole setup restored (:meth:`ScpiScope.reconnect`); the dwell then runs again
+        (:class:`~setmem_hil.drivers.protocols.ReconnectableRig`). The generator is set afresh by
+        every dwell's start, and its link reopens itself after a timed-out query."""
+        self.scope.reconnect()
+
     def close(self) -> None:
         try:
             self.exciter.stop()

@@ -132,6 +132,16 @@ class ScpiScope(ScpiInstrument):
         if "waveform_setup" in self.profile.commands:
             self._command("waveform_setup")
 
+    def reconnect(self) -> None:
+        """A fresh session, then the whole setup sent again before the next record: after a
+        query timed out the scope's state is unknown (an acquisition running, a command half
+        taken, a setting refused), so the channels, their scales, the trigger, the waveform
+        format, the time base and the record length are restored from what this driver holds
+        (issue 46: a retry that trusted the old state was refused at every ``:SINGle``)."""
+        super().reconnect()
+        self.time_scale_s, self.points = 0.0, 0  # sent again by the next set_record_length
+        self.initialise()  # the profile's init first (it clears the error queue and stops the acquisition)
+
     def _command(self, role: str, **values) -> None:
         text = render(self.profile.commands[role], **values)
         for part in (p for p in text.split(";") if p.strip()):

@@ -271,13 +271,17 @@ class VisaLink:
         return DeviceDisconnectedError(f"{self.name} ({self.resource}): {command!r} failed ({_reason(exc)})")
 
     def close(self) -> None:
+        """Close this instrument's session only. PyVISA shares one ResourceManager per VISA
+        library between every link of the process: closing it closed the other instruments'
+        sessions too (issue 46: the scope's fresh session after a timed-out query left the
+        generator's link dead, and every retry failed on it)."""
         self._sock = None
-        for closer in (getattr(self, "_inst", None), getattr(self, "_rm", None)):
-            try:
-                if closer is not None:
-                    closer.close()
-            except Exception as exc:  # noqa: BLE001 - closing must not mask anything
-                log.debug("closing %s: %r", self.name, exc)
+        inst = getattr(self, "_inst", None)
+        try:
+            if inst is not None:
+                inst.close()
+        except Exception as exc:  # noqa: BLE001 - closing must not mask anything
+            log.debug("closing %s: %r", self.name, exc)
 
 
 def _readable_now(sock: socket.socket) -> bool:

@@ -82,6 +82,7 @@ class InstrumentSettings:
     calibration_uncertainty: float = 0.0
     quantity: str | None = None  # sensors: None -> force for the force role, displacement for the response role
     visa_library: str = "@py"
+    timeout_s: float | None = None  # the link's reply timeout (None: the profile's); not a file key: emulation sets it
     # an NI-DAQmx channel's sensor power and input coupling (issue 40): IEPE current excitation
     # in amperes (0: none) and "AC" | "DC" (None: AC with IEPE, else the device's default, DC)
     iepe_current_a: float = 0.0

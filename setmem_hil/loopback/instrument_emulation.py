@@ -47,6 +47,14 @@ def emulator_model(profile) -> str | None:
     return None
 
 
+EMULATED_LINK_TIMEOUT_S = 60.0
+"""Reply timeout of the links to emulated instruments. An emulator answers within microseconds of
+work, so only a loaded machine (a busy CI runner) could make a reply late; with the profiles'
+timeouts (2-5 s) such a delay became a device fault, a retry and another noise realisation, and
+the campaign's result depended on the machine's load (issue 46). The timeout and its retry are
+tested by delaying a reply on purpose (:meth:`InstrumentServer.delay_replies`)."""
+
+
 def start_emulators(procedure: Procedure, seed: int, tee: bool = False) -> tuple[Procedure, EmulatedBench, list]:
     """Start an emulator for each instrument; returns the procedure with the resources they
     listen on, the bench, and the servers (close them when done). ``tee``: the oscilloscope's
@@ -104,7 +112,8 @@ def start_emulators(procedure: Procedure, seed: int, tee: bool = False) -> tuple
         for server in servers:
             server.close()
         raise
-    instruments = {n: dataclasses.replace(s, resource=resources.get(n, s.resource)) for n, s in procedure.instruments.items()}
+    instruments = {n: dataclasses.replace(s, resource=resources.get(n, s.resource), timeout_s=EMULATED_LINK_TIMEOUT_S)
+                   for n, s in procedure.instruments.items()}
     return dataclasses.replace(procedure, instruments=instruments), bench, servers
 
 
