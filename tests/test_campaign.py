@@ -60,13 +60,14 @@ def complete_run(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="fails on this machine at c27e7bf too (before issue 47's changes): an iteration "
-                   "before the last reports mu-bar < 1 and the loop goes on; left for issue 46 (the suite)")
 def test_campaign_reaches_the_goal_and_stops_there(complete_run):
     summary, iterations, rows, info, _ = complete_run
     assert summary.reached_goal and summary.final_mu_peak < 1.0
-    mus = [it.mu_peak for it in iterations]
-    assert mus[-1] < 1.0 and all(m >= 1.0 for m in mus[:-1])  # stops at the first mu-bar < 1
+    # the stopping test is mu-bar certified on the whole band (issue 27), not the grid's peak: an
+    # iteration may show a grid peak below 1 whose band-wide certificate is not (it goes on)
+    certified = [it.certified_mu for it in summary.iterations]
+    assert certified[-1] < 1.0 and all(c >= 1.0 for c in certified[:-1])  # stops at the first certified mu-bar < 1
+    assert all(it.mu_peak <= c + 1e-12 for it, c in zip(summary.iterations, certified))  # the grid never above the band's bound
     assert iterations[-1].next_omega is None
     assert summary.experiments_added == len(iterations) - 1 == len(rows) - 15
     doc = summary.to_document()

@@ -26,8 +26,6 @@ POSITIONS = (1.0, 0.7, 0.4)  # channels 2, 3, 4
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="issue 46: a scope reply missed under load is not recovered by the retry "
-                   "(-222 after :SING); passes on an idle machine")
 def test_the_311_rad_s_scope_multisine_campaign_exits_0_with_every_truth_inside(tmp_path):
     assert main(["run", str(PROCEDURE), "--out", str(tmp_path / "run"), "--quiet"]) == 0
     assert main(["reprocess", str(tmp_path / "run")]) == 0  # issue 39: the multisine records recompute to the journal's points

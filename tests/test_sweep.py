@@ -377,3 +377,31 @@ def _rounded(obj, digits: int = 9):
     if isinstance(obj, list):
         return [_rounded(v, digits) for v in obj]
     return obj
+
+
+def test_a_sweep_over_designs_runs_each_design_and_reports_it(tmp_path):
+    """Issue 46: ``--designs h2,robust`` is an axis like ``--strategies``. Each run is the
+    campaign of that design (its journal and summary say so, the truth: the design each
+    iteration's row records), named with it, and the document holds each design's summary."""
+    from setmem_hil.sweep.runner import format_summary_table, parse_designs
+
+    assert parse_designs("h2,robust") == ("h2", "robust")
+    with pytest.raises(InputFormatError, match="--designs.*expected one of robust, h2.*lqg"):
+        parse_designs("h2,lqg")
+    result = run_sweep(fast_procedure(0), [1], ["mu"], tmp_path, serial=True, plot=True, designs=["h2", "robust"])
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir() if not p.name.startswith(".")) == ["mu-h2-seed1", "mu-robust-seed1"]
+    doc = json.loads((tmp_path / "sweep.json").read_text())
+    assert doc["designs"] == ["h2", "robust"] and set(doc["summary"]) == {"mu-h2", "mu-robust"}
+    assert set(doc["by_design"]) == {"h2", "robust"} and set(doc["by_design"]["h2"]) == {"mu"}
+    assert sorted((r["design"], r["strategy"]) for r in doc["runs"]) == [("h2", "mu"), ("robust", "mu")]
+    for design in ("h2", "robust"):
+        summary = json.loads((tmp_path / "runs" / f"mu-{design}-seed1" / "summary.json").read_text())
+        assert {it["design"] for it in summary["iterations"]} == {design}
+        journal = Journal.open(tmp_path / "runs" / f"mu-{design}-seed1")
+        assert journal.run_info()["design"] == design
+        journal.close()
+    assert (tmp_path / "sweep.png").exists() and "mu-h2" in format_summary_table(result.document)
+    # the default axis: the procedure's design, runs named as before
+    again = run_sweep(fast_procedure(0), [1], ["mu"], tmp_path / "default", serial=True, plot=False)
+    assert [r["design"] for r in again.runs] == [fast_procedure(0).design_method]
+    assert (tmp_path / "default" / "runs" / "mu-seed1" / "summary.json").exists() and set(again.summary) == {"mu"}

@@ -290,7 +290,7 @@ def _record(loop: LoopSettings, state: LoopState, step: Identified, outcome: Saf
         k=k, n_points=len(state.measured), mu_peak=float(outcome.mu_peak), mu_peak_omega=float(analysis.mu_peak_omega),
         next_omega=next_omega, safeguard=outcome.branch, basis="" if choice is None else choice.basis,
         compute_s=float(compute_s), compute_cpu_s=float(compute_cpu_s), mu_peak_certified=bool(outcome.certified),
-        mu_certified_intervals=certified_intervals, design=kept, floor_modes=floor,
+        mu_certified_intervals=certified_intervals, design=kept, floor_modes=floor, certified_mu=float(outcome.certified_mu),
     ))
 
 

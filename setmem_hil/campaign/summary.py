@@ -28,10 +28,12 @@ class IterationSummary:
     mu_certified_intervals: int = 0
     design: str = "h2"  # the design that made the kept compensator: "robust" or "h2" (issue 38)
     floor_modes: tuple[int, ...] = ()  # modes whose box blocks every compensator (setmem_hil.model.mu_floor)
+    certified_mu: float = float("inf")  # mu-bar certified on the whole band (the stopping test's value; inf: none)
 
     def to_document(self) -> dict:
         return {
             "k": self.k,
+            "certified_mu": float(self.certified_mu) if np.isfinite(self.certified_mu) else None,
             "mu_peak": self.mu_peak,
             "mu_peak_certified": bool(self.mu_peak_certified),
             "mu_certified_intervals": int(self.mu_certified_intervals),

@@ -36,6 +36,10 @@ def plot_experiments_to_goal(document: dict, path: str | os.PathLike) -> Path:
 
     runs = document["runs"]
     strategies = list(document.get("strategies") or dict.fromkeys(r["strategy"] for r in runs))
+    designs = list(document.get("designs") or [])
+    if len(designs) > 1 or document.get("lanes", strategies) != strategies:  # a sweep over designs: one column each
+        strategies = list(document["lanes"])
+        runs = [{**r, "strategy": f"{r['strategy']}-{r['design']}"} for r in runs]
     goal = document.get("goal", {})
     cap = goal.get("max_experiments")
     finished = [r for r in runs if not r.get("error")]

@@ -51,10 +51,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
-from setmem_hil.campaign.session import directory_lock
+from setmem_hil.campaign.run_directory import directory_lock
 from setmem_hil.errors import InputFormatError
 from setmem_hil.os_support import kill_process
-from setmem_hil.io.procedure import STRATEGIES, Procedure
+from setmem_hil.io.procedure import DESIGN_METHODS, STRATEGIES, Procedure
 from setmem_hil.sweep.storage import (
     clean_partials,
     error_record,
@@ -124,6 +124,25 @@ def parse_strategies(text: str | Sequence[str]) -> tuple[str, ...]:
             raise InputFormatError("--strategies", "", f"expected one of {', '.join(STRATEGIES)}, found {s!r}")
     if len(set(items)) != len(items):
         raise InputFormatError("--strategies", "", f"a strategy appears twice in {text!r}")
+    return tuple(items)
+
+
+def parse_designs(text: str | Sequence[str]) -> tuple[str, ...]:
+    """Compensator designs from ``"h2,robust"`` (or a sequence); each must be in ``DESIGN_METHODS``.
+
+    Raises
+    ------
+    InputFormatError
+        Naming ``--designs``, the unknown name and the allowed ones.
+    """
+    items = [s.strip() for s in (text.split(",") if isinstance(text, str) else text)]
+    if not items or any(not s for s in items):
+        raise InputFormatError("--designs", "", f"expected a comma list of {', '.join(DESIGN_METHODS)}, found {text!r}")
+    for s in items:
+        if s not in DESIGN_METHODS:
+            raise InputFormatError("--designs", "", f"expected one of {', '.join(DESIGN_METHODS)}, found {s!r}")
+    if len(set(items)) != len(items):
+        raise InputFormatError("--designs", "", f"a design appears twice in {text!r}")
     return tuple(items)
 
 
@@ -233,8 +252,9 @@ def run_sweep(
     task: TaskFn = sweep_campaign,
     progress: bool | ProgressFn = False,
     plot: bool = True,
+    designs: Sequence[str] | None = None,
 ) -> SweepResult:
-    """Run every (seed, strategy) campaign not yet done in ``out_dir`` and write the summary.
+    """Run every (seed, strategy, design) campaign not yet done in ``out_dir`` and write the summary.
 
     Parameters
     ----------
@@ -260,6 +280,12 @@ def run_sweep(
         after each campaign.
     plot : bool
         Write ``sweep.png``.
+    designs : sequence of str, optional
+        The compensator designs to compare (``"h2"``, ``"robust"``), a third axis of the grid;
+        default: the procedure's ``[design] method`` alone (runs named as before). With any
+        other list each run is named ``<strategy>-<design>-seed<N>`` and ``sweep.json``'s
+        ``summary`` is keyed ``<strategy>-<design>`` (``by_design`` holds each design's
+        per-strategy summary).
 
     Returns
     -------
@@ -290,6 +316,8 @@ def run_sweep(
     check_sweep_procedure(procedure)
     seeds = tuple(int(s) for s in seeds)
     strategies = parse_strategies(strategies)
+    designs = parse_designs(designs or (procedure.design_method,))
+    named = None if designs == (procedure.design_method,) else designs  # the run names carry the design
     if not seeds:
         raise InputFormatError("--seeds", "", "no seeds given")
     if workers is not None and int(workers) < 1:
@@ -300,9 +328,9 @@ def run_sweep(
     executed: list[str] = []
     failed: list[str] = []
     with _sweep_lock(out):
-        pending, done = plan_runs(procedure, seeds, strategies, out)
+        pending, done = plan_runs(procedure, seeds, strategies, out, named or (None,))
         clean_partials(out)
-        total = len(seeds) * len(strategies)
+        total = len(seeds) * len(strategies) * len(designs)
         bar: _RichProgress | None = None
         if progress is True:
             bar = _RichProgress(total, len(done), f"sweep {procedure.name} ({mode})")
@@ -314,7 +342,7 @@ def run_sweep(
         def finished(rec: dict) -> None:
             nonlocal n_done, n_failed
             n_done += 1
-            name = run_name(rec["strategy"], rec["seed"])
+            name = run_name(rec["strategy"], rec["seed"], rec.get("design"))
             if rec.get("status") != "skipped":
                 executed.append(name)
             if rec.get("status") == "failed":
@@ -325,11 +353,11 @@ def run_sweep(
 
         try:
             if pending and serial:
-                for seed, strategy in pending:
+                for seed, strategy, design in pending:
                     try:
-                        rec = task(procedure, seed, strategy, str(out))
+                        rec = task(procedure, seed, strategy, str(out), *(() if design is None else (design,)))
                     except Exception as exc:
-                        rec = record_failure(out, seed, strategy, exc, "sweep (serial)")
+                        rec = record_failure(out, seed, strategy, exc, "sweep (serial)", design)
                     finished(rec)
             elif pending:
                 _run_on_dask(procedure, pending, out, scheduler, workers, task, finished)
@@ -337,30 +365,43 @@ def run_sweep(
             if bar is not None:
                 bar.close()
 
-    runs = []
-    for seed in seeds:
-        for strategy in strategies:
-            rec = read_run(out, seed, strategy)
-            runs.append(rec if rec is not None else error_record(seed, strategy, "not run"))
-    summary = summarize_runs(runs, strategies)
-    document = {
-        "runs": runs,
-        "summary": summary,
-        "procedure": procedure.name,
-        "procedure_fingerprint": procedure_fingerprint(procedure),
-        "seeds": list(seeds),
-        "strategies": list(strategies),
-        "goal": {"mu_target": float(procedure.goal.mu_target), "max_experiments": int(procedure.goal.max_experiments)},
-        "failures": sum(1 for r in runs if r.get("error")),
-    }
+    document = _sweep_document(procedure, seeds, strategies, designs, named, out)
+    runs, summary = document["runs"], document["summary"]
     write_json_atomic(document, out / "sweep.json")
     if plot:
         from setmem_hil.sweep.plot import plot_experiments_to_goal
 
         plot_experiments_to_goal(document, out / "sweep.png")
     return SweepResult(out_dir=out, runs=tuple(runs), summary=summary, executed=tuple(executed),
-                       skipped=tuple(run_name(st, s) for s, st in done), failed=tuple(failed),
+                       skipped=tuple(run_name(st, s, d) for s, st, d in done), failed=tuple(failed),
                        wall_s=time.perf_counter() - t0, mode=mode, document=document)
+
+
+def _sweep_document(procedure: Procedure, seeds, strategies, designs, named, out: Path) -> dict:
+    """``sweep.json``: every run's row (its design named), the summary per strategy (per
+    ``<strategy>-<design>`` over several designs) and per design."""
+    runs = []
+    for seed in seeds:
+        for strategy in strategies:
+            for design in named or (None,):
+                rec = read_run(out, seed, strategy, design)
+                rec = rec if rec is not None else error_record(seed, strategy, "not run", design)
+                runs.append({**rec, "design": design or procedure.design_method})
+    lanes = [s if named is None else f"{s}-{d}" for s in strategies for d in designs]
+    summary = summarize_runs(runs, lanes, key=lambda r: r["strategy"] if named is None else f"{r['strategy']}-{r['design']}")
+    return {
+        "runs": runs,
+        "summary": summary,
+        "by_design": {d: summarize_runs([r for r in runs if r["design"] == d], strategies) for d in designs},
+        "procedure": procedure.name,
+        "procedure_fingerprint": procedure_fingerprint(procedure),
+        "seeds": list(seeds),
+        "strategies": list(strategies),
+        "designs": list(designs),
+        "lanes": lanes,
+        "goal": {"mu_target": float(procedure.goal.mu_target), "max_experiments": int(procedure.goal.max_experiments)},
+        "failures": sum(1 for r in runs if r.get("error")),
+    }
 
 
 def _prepare_local_worker() -> int:
@@ -376,7 +417,7 @@ def _prepare_local_worker() -> int:
     return os.getpid()
 
 
-def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str]], out: Path, scheduler: str | None,
+def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str, str | None]], out: Path, scheduler: str | None,
                  workers: int | None, task: TaskFn, finished: Callable[[dict], None]) -> None:
     """Submit the pending campaigns and collect them as they complete."""
     from distributed import Client, as_completed
@@ -402,15 +443,15 @@ def _run_on_dask(procedure: Procedure, pending: list[tuple[int, str]], out: Path
             cluster = _start_local_cluster(workers)
             client = Client(cluster)
             local_pids = [int(pid) for pid in client.run(_prepare_local_worker).values()]
-        for seed, strategy in pending:
-            fut = client.submit(task, procedure, seed, strategy, str(out), pure=False)
-            futures[fut] = (seed, strategy)
+        for seed, strategy, design in pending:
+            fut = client.submit(task, procedure, seed, strategy, str(out), *(() if design is None else (design,)), pure=False)
+            futures[fut] = (seed, strategy, design)
         for fut in as_completed(list(futures)):
-            seed, strategy = futures[fut]
+            seed, strategy, design = futures[fut]
             try:
                 rec = fut.result()
             except Exception as exc:  # the task itself failed (worker died, unpicklable, ...)
-                rec = record_failure(out, seed, strategy, exc, f"dask ({scheduler or 'local cluster'})")
+                rec = record_failure(out, seed, strategy, exc, f"dask ({scheduler or 'local cluster'})", design)
             finished(rec)
             fut.release()
     except KeyboardInterrupt:
@@ -437,6 +478,7 @@ __all__ = [
     "error_record",
     "format_summary_table",
     "open_sim_experiment",
+    "parse_designs",
     "parse_seeds",
     "parse_strategies",
     "procedure_fingerprint",

@@ -32,9 +32,10 @@ ERROR_NAME = "error.json"
 JOURNAL_NAME = "journal.sqlite"
 
 
-def run_name(strategy: str, seed: int) -> str:
-    """Directory name of one campaign under ``DIR/runs``: ``<strategy>-seed<N>``."""
-    return f"{strategy}-seed{int(seed)}"
+def run_name(strategy: str, seed: int, design: str | None = None) -> str:
+    """Directory name of one campaign under ``DIR/runs``: ``<strategy>-seed<N>``, or
+    ``<strategy>-<design>-seed<N>`` in a sweep over designs (``--designs``)."""
+    return f"{strategy}-seed{int(seed)}" if design is None else f"{strategy}-{design}-seed{int(seed)}"
 
 
 def procedure_fingerprint(procedure: Procedure) -> str:
@@ -67,11 +68,12 @@ def install_run(tmp_dir: Path, final_dir: Path) -> None:
         os.replace(tmp_dir, final_dir)
 
 
-def run_record(seed: int, strategy: str, summary: dict) -> dict:
-    """The ``sweep.json`` row of a finished campaign."""
+def run_record(seed: int, strategy: str, summary: dict, design: str | None = None) -> dict:
+    """The ``sweep.json`` row of a finished campaign (``design``: named in a sweep over designs)."""
     return {
         "seed": int(seed),
         "strategy": strategy,
+        **({} if design is None else {"design": design}),
         "reached_goal": bool(summary["reached_goal"]),
         "experiments_added": int(summary["experiments_added"]),
         "final_mu_peak": float(summary["final_mu_peak"]),
@@ -79,10 +81,10 @@ def run_record(seed: int, strategy: str, summary: dict) -> dict:
     }
 
 
-def error_record(seed: int, strategy: str, error: str) -> dict:
+def error_record(seed: int, strategy: str, error: str, design: str | None = None) -> dict:
     """The ``sweep.json`` row of a failed campaign."""
-    return {"seed": int(seed), "strategy": strategy, "reached_goal": False, "experiments_added": None,
-            "final_mu_peak": None, "wall_s": None, "error": error}
+    return {"seed": int(seed), "strategy": strategy, **({} if design is None else {"design": design}), "reached_goal": False,
+            "experiments_added": None, "final_mu_peak": None, "wall_s": None, "error": error}
 
 
 def error_document(seed: int, strategy: str, exc: BaseException, where: str) -> dict:
@@ -97,39 +99,41 @@ def error_document(seed: int, strategy: str, exc: BaseException, where: str) -> 
     }
 
 
-def record_failure(out_dir: str | os.PathLike, seed: int, strategy: str, exc: BaseException, where: str) -> dict:
+def record_failure(out_dir: str | os.PathLike, seed: int, strategy: str, exc: BaseException, where: str,
+                   design: str | None = None) -> dict:
     """Store ``error.json`` for a campaign whose task failed outside :func:`sweep_campaign`
     (worker died, task not deserialisable, ...); never touches a finished run."""
-    final = Path(out_dir) / RUNS_DIRNAME / run_name(strategy, seed)
+    final = Path(out_dir) / RUNS_DIRNAME / run_name(strategy, seed, design)
     err = error_document(seed, strategy, exc, where)
     if not (final / SUMMARY_NAME).is_file():
         tmp = new_partial_dir(final.parent, final.name)
         write_json_atomic(err, tmp / ERROR_NAME)
         install_run(tmp, final)
-    return {**error_record(seed, strategy, err["error"]), "status": "failed"}
+    return {**error_record(seed, strategy, err["error"], design), "status": "failed"}
 
 
-def read_run(out_dir: str | os.PathLike, seed: int, strategy: str) -> dict | None:
+def read_run(out_dir: str | os.PathLike, seed: int, strategy: str, design: str | None = None) -> dict | None:
     """The stored ``sweep.json`` row of one campaign, or ``None`` if it has not run."""
-    final = Path(out_dir) / RUNS_DIRNAME / run_name(strategy, seed)
+    final = Path(out_dir) / RUNS_DIRNAME / run_name(strategy, seed, design)
     if (final / SUMMARY_NAME).is_file():
-        return run_record(seed, strategy, json.loads((final / SUMMARY_NAME).read_text(encoding="utf-8")))
+        return run_record(seed, strategy, json.loads((final / SUMMARY_NAME).read_text(encoding="utf-8")), design)
     if (final / ERROR_NAME).is_file():
         err = json.loads((final / ERROR_NAME).read_text(encoding="utf-8"))
-        return error_record(seed, strategy, str(err.get("error", "unknown error")))
+        return error_record(seed, strategy, str(err.get("error", "unknown error")), design)
     return None
 
 
-def plan_runs(procedure: Procedure, seeds: Sequence[int], strategies: Sequence[str], out_dir: Path
-          ) -> tuple[list[tuple[int, str]], list[tuple[int, str]]]:
-    """Split the campaigns into (pending, done); refuse done runs of a different procedure."""
+def plan_runs(procedure: Procedure, seeds: Sequence[int], strategies: Sequence[str], out_dir: Path,
+              designs: Sequence[str | None] = (None,)) -> tuple[list[tuple[int, str, str | None]], list[tuple[int, str, str | None]]]:
+    """Split the campaigns (seed, strategy, design: None unless named) into (pending, done);
+    refuse done runs of a different procedure."""
     fingerprint = procedure_fingerprint(procedure)
     pending, done = [], []
     for seed in seeds:
-        for strategy in strategies:
-            summary_path = out_dir / RUNS_DIRNAME / run_name(strategy, seed) / SUMMARY_NAME
+        for strategy, design in ((s, d) for s in strategies for d in designs):
+            summary_path = out_dir / RUNS_DIRNAME / run_name(strategy, seed, design) / SUMMARY_NAME
             if not summary_path.is_file():
-                pending.append((seed, strategy))
+                pending.append((seed, strategy, design))
                 continue
             try:
                 stored = json.loads(summary_path.read_text(encoding="utf-8")).get("sweep", {})
@@ -141,7 +145,7 @@ def plan_runs(procedure: Procedure, seeds: Sequence[int], strategies: Sequence[s
                     "this finished campaign was run with a different procedure or goal than this sweep; "
                     "use another --out directory (or delete the runs to redo them)",
                 )
-            done.append((seed, strategy))
+            done.append((seed, strategy, design))
     return pending, done
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import statistics
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 
 def _median_experiments(runs: Sequence[dict]) -> float | None:
@@ -24,8 +24,9 @@ def _median_experiments(runs: Sequence[dict]) -> float | None:
     return float(med) if math.isfinite(med) else None
 
 
-def summarize_runs(runs: Iterable[dict], strategies: Sequence[str]) -> dict:
-    """Per-strategy summary of ``sweep.json`` rows.
+def summarize_runs(runs: Iterable[dict], strategies: Sequence[str], key: Callable[[dict], str] = lambda r: r["strategy"]) -> dict:
+    """Per-strategy summary of ``sweep.json`` rows (``key``: a row's group, its strategy by default;
+    ``<strategy>-<design>`` in a sweep over designs).
 
     For each strategy: ``runs`` (campaigns), ``failed`` (rows with ``"error"``), ``reached``
     (finished with mu-bar < goal), ``median_experiments`` (median added experiments over the
@@ -35,7 +36,7 @@ def summarize_runs(runs: Iterable[dict], strategies: Sequence[str]) -> dict:
     runs = list(runs)
     out: dict[str, dict] = {}
     for s in strategies:
-        rows = [r for r in runs if r["strategy"] == s]
+        rows = [r for r in runs if key(r) == s]
         ok = [r for r in rows if not r.get("error")]
         reached = [r["experiments_added"] for r in ok if r["reached_goal"]]
         out[s] = {

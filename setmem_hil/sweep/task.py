@@ -61,8 +61,14 @@ def open_sim_experiment(procedure: Procedure, seed: int):
     return open_experiment(procedure, int(seed))
 
 
-def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str) -> dict:
-    """Run one campaign of a sweep and store it in ``out_dir/runs/<strategy>-seed<N>`` (the Dask task).
+def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str, design: str | None = None) -> dict:
+    """Run one campaign of a sweep and store it in ``out_dir/runs/<strategy>-seed<N>`` (the Dask task;
+    ``<strategy>-<design>-seed<N>`` with ``design``, the compensator design of a sweep over designs)."""
+    return _sweep_campaign(procedure, seed, strategy, out_dir, design)
+
+
+def _sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str, design: str | None) -> dict:
+    """:func:`sweep_campaign` (the Dask task).
 
     Algorithm 5.1 (:func:`setmem_hil.campaign.session.run_journaled_campaign`: the runner with the
     same subscribers as ``setmem-hil run``) on the simulated experiment with
@@ -80,6 +86,8 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str)
         One of :data:`setmem_hil.io.procedure.STRATEGIES`.
     out_dir : str
         The sweep directory (absolute path, visible to the worker).
+    design : str, optional
+        ``"h2"`` or ``"robust"`` instead of the procedure's ``[design] method`` (named in the run).
 
     Returns
     -------
@@ -96,20 +104,24 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str)
 
     seed = int(seed)
     runs_dir = Path(out_dir) / RUNS_DIRNAME
-    final = runs_dir / run_name(strategy, seed)
+    final = runs_dir / run_name(strategy, seed, design)
     done_file = final / SUMMARY_NAME
     if done_file.is_file():
         summary = json.loads(done_file.read_text(encoding="utf-8"))
-        return {**run_record(seed, strategy, summary), "status": "skipped"}
+        return {**run_record(seed, strategy, summary, design), "status": "skipped"}
     tmp = new_partial_dir(runs_dir, final.name)
     journal = None
     try:
         proc = dataclasses.replace(procedure, seed=seed)
+        fingerprint = procedure_fingerprint(proc)  # the sweep's procedure: every design of it shares the fingerprint
+        if design is not None:
+            proc = dataclasses.replace(proc, design_method=design)
         journal = Journal.create(tmp / JOURNAL_NAME, procedure_text=proc.source_text, procedure_name=proc.name,
-                                 seed=seed, software_version=__version__, backend="sim", strategy=strategy)
+                                 seed=seed, software_version=__version__, backend="sim", strategy=strategy,
+                                 design=proc.design_method)
         journal.add_event("sweep", f"sweep campaign {final.name}: goal mu-bar < {proc.goal.mu_target:g}, "
                                    f"at most {proc.goal.max_experiments} added experiments, "
-                                   f"procedure fingerprint {procedure_fingerprint(proc)[:16]}, "
+                                   f"procedure fingerprint {fingerprint[:16]}, "
                                    f"host {socket.gethostname()} pid {os.getpid()}")
         with blas_one_thread():
             experiment = open_sim_experiment(proc, seed)
@@ -120,12 +132,12 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str)
                 experiment.close()
         journal.close()
         doc = result.to_document()
-        doc["sweep"] = {"procedure_fingerprint": procedure_fingerprint(proc), "procedure_name": proc.name,
-                        "seed": seed, "strategy": strategy, "host": socket.gethostname(), "pid": os.getpid(),
-                        "software_version": __version__}
+        doc["sweep"] = {"procedure_fingerprint": fingerprint, "procedure_name": proc.name,
+                        "seed": seed, "strategy": strategy, "design": proc.design_method, "host": socket.gethostname(),
+                        "pid": os.getpid(), "software_version": __version__}
         write_json_atomic(doc, tmp / SUMMARY_NAME)
         install_run(tmp, final)
-        return {**run_record(seed, strategy, doc), "status": "done"}
+        return {**run_record(seed, strategy, doc, design), "status": "done"}
     except Exception as exc:  # recorded, not fatal to the sweep (issue 9, item 3)
         err = error_document(seed, strategy, exc, f"{socket.gethostname()} pid {os.getpid()}")
         if journal is not None:
@@ -135,7 +147,7 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str)
                 journal.close()
         write_json_atomic(err, tmp / ERROR_NAME)
         install_run(tmp, final)
-        return {**error_record(seed, strategy, err["error"]), "status": "failed"}
+        return {**error_record(seed, strategy, err["error"], design), "status": "failed"}
     except BaseException:
         if journal is not None:
             with contextlib.suppress(Exception):

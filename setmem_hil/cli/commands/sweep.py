@@ -1,9 +1,9 @@
-"""``setmem-hil sweep``: many campaigns (seeds x strategies) on the simulated backend, on Dask.
+"""``setmem-hil sweep``: many campaigns (seeds x strategies x designs) on the simulated backend, on Dask.
 
 ::
 
     setmem-hil sweep --procedure FILE.toml --seeds A-B --strategies mu,log-sweep,random,max-reduction
-                     --out DIR [--scheduler tcp://HOST:PORT] [--workers N] [--serial]
+                     [--designs h2,robust] --out DIR [--scheduler tcp://HOST:PORT] [--workers N] [--serial]
                      [--max-experiments N] [--quiet]
 
 Each campaign (thesis Algorithm 5.1 until mu-bar < goal or the budget) is a task on an embedded
@@ -36,6 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", required=True, metavar="A-B", help="seeds, inclusive range A-B (or N, or a comma list)")
     p.add_argument("--strategies", default=",".join(STRATEGIES), metavar="LIST",
                    help=f"comma list of {', '.join(STRATEGIES)} (default: all)")
+    p.add_argument("--designs", default=None, metavar="LIST",
+                   help="comma list of h2, robust: compare the compensator designs as a third axis (runs named "
+                   "<strategy>-<design>-seed<N>; default: the procedure's [design] method)")
     p.add_argument("--out", required=True, metavar="DIR", help="sweep directory (runs/, sweep.json, sweep.png)")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                    help="a running dask scheduler (default: an embedded local cluster on 127.0.0.1)")
@@ -50,10 +53,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from setmem_hil.io.procedure_file import load_procedure
-    from setmem_hil.sweep.runner import format_summary_table, parse_seeds, parse_strategies, run_sweep
+    from setmem_hil.sweep.runner import format_summary_table, parse_designs, parse_seeds, parse_strategies, run_sweep
 
     seeds = parse_seeds(args.seeds)
     strategies = parse_strategies(args.strategies)
+    designs = parse_designs(args.designs) if args.designs is not None else None
     if args.serial and args.scheduler:
         raise InputFormatError("--serial", "", "cannot be combined with --scheduler")
     procedure = load_procedure(args.procedure)
@@ -64,15 +68,16 @@ def run(args: argparse.Namespace) -> int:
                                                              max_experiments=args.max_experiments))
     try:
         result = run_sweep(procedure, seeds, strategies, args.out, scheduler=args.scheduler, workers=args.workers,
-                           serial=args.serial, progress=not args.quiet)
+                           serial=args.serial, progress=not args.quiet, designs=designs)
     except TimeoutError as exc:
         print(f"setmem-hil: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         from setmem_hil.sweep.runner import read_run
 
-        done = sum(1 for seed in seeds for s in strategies if (r := read_run(args.out, seed, s)) and not r.get("error"))
-        print(f"setmem-hil: sweep interrupted with {done} of {len(seeds) * len(strategies)} campaigns finished in "
+        named = designs if designs not in (None, (procedure.design_method,)) else (None,)
+        done = sum(1 for seed in seeds for s in strategies for d in named if (r := read_run(args.out, seed, s, d)) and not r.get("error"))
+        print(f"setmem-hil: sweep interrupted with {done} of {len(seeds) * len(strategies) * len(named)} campaigns finished in "
               f"{args.out}; run the same command again to complete the others", file=sys.stderr)
         raise
     print(f"sweep {procedure.name}: {len(result.runs)} campaigns ({len(result.skipped)} already done, "
