@@ -112,3 +112,25 @@ def test_run_check_loads_neither_the_loop_nor_the_backends():
     loaded = _loaded_after(["run", "--check", str(REPO / "setmem_hil" / "procedures" / "beam_6_3_2.toml")])
     assert "setmem_hil.campaign.preflight" in loaded  # it did check
     assert not {"setmem_hil.campaign.runner", "setmem_hil.robust.analysis", "setmem_hil.experiment_factory", "control"} & loaded
+
+
+def _lines_without_docstring(node) -> int:
+    first = min([node.lineno, *(d.lineno for d in node.decorator_list)])
+    n = node.end_lineno - first + 1
+    head = node.body[0] if node.body else None
+    if isinstance(head, ast.Expr) and isinstance(head.value, ast.Constant) and isinstance(head.value.value, str):
+        n -= head.end_lineno - head.lineno + 1
+    return n
+
+
+def test_no_function_in_the_package_is_longer_than_80_lines_without_its_docstring():
+    long = []
+    for path in sorted((REPO / "setmem_hil").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and _lines_without_docstring(node) > 80:
+                long.append(f"{path.relative_to(REPO)}:{node.name} ({_lines_without_docstring(node)} lines)")
+    assert long == []
+
+
+def test_the_session_module_is_under_200_lines():
+    assert len((REPO / "setmem_hil" / "campaign" / "session.py").read_text(encoding="utf-8").splitlines()) < 200

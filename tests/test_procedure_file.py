@@ -35,7 +35,7 @@ def test_every_shipped_procedure_validates(path):
     assert p.source_path == str(path)
     lo, hi = p.safety.omega_min_rad_s, p.safety.omega_max_rad_s
     assert all(lo <= w <= hi for w in p.initial_omegas_rad_s)
-    assert p.prior.n_modes == 3
+    assert p.prior.n_modes >= 3  # the beam's three modelled modes; the two-plane beam models three pairs
 
 
 def test_demo_file_equals_default_procedure():

@@ -102,8 +102,22 @@ def test_a_missing_truth_file_and_a_non_sim_backend_are_named(tmp_path, capsys):
 def test_the_shipped_two_plane_beam_procedure_checks():
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "procedures" / "close_modes" / "two_plane_beam.toml"
+    path = Path(__file__).resolve().parents[1] / "procedures" / "two_plane_beam.toml"
     assert main(["run", "--check", str(path)]) == 0
     procedure = load_procedure(path)
     w = true_structure(procedure).natural_frequencies
     assert np.allclose(w[1::2] / w[0::2], 1.03, rtol=1e-3)  # three pairs 3 % apart
+
+
+def test_a_stored_procedure_names_its_truth_file_so_that_a_resume_finds_it(tmp_path, monkeypatch):
+    """The journal stores the procedure's text; read back from the run directory (another folder,
+    another working directory) its truth file must still be found, with the same modes."""
+    from setmem_hil.io.procedure_file import format_procedure, parse_procedure_text
+
+    path = _write(tmp_path)
+    p = load_procedure(path)
+    elsewhere = tmp_path / "runs" / "r1"
+    elsewhere.mkdir(parents=True)
+    monkeypatch.chdir(elsewhere)
+    q = parse_procedure_text(format_procedure(p), f"{elsewhere / 'journal.sqlite'} (stored procedure)")
+    assert q.backend.simulation.truth_modes == p.backend.simulation.truth_modes and len(p.backend.simulation.truth_modes) == 2

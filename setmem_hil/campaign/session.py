@@ -82,7 +82,9 @@ def start_run(
     strategy = strategy or procedure.input_design.strategy
     if strategy not in STRATEGIES:
         raise _arguments_error(f"strategy {strategy!r} is not one of {', '.join(STRATEGIES)}")
-    text = procedure.source_text or format_procedure(procedure)
+    # a truth file is named relative to its procedure: the stored text names it absolutely, so a
+    # resume (which reads the journal's text) finds it
+    text = format_procedure(procedure) if procedure.backend.simulation.truth or not procedure.source_text else procedure.source_text
     if run_dir.exists() and not run_dir.is_dir():
         raise InputFormatError(str(run_dir), "", "exists and is not a directory")
     if (run_dir / JOURNAL_FILENAME).exists():

@@ -412,24 +412,39 @@ def check_discrepancy(
             after["feasible"] = _identify_feasible(data, prior)[0]
         return replace(report, after=after)
     if decision == "unexplained":
-        best = min((f for n, f in fits.items() if n != "none"), key=lambda f: f.max_normalized_residual, default=none)
-        evidence = (
-            f"no candidate is consistent with the data: worst normalised residual {none.max_normalized_residual:.3g} "
-            f"without an effect; best candidate {best.name} {best.max_normalized_residual:.3g} "
-            f"(threshold {settings.threshold:g}); the model is left unchanged"
-        )
-        return replace(report, effects=({"name": "unexplained", "params": {}, "evidence": evidence},))
-
+        return replace(report, effects=(_unexplained_effect(fits, settings),))
     rival = ambiguous_alternative(fits, decision, settings.threshold, float(np.max(data.omega_rad_s)))
     if rival is not None:
-        a, b = fits[decision], fits[rival]
-        w = discriminating_frequency(data, a, b)
-        evidence = (f"{a.name} and {b.name} both explain the data (worst normalised residuals "
-                    f"{a.max_normalized_residual:.3g} and {b.max_normalized_residual:.3g}, threshold {settings.threshold:g}) "
-                    f"with the same number of added parameters; a measurement at {w:.6g} rad/s "
-                    f"({w / (2 * np.pi):.6g} Hz) separates them most; the model is left unchanged")
-        effect = {"name": "ambiguous", "candidates": [a.name, b.name], "discriminating_omega": w, "evidence": evidence}
-        return replace(report, effects=(effect,))
+        return replace(report, effects=(_ambiguous_effect(data, fits[decision], fits[rival], settings),))
+    return _report_with_effect(report, data, prior, fits, decision, settings, given_prior, identification_feasible)
+
+
+def _unexplained_effect(fits: dict, settings: DiscrepancySettings) -> dict:
+    """No candidate brings the data within their bounds: said, and the model left unchanged."""
+    none = fits["none"]
+    best = min((f for n, f in fits.items() if n != "none"), key=lambda f: f.max_normalized_residual, default=none)
+    evidence = (
+        f"no candidate is consistent with the data: worst normalised residual {none.max_normalized_residual:.3g} "
+        f"without an effect; best candidate {best.name} {best.max_normalized_residual:.3g} "
+        f"(threshold {settings.threshold:g}); the model is left unchanged"
+    )
+    return {"name": "unexplained", "params": {}, "evidence": evidence}
+
+
+def _ambiguous_effect(data: FrequencyData, a, b, settings: DiscrepancySettings) -> dict:
+    """Two candidates explain the data equally: the frequency that separates them most is named."""
+    w = discriminating_frequency(data, a, b)
+    evidence = (f"{a.name} and {b.name} both explain the data (worst normalised residuals "
+                f"{a.max_normalized_residual:.3g} and {b.max_normalized_residual:.3g}, threshold {settings.threshold:g}) "
+                f"with the same number of added parameters; a measurement at {w:.6g} rad/s "
+                f"({w / (2 * np.pi):.6g} Hz) separates them most; the model is left unchanged")
+    return {"name": "ambiguous", "candidates": [a.name, b.name], "discriminating_omega": w, "evidence": evidence}
+
+
+def _report_with_effect(report: DiscrepancyReport, data: FrequencyData, prior: Prior, fits: dict, decision: str,
+                        settings: DiscrepancySettings, given_prior: bool, identification_feasible: bool) -> DiscrepancyReport:
+    """The chosen effect: its parameters (re-identified with it, when asked), the evidence, the gap after."""
+    before, none = report.before, fits["none"]
     chosen = fits[decision]
     after = {"max_normalized_residual": chosen.max_normalized_residual, "feasible": None}
     new_model = None

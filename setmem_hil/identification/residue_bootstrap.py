@@ -54,122 +54,141 @@ def _bootstrap(data: FrequencyData, box: IntervalModel, residuals: dict):
     res_unknown = [name for name, (a, b) in res.items() if not (np.isfinite(a) and np.isfinite(b))]
     if not unknown.any() and not res_unknown:
         return box, res
-    w = data.omega_rad_s
-    dmax = denominator_max(w[None, :], lo[:, A0, None], hi[:, A0, None], hi[:, A1, None])  # (n, N)
-    dmin = denominator_min(w[None, :], lo[:, A0, None], hi[:, A0, None], lo[:, A1, None])
-    with np.errstate(divide="ignore"):
-        inv_dmin = np.where(dmin > 0, 1.0 / np.where(dmin > 0, dmin, 1.0), np.inf)
+    terms = _CouplingSystem(data, lo, hi, res, unknown, res_unknown)
+    choice = terms.initial_choice()
+    b, T, rho = terms.system(choice)
+    if not rho < 1.0 and terms.m > 1:
+        choice, rho = terms.descend(choice, rho)
+        b, T, rho = terms.system(choice)
+    if not np.isfinite(rho) or rho >= 1.0 or not np.all(np.isfinite(b)):
+        raise InputFormatError(
+            "prior", "[[mode]]",
+            f"cannot bound the residues from the data (mode coupling {rho:.3g} >= 1); give b0_min/b0_max (and b1 = 0 or b1_min/b1_max) for the modes",
+        )
+    beta = np.linalg.solve(np.eye(terms.m) - T, b)
+    beta = beta * (1.0 + 1e-12) + 1e-300  # outward for the rounding of the solve
+    if np.any(beta < 0) or not np.all(np.isfinite(beta)):
+        raise InputFormatError("prior", "[[mode]]", "cannot bound the residues from the data; give b0_min/b0_max for the modes")
+    for r, e in enumerate(terms.entities):
+        if e[0] == "res":
+            res[e[1]] = [max(res[e[1]][0], -beta[r]), min(res[e[1]][1], beta[r])]
+            continue
+        k = e[1]
+        wj = terms.w[choice[r]]
+        # b0 is the real part of N_k(j w_ref), so |b0| <= beta; |b1| w_ref <= beta likewise
+        lo[k, B0] = max(lo[k, B0], -beta[r])
+        hi[k, B0] = min(hi[k, B0], beta[r])
+        if terms.b1_free[k]:
+            lo[k, B1] = max(lo[k, B1], -beta[r] / wj)
+            hi[k, B1] = min(hi[k, B1], beta[r] / wj)
+    return IntervalModel(lo, hi), res
 
-    # b1 with finite prior bounds enters as the known term max|b1| w; only an unbounded b1 is
-    # bounded from the data (|b1| w_ref <= beta)
-    b1_free = ~(np.isfinite(lo[:, B1]) & np.isfinite(hi[:, B1]))
-    # Known modes contribute |N_l(jw)| <= max|b0| + max|b1| w as a constant.
-    known_num = np.where(
-        unknown[:, None], 0.0,
-        np.maximum(np.abs(lo[:, B0]), np.abs(hi[:, B0]))[:, None] + np.maximum(np.abs(lo[:, B1]), np.abs(hi[:, B1]))[:, None] * w[None, :],
-    )
-    with np.errstate(invalid="ignore"):
-        known_term = np.where(unknown[:, None], 0.0, known_num * inv_dmin).sum(axis=0)
-    phis = {name: np.abs(residual_shape(name, w)) for name in res}
-    for name, (a, b) in res.items():
-        if name not in res_unknown:
-            known_term = known_term + max(abs(a), abs(b)) * phis[name]
-    with np.errstate(invalid="ignore"):
-        fixed_b1 = np.where(b1_free, 0.0, np.maximum(np.abs(lo[:, B1]), np.abs(hi[:, B1])))
-    # unknown entities: ("mode", k) or ("res", name)
-    entities = [("mode", int(k)) for k in np.flatnonzero(unknown)] + [("res", name) for name in res_unknown]
 
-    def own(e) -> np.ndarray:
+class _CouplingSystem:
+    """The unknown terms (modes without residue bounds, unbounded residual terms) and their
+    coupling: one point per term gives ``beta <= b + T beta``, solved when ``rho(T) < 1``."""
+
+    def __init__(self, data: FrequencyData, lo: np.ndarray, hi: np.ndarray, res: dict, unknown: np.ndarray, res_unknown: list):
+        self.data = data
+        w = self.w = data.omega_rad_s
+        self.dmax = denominator_max(w[None, :], lo[:, A0, None], hi[:, A0, None], hi[:, A1, None])  # (n, N)
+        dmin = denominator_min(w[None, :], lo[:, A0, None], hi[:, A0, None], lo[:, A1, None])
+        with np.errstate(divide="ignore"):
+            self.inv_dmin = np.where(dmin > 0, 1.0 / np.where(dmin > 0, dmin, 1.0), np.inf)
+        # b1 with finite prior bounds enters as the known term max|b1| w; only an unbounded b1 is
+        # bounded from the data (|b1| w_ref <= beta)
+        self.b1_free = ~(np.isfinite(lo[:, B1]) & np.isfinite(hi[:, B1]))
+        # Known modes contribute |N_l(jw)| <= max|b0| + max|b1| w as a constant.
+        known_num = np.where(
+            unknown[:, None], 0.0,
+            np.maximum(np.abs(lo[:, B0]), np.abs(hi[:, B0]))[:, None] + np.maximum(np.abs(lo[:, B1]), np.abs(hi[:, B1]))[:, None] * w[None, :],
+        )
+        with np.errstate(invalid="ignore"):
+            known_term = np.where(unknown[:, None], 0.0, known_num * self.inv_dmin).sum(axis=0)
+        self.phis = {name: np.abs(residual_shape(name, w)) for name in res}
+        for name, (a, b) in res.items():
+            if name not in res_unknown:
+                known_term = known_term + max(abs(a), abs(b)) * self.phis[name]
+        self.known_term = known_term
+        with np.errstate(invalid="ignore"):
+            self.fixed_b1 = np.where(self.b1_free, 0.0, np.maximum(np.abs(lo[:, B1]), np.abs(hi[:, B1])))
+        # unknown entities: ("mode", k) or ("res", name)
+        self.entities = [("mode", int(k)) for k in np.flatnonzero(unknown)] + [("res", name) for name in res_unknown]
+        self.m = len(self.entities)
+
+    def own(self, e) -> np.ndarray:
         """Factor turning the right side at each point into a bound on beta_e."""
-        return dmax[e[1]] if e[0] == "mode" else 1.0 / phis[e[1]]
+        return self.dmax[e[1]] if e[0] == "mode" else 1.0 / self.phis[e[1]]
 
-    def contrib(e, j: int, w_ref: float) -> float:
+    def contrib(self, e, j: int, w_ref: float) -> float:
         """Contribution of entity e at point j per unit beta_e."""
         if e[0] == "res":
-            return float(phis[e[1]][j])
+            return float(self.phis[e[1]][j])
         k = e[1]
-        scale = 1.0 + (w[j] / w_ref if b1_free[k] else 0.0)
-        return float(scale * inv_dmin[k, j])
+        scale = 1.0 + (self.w[j] / w_ref if self.b1_free[k] else 0.0)
+        return float(scale * self.inv_dmin[k, j])
 
-    def fixed_part(e, j: int) -> float:
+    def fixed_part(self, e, j: int) -> float:
         """Known b1 terms of the other unknown modes (their b0 is the unknown)."""
-        return sum(fixed_b1[l] * w[j] * inv_dmin[l, j] for kind, l in entities
-                   if kind == "mode" and (kind, l) != e and fixed_b1[l] != 0.0)
+        return sum(self.fixed_b1[l] * self.w[j] * self.inv_dmin[l, j] for kind, l in self.entities
+                   if kind == "mode" and (kind, l) != e and self.fixed_b1[l] != 0.0)
 
-    choice = []
-    for e in entities:
-        f = own(e)
-        others = [x for x in entities if x != e]
-        if others:
-            coupling = f * sum(phis[x[1]] if x[0] == "res" else 2.0 * inv_dmin[x[1]] for x in others)
-        else:
-            coupling = np.zeros_like(w)
-        own_bound = f * (np.abs(data.response) + data.bound)
-        ok = np.isfinite(own_bound) & np.isfinite(coupling) & np.isfinite(known_term)
-        if not ok.any():
-            what = f"[[mode]] {e[1] + 1}" if e[0] == "mode" else "[residuals]"
-            hint = "give b0_min/b0_max" if e[0] == "mode" else f"give {e[1]}_min/{e[1]}_max"
-            raise InputFormatError("prior", what, f"cannot bound this term from the data (no point away from the other modes' bands); {hint}")
-        good = ok & (coupling <= MAX_ROW_COUPLING)
-        pool = good if good.any() else ok
-        score = np.where(pool, own_bound if good.any() else coupling, np.inf)
-        choice.append(int(np.argmin(score)))
-    m = len(entities)
+    def initial_choice(self) -> list[int]:
+        """Per term, the point with the smallest own bound among those coupling little."""
+        choice = []
+        for e in self.entities:
+            f = self.own(e)
+            others = [x for x in self.entities if x != e]
+            if others:
+                coupling = f * sum(self.phis[x[1]] if x[0] == "res" else 2.0 * self.inv_dmin[x[1]] for x in others)
+            else:
+                coupling = np.zeros_like(self.w)
+            own_bound = f * (np.abs(self.data.response) + self.data.bound)
+            ok = np.isfinite(own_bound) & np.isfinite(coupling) & np.isfinite(self.known_term)
+            if not ok.any():
+                what = f"[[mode]] {e[1] + 1}" if e[0] == "mode" else "[residuals]"
+                hint = "give b0_min/b0_max" if e[0] == "mode" else f"give {e[1]}_min/{e[1]}_max"
+                raise InputFormatError("prior", what, f"cannot bound this term from the data (no point away from the other modes' bands); {hint}")
+            good = ok & (coupling <= MAX_ROW_COUPLING)
+            pool = good if good.any() else ok
+            score = np.where(pool, own_bound if good.any() else coupling, np.inf)
+            choice.append(int(np.argmin(score)))
+        return choice
 
-    def system(choice):
+    def system(self, choice):
+        """``(b, T, rho(T))`` of the bound ``beta <= b + T beta`` at the chosen points."""
+        data, w, m = self.data, self.w, self.m
         b = np.zeros(m)
         T = np.zeros((m, m))
-        for r, e in enumerate(entities):
+        for r, e in enumerate(self.entities):
             j = choice[r]
-            f = float(own(e)[j])
-            b[r] = f * (abs(data.response[j]) + data.bound[j] + known_term[j] + fixed_part(e, j))
-            for c, x in enumerate(entities):
+            f = float(self.own(e)[j])
+            b[r] = f * (abs(data.response[j]) + data.bound[j] + self.known_term[j] + self.fixed_part(e, j))
+            for c, x in enumerate(self.entities):
                 if x != e:
-                    T[r, c] = f * contrib(x, j, w[choice[c]])
+                    T[r, c] = f * self.contrib(x, j, w[choice[c]])
         with np.errstate(invalid="ignore", over="ignore"):
             ok = np.all(np.isfinite(T)) and np.all(np.isfinite(b))
             rho = max(abs(np.linalg.eigvals(T))) if (T.size and ok) else (0.0 if ok else np.inf)
         return b, T, rho
 
-    b, T, rho = system(choice)
-    if not rho < 1.0 and m > 1:
-        # the greedy per-row choice couples too much: coordinate descent on the spectral radius
-        # over every point of every row (our addition; any choice gives a valid bound)
-        candidates = [np.flatnonzero(np.isfinite(own(e)) & np.isfinite(known_term)) for e in entities]
+    def descend(self, choice: list[int], rho: float) -> tuple[list[int], float]:
+        """The greedy per-row choice couples too much: coordinate descent on the spectral radius
+        over every point of every row (our addition; any choice gives a valid bound)."""
+        choice = list(choice)
+        candidates = [np.flatnonzero(np.isfinite(self.own(e)) & np.isfinite(self.known_term)) for e in self.entities]
         for _ in range(4):
             improved = False
-            for r in range(m):
+            for r in range(self.m):
                 best_j, best_rho = choice[r], rho
                 for j in candidates[r]:
                     trial = list(choice)
                     trial[r] = int(j)
-                    _, _, trial_rho = system(trial)
+                    _, _, trial_rho = self.system(trial)
                     if trial_rho < best_rho * (1 - 1e-9):
                         best_j, best_rho = int(j), trial_rho
                 if best_j != choice[r]:
                     choice[r], rho, improved = best_j, best_rho, True
             if rho < 0.9 or not improved:
                 break
-        b, T, rho = system(choice)
-    if not np.isfinite(rho) or rho >= 1.0 or not np.all(np.isfinite(b)):
-        raise InputFormatError(
-            "prior", "[[mode]]",
-            f"cannot bound the residues from the data (mode coupling {rho:.3g} >= 1); give b0_min/b0_max (and b1 = 0 or b1_min/b1_max) for the modes",
-        )
-    beta = np.linalg.solve(np.eye(m) - T, b)
-    beta = beta * (1.0 + 1e-12) + 1e-300  # outward for the rounding of the solve
-    if np.any(beta < 0) or not np.all(np.isfinite(beta)):
-        raise InputFormatError("prior", "[[mode]]", "cannot bound the residues from the data; give b0_min/b0_max for the modes")
-    for r, e in enumerate(entities):
-        if e[0] == "res":
-            res[e[1]] = [max(res[e[1]][0], -beta[r]), min(res[e[1]][1], beta[r])]
-            continue
-        k = e[1]
-        wj = w[choice[r]]
-        # b0 is the real part of N_k(j w_ref), so |b0| <= beta; |b1| w_ref <= beta likewise
-        lo[k, B0] = max(lo[k, B0], -beta[r])
-        hi[k, B0] = min(hi[k, B0], beta[r])
-        if b1_free[k]:
-            lo[k, B1] = max(lo[k, B1], -beta[r] / wj)
-            hi[k, B1] = min(hi[k, B1], beta[r] / wj)
-    return IntervalModel(lo, hi), res
+        return choice, rho

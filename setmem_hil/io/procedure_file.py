@@ -341,8 +341,9 @@ class _Table:
         return x
 
 
-def _truth_modes(top: _Table, s: "_Table", kind: str, sim: SimulationSettings) -> tuple:
-    """The truth file's modes (issue 47): kind = "sim", one sensor at the tip, unscaled."""
+def _truth_modes(top: _Table, s: "_Table", kind: str, sim: SimulationSettings) -> tuple[str, tuple]:
+    """The truth file's absolute path (a stored procedure names it wherever it is read again) and
+    its modes (issue 47): kind = "sim", one sensor at the tip, unscaled."""
     from setmem_hil.io.truth_file import read_truth_file
 
     if kind != "sim":
@@ -351,13 +352,36 @@ def _truth_modes(top: _Table, s: "_Table", kind: str, sim: SimulationSettings) -
         raise s.error("truth: the file's modes are the structure as the sensor sees it; sensors, actuator and "
                       "first_mode_rad_s are the cantilever's and cannot be combined with it")
     base = Path(top.source).parent if top.source and not str(top.source).startswith("<") else Path.cwd()
-    return read_truth_file(base / sim.truth, top.source)
+    path = (base / sim.truth).resolve()
+    return str(path), read_truth_file(path, top.source)
 
 
 def _backend(top: _Table) -> BackendSettings:
     t = top.sub("backend")
     kind = t.get("kind", "sim")
-    s = t.sub("simulation")
+    sim = _simulation(top, t.sub("simulation"), kind)
+    transport = _transport_options(top, t, kind)
+    faults = _faults(top, t, kind)
+    if kind != "sim" and sim.first_mode_rad_s != 1.0:
+        raise ProcedureError(top.source, "[backend.simulation] key 'first_mode_rad_s'",
+                             f"only the frequency-domain simulation (kind = \"sim\") scales the beam this way; the {kind} backend simulates it at 1 rad/s"
+                             + (" (emulated instruments: [backend.emulation] first_mode_rad_s)" if kind == "instruments" else ""))
+    if kind not in LOOPBACK_BACKENDS:
+        for key in ("transport", "faults"):
+            if t.has(key):
+                where = "; the instruments' settings go in [instruments.<name>] tables" if kind == "instruments" else ""
+                raise ProcedureError(top.source, f"[backend.{key}]", f"only used by transport backends ({', '.join(LOOPBACK_BACKENDS)}); kind is {kind!r}{where}")
+    roles = _instrument_roles(t)
+    emulation = _emulation(t, roles["responses"] or ((roles["response"],) if roles["response"] else ()))
+    if kind != "instruments":
+        given = [k for k in ("exciter", "force", "response", "control_output", "emulation") if t.has(k)]
+        if given:
+            raise ProcedureError(top.source, f"[backend] key '{given[0]}'", f"only used with kind = \"instruments\"; kind is {kind!r}")
+    return BackendSettings(kind=kind, simulation=sim, transport=transport, faults=faults, emulation=emulation, **roles)
+
+
+def _simulation(top: _Table, s: _Table, kind: str) -> SimulationSettings:
+    """``[backend.simulation]``: the simulated structure, its sensors and its actuator."""
     sim = SimulationSettings(
         noise_profile=s.get("noise_profile", _SIM.noise_profile),
         noise_scale=s.get("noise_scale", _SIM.noise_scale),
@@ -369,7 +393,8 @@ def _backend(top: _Table) -> BackendSettings:
         truth=s.get("truth", ""),
     )
     if sim.truth:
-        sim = replace(sim, truth_modes=_truth_modes(top, s, kind, sim))
+        path, modes = _truth_modes(top, s, kind, sim)
+        sim = replace(sim, truth=path, truth_modes=modes)
     if isinstance(sim.control_output, str):
         names = sim.sensor_names()
         if sim.control_output not in names:
@@ -383,41 +408,41 @@ def _backend(top: _Table) -> BackendSettings:
         raise ProcedureError(top.source, "[backend.simulation] key 'sensors'",
                              f"several sensors and another actuator are simulated by kind = \"sim\" and \"time-domain\" only "
                              f"(the serial, CAN and Modbus wire formats carry one response channel); kind is {kind!r}")
-    transport = _transport_options(top, t, kind)
-    faults: dict[str, Any] = {}
-    if t.has("faults"):
-        f = t.sub("faults")
-        known = tuple(FAULT_KINDS) + TRANSPORT_FAULT_KINDS.get(kind, ())
-        faults = {"rate": f.get("rate", 0.0), "seed": f.get("seed", 0)}
-        if f.has("kinds"):  # absent: every kind the backend knows (the drivers' default)
-            kinds = f.get("kinds")
-            bad = [k for k in kinds if k not in known]
-            if bad:
-                raise f.error(f"kinds: unknown fault kind {bad[0]!r} for backend {kind!r} (known: {', '.join(known)})")
-            faults["kinds"] = list(kinds)
-        if f.has("rates"):
-            rates = f.mapping["rates"]
-            where = "[backend.faults.rates]"
-            if not isinstance(rates, Mapping):
-                raise ProcedureError(top.source, where, f"expected a table of kind = probability, found {_type_name(rates)} {_fmt(rates)}")
-            for k, r in rates.items():
-                if k not in known:
-                    close = difflib.get_close_matches(str(k), list(known), n=1)
-                    hint = f"; did you mean {close[0]!r}?" if close else ""
-                    raise ProcedureError(top.source, where, f"unknown fault kind {k!r}{hint} (known: {', '.join(known)})")
-                if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 <= float(r) <= 1.0:
-                    raise ProcedureError(top.source, where, f"{k}: expected a probability in [0, 1], found {_fmt(r)}")
-            faults["rates"] = {str(k): float(r) for k, r in rates.items()}
-    if kind != "sim" and sim.first_mode_rad_s != 1.0:
-        raise ProcedureError(top.source, "[backend.simulation] key 'first_mode_rad_s'",
-                             f"only the frequency-domain simulation (kind = \"sim\") scales the beam this way; the {kind} backend simulates it at 1 rad/s"
-                             + (" (emulated instruments: [backend.emulation] first_mode_rad_s)" if kind == "instruments" else ""))
-    if kind not in LOOPBACK_BACKENDS:
-        for key in ("transport", "faults"):
-            if t.has(key):
-                where = "; the instruments' settings go in [instruments.<name>] tables" if kind == "instruments" else ""
-                raise ProcedureError(top.source, f"[backend.{key}]", f"only used by transport backends ({', '.join(LOOPBACK_BACKENDS)}); kind is {kind!r}{where}")
-    roles = {role: t.get(role, "") for role in ("exciter", "force")}
+    return sim
+
+
+def _faults(top: _Table, t: _Table, kind: str) -> dict[str, Any]:
+    """``[backend.faults]``: the fake devices' injected faults, each kind known to the backend."""
+    if not t.has("faults"):
+        return {}
+    f = t.sub("faults")
+    known = tuple(FAULT_KINDS) + TRANSPORT_FAULT_KINDS.get(kind, ())
+    faults: dict[str, Any] = {"rate": f.get("rate", 0.0), "seed": f.get("seed", 0)}
+    if f.has("kinds"):  # absent: every kind the backend knows (the drivers' default)
+        kinds = f.get("kinds")
+        bad = [k for k in kinds if k not in known]
+        if bad:
+            raise f.error(f"kinds: unknown fault kind {bad[0]!r} for backend {kind!r} (known: {', '.join(known)})")
+        faults["kinds"] = list(kinds)
+    if f.has("rates"):
+        rates = f.mapping["rates"]
+        where = "[backend.faults.rates]"
+        if not isinstance(rates, Mapping):
+            raise ProcedureError(top.source, where, f"expected a table of kind = probability, found {_type_name(rates)} {_fmt(rates)}")
+        for k, r in rates.items():
+            if k not in known:
+                close = difflib.get_close_matches(str(k), list(known), n=1)
+                hint = f"; did you mean {close[0]!r}?" if close else ""
+                raise ProcedureError(top.source, where, f"unknown fault kind {k!r}{hint} (known: {', '.join(known)})")
+            if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 <= float(r) <= 1.0:
+                raise ProcedureError(top.source, where, f"{k}: expected a probability in [0, 1], found {_fmt(r)}")
+        faults["rates"] = {str(k): float(r) for k, r in rates.items()}
+    return faults
+
+
+def _instrument_roles(t: _Table) -> dict[str, Any]:
+    """``[backend]`` exciter, force, response(s) and control_output of kind = "instruments"."""
+    roles: dict[str, Any] = {role: t.get(role, "") for role in ("exciter", "force")}
     responses = t.get("response", ())
     control = t.get("control_output", 1)
     if isinstance(control, str):
@@ -429,22 +454,22 @@ def _backend(top: _Table) -> BackendSettings:
     roles["response"] = (responses[control - 1] if len(responses) > 1 else responses[0]) if responses else ""
     roles["responses"] = responses if len(responses) > 1 else ()
     roles["control_output"] = control
-    emulation = None
-    if t.has("emulation"):
-        e = t.sub("emulation")
-        n_responses = max(1, len(responses))
-        sensors = tuple(float(x) for x in e.get("sensors", [1.0] * (1 if n_responses == 1 else 0)))
-        # one oscilloscope's several response channels: counted in _instruments
-        if len(sensors) != n_responses and n_responses > 1:
-            raise e.error(f"sensors: one position per response instrument ({n_responses}: {list(responses)}), found {list(sensors)}")
-        emulation = EmulationSettings(drive_gain_ratio=e.get("drive_gain_ratio", 1.0), noise_v_per_rthz=e.get("noise_v_per_rthz", 2e-6),
-                                      damping=e.get("damping", None), relock_s=e.get("relock_s", 0.0),
-                                      sensors=sensors, actuator=e.get("actuator", 1.0), first_mode_rad_s=e.get("first_mode_rad_s", 1.0))
-    if kind != "instruments":
-        given = [k for k in ("exciter", "force", "response", "control_output", "emulation") if t.has(k)]
-        if given:
-            raise ProcedureError(top.source, f"[backend] key '{given[0]}'", f"only used with kind = \"instruments\"; kind is {kind!r}")
-    return BackendSettings(kind=kind, simulation=sim, transport=transport, faults=faults, emulation=emulation, **roles)
+    return roles
+
+
+def _emulation(t: _Table, responses) -> EmulationSettings | None:
+    """``[backend.emulation]``: the emulated instruments' structure and imperfections."""
+    if not t.has("emulation"):
+        return None
+    e = t.sub("emulation")
+    n_responses = max(1, len(responses))
+    sensors = tuple(float(x) for x in e.get("sensors", [1.0] * (1 if n_responses == 1 else 0)))
+    # one oscilloscope's several response channels: counted in _instruments
+    if len(sensors) != n_responses and n_responses > 1:
+        raise e.error(f"sensors: one position per response instrument ({n_responses}: {list(responses)}), found {list(sensors)}")
+    return EmulationSettings(drive_gain_ratio=e.get("drive_gain_ratio", 1.0), noise_v_per_rthz=e.get("noise_v_per_rthz", 2e-6),
+                             damping=e.get("damping", None), relock_s=e.get("relock_s", 0.0),
+                             sensors=sensors, actuator=e.get("actuator", 1.0), first_mode_rad_s=e.get("first_mode_rad_s", 1.0))
 
 
 def _instruments(top: _Table, backend: BackendSettings) -> dict[str, InstrumentSettings]:

@@ -141,8 +141,6 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     InputFormatError
         If ``run_dir`` holds no journal.
     """
-    from setmem_hil.report import figures as figs
-
     jp = journal_path(run_dir)
     if not jp.is_file():  # never the parent's journal (issue 40): a missing directory is named as given
         raise InputFormatError(str(run_dir), "", "no journal here (expected a run directory holding journal.sqlite)")
@@ -150,10 +148,21 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     run = read_snapshot(out_dir)
     info, its = run.info, run.iterations
     target = _mu_target(info["procedure_text"])
-    parts: list[str] = []
+    rig_by_iteration: dict[int, float] = {}
+    for row in run.rows:
+        rig_by_iteration[int(row["iteration"])] = rig_by_iteration.get(int(row["iteration"]), 0.0) + float(row.get("rig_s") or 0.0)
+    parts = [_run_section(run, target, rig_by_iteration), *_progress_section(its, target, run, rig_by_iteration, out_dir),
+             *_uncertainty_section(its, run, out_dir), *_intervals_section(its)]
+    if its and its[-1].outputs:
+        parts += _sensors_section(its[-1])
+    parts += _records_section(run, its, out_dir)
     title = f"setmem-hil report: {info['procedure_name']}"
+    return write_text_atomic(out_dir / REPORT_FILENAME, _page(title, _description(info["procedure_text"]), "\n".join(parts)))
 
-    # -- run --------------------------------------------------------------------------------
+
+def _run_section(run, target: float, rig_by_iteration: dict[int, float]) -> str:
+    """The run's facts: procedure, seed, versions, state, counts, rig time and the summary."""
+    info, its = run.info, run.iterations
     summary = info.get("summary") or {}
     state = "finished" if info["finished"] else "not finished (resume with setmem-hil run --resume)"
     run_rows = [
@@ -168,9 +177,6 @@ def write_report(run_dir: str | os.PathLike) -> Path:
         ["iterations", len(its)],
         ["goal", f"mu-bar < {target:g}"],
     ]
-    rig_by_iteration: dict[int, float] = {}
-    for row in run.rows:
-        rig_by_iteration[int(row["iteration"])] = rig_by_iteration.get(int(row["iteration"]), 0.0) + float(row.get("rig_s") or 0.0)
     run_rows.append(["rig time (device s)", f"{sum(rig_by_iteration.values()):.1f} "
                      f"(initial points {rig_by_iteration.get(0, 0.0):.1f})"])
     if its:
@@ -178,48 +184,56 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     for key in ("reached_goal", "stop_reason", "experiments_added", "final_mu_peak", "wall_s"):
         if key in summary:
             run_rows.append([key.replace("_", " "), summary[key] if not isinstance(summary[key], float) else _num(summary[key])])
-    parts.append("<h2 id='run'>Run</h2>" + _table(["item", "value"], run_rows, "table-run"))
+    return "<h2 id='run'>Run</h2>" + _table(["item", "value"], run_rows, "table-run")
 
-    # -- summary figures ----------------------------------------------------------------------
-    parts.append("<h2 id='progress'>Progress of the campaign</h2>")
-    if its:
-        figs.mu_peak_figure(its, target, out_dir / FIGURE_FILES["mu_peak"])
-        parts.append(_figure(FIGURE_FILES["mu_peak"], "Peak mu-bar per iteration; each point is labelled with the frequency chosen for the next experiment (thesis figure 6-12).", "fig-mu-peak"))
-        figs.mu_vs_frequency_figure(its, target, out_dir / FIGURE_FILES["mu_vs_omega"])
-        parts.append(_figure(FIGURE_FILES["mu_vs_omega"], "mu-bar against frequency for each iteration (thesis figure 6-13).", "fig-mu-vs-omega"))
-        figs.improvement_figure(its, out_dir / FIGURE_FILES["improvement"], exact=_exact_resolves(run.events))
-        parts.append(_figure(FIGURE_FILES["improvement"], "Estimated improvement of mu-bar for each candidate frequency (line); "
-                             "the best candidates re-identified exactly (circles) and the chosen one, the highest exact value "
-                             "(star) (thesis figure 6-14).", "fig-improvement"))
-        figs.interval_figure(its, out_dir / FIGURE_FILES["intervals"])
-        parts.append(_figure(FIGURE_FILES["intervals"], "Parameter intervals per iteration: natural frequency, damping ratio and "
-                             "residue of every mode shrinking as experiments are added.", "fig-intervals"))
-        rows = [[r.k, r.n_points, _num(r.mu_peak), _certified_text(r), _num(r.mu_peak_omega, 4), _num(r.mu_lower_peak), _num(r.next_omega, 6),
-                 "-" if r.next_omega is None else _num(r.next_omega / (2 * math.pi), 5),
-                 r.safeguard, r.design or "h2", ", ".join(str(m) for m in r.floor_modes or ()) or "-",
-                 r.controller_order, f"{r.wall_s:.2f}", f"{rig_by_iteration.get(r.k, 0.0):.1f}"] for r in its]
-        parts.append(_table(["k", "points", "peak mu-bar", "certified on the band", "at omega (rad/s)", "lower bound peak", "next omega (rad/s)",
-                             "next (Hz)", "eq. 5.12 branch", "design", "floor modes", "controller order", "compute (s)", "rig (s)"],
-                            rows, "table-iterations",
-                            "Iterations (the numbers behind figure 6-12). 'certified on the band': mu-bar is proved "
-                            "below the peak (within 1e-4; 3e-3 for the robust design) at every frequency of the analysis band, "
-                            "not only at grid points, by that many frequency intervals; the campaign stops only on a certified "
-                            "value. 'design': what made the compensator the safeguard kept (robust: tuned to the mixed-mu bound; "
-                            "h2: the thesis). 'floor modes': modes whose box holds an undamped mode with zero residue, so that no "
-                            "compensator can reach mu-bar < 1 until an experiment bounds a1 or b0 away from 0."))
-        final = its[-1]
-        if math.isfinite(final.mu_peak) and final.mu_peak > 0:
-            parts.append(f"<p id='delivered'>Delivered compensator: iteration {final.k}, {html.escape(final.design or 'h2')} design, "
-                         f"order {final.controller_order}, mu-bar {_num(final.mu_peak)}: margin {_num(1.0 / final.mu_peak)} "
-                         "(the box could grow by that factor before robust performance is lost).</p>")
-    else:
-        parts.append("<p>No iteration is stored yet.</p>")
 
-    # -- uncertainty ----------------------------------------------------------------------------
-    parts.append("<h2 id='uncertainty'>Data and model uncertainty</h2>")
-    parts.append("<p>Nine sample transfer functions from the parameter intervals (thesis Table 6-6: parameter value "
-                 "= midpoint + x (upper - midpoint)); they illustrate, but do not bound, the uncertainty. "
-                 "Points: the data used by the identification, with their error bounds.</p>")
+def _progress_section(its, target: float, run, rig_by_iteration: dict[int, float], out_dir: Path) -> list[str]:
+    """Figures 6-12 to 6-14, the intervals' figure, the iterations' table and the delivered compensator."""
+    from setmem_hil.report import figures as figs
+
+    parts = ["<h2 id='progress'>Progress of the campaign</h2>"]
+    if not its:
+        return parts + ["<p>No iteration is stored yet.</p>"]
+    figs.mu_peak_figure(its, target, out_dir / FIGURE_FILES["mu_peak"])
+    parts.append(_figure(FIGURE_FILES["mu_peak"], "Peak mu-bar per iteration; each point is labelled with the frequency chosen for the next experiment (thesis figure 6-12).", "fig-mu-peak"))
+    figs.mu_vs_frequency_figure(its, target, out_dir / FIGURE_FILES["mu_vs_omega"])
+    parts.append(_figure(FIGURE_FILES["mu_vs_omega"], "mu-bar against frequency for each iteration (thesis figure 6-13).", "fig-mu-vs-omega"))
+    figs.improvement_figure(its, out_dir / FIGURE_FILES["improvement"], exact=_exact_resolves(run.events))
+    parts.append(_figure(FIGURE_FILES["improvement"], "Estimated improvement of mu-bar for each candidate frequency (line); "
+                         "the best candidates re-identified exactly (circles) and the chosen one, the highest exact value "
+                         "(star) (thesis figure 6-14).", "fig-improvement"))
+    figs.interval_figure(its, out_dir / FIGURE_FILES["intervals"])
+    parts.append(_figure(FIGURE_FILES["intervals"], "Parameter intervals per iteration: natural frequency, damping ratio and "
+                         "residue of every mode shrinking as experiments are added.", "fig-intervals"))
+    rows = [[r.k, r.n_points, _num(r.mu_peak), _certified_text(r), _num(r.mu_peak_omega, 4), _num(r.mu_lower_peak), _num(r.next_omega, 6),
+             "-" if r.next_omega is None else _num(r.next_omega / (2 * math.pi), 5),
+             r.safeguard, r.design or "h2", ", ".join(str(m) for m in r.floor_modes or ()) or "-",
+             r.controller_order, f"{r.wall_s:.2f}", f"{rig_by_iteration.get(r.k, 0.0):.1f}"] for r in its]
+    parts.append(_table(["k", "points", "peak mu-bar", "certified on the band", "at omega (rad/s)", "lower bound peak", "next omega (rad/s)",
+                         "next (Hz)", "eq. 5.12 branch", "design", "floor modes", "controller order", "compute (s)", "rig (s)"],
+                        rows, "table-iterations",
+                        "Iterations (the numbers behind figure 6-12). 'certified on the band': mu-bar is proved "
+                        "below the peak (within 1e-4; 3e-3 for the robust design) at every frequency of the analysis band, "
+                        "not only at grid points, by that many frequency intervals; the campaign stops only on a certified "
+                        "value. 'design': what made the compensator the safeguard kept (robust: tuned to the mixed-mu bound; "
+                        "h2: the thesis). 'floor modes': modes whose box holds an undamped mode with zero residue, so that no "
+                        "compensator can reach mu-bar < 1 until an experiment bounds a1 or b0 away from 0."))
+    final = its[-1]
+    if math.isfinite(final.mu_peak) and final.mu_peak > 0:
+        parts.append(f"<p id='delivered'>Delivered compensator: iteration {final.k}, {html.escape(final.design or 'h2')} design, "
+                     f"order {final.controller_order}, mu-bar {_num(final.mu_peak)}: margin {_num(1.0 / final.mu_peak)} "
+                     "(the box could grow by that factor before robust performance is lost).</p>")
+    return parts
+
+
+def _uncertainty_section(its, run, out_dir: Path) -> list[str]:
+    """Sample transfer functions and pole-zero patterns of the chosen iterations (Table 6-6)."""
+    from setmem_hil.report import figures as figs
+
+    parts = ["<h2 id='uncertainty'>Data and model uncertainty</h2>",
+             "<p>Nine sample transfer functions from the parameter intervals (thesis Table 6-6: parameter value "
+             "= midpoint + x (upper - midpoint)); they illustrate, but do not bound, the uncertainty. "
+             "Points: the data used by the identification, with their error bounds.</p>"]
     for k in figure_iterations(its):
         rec = next(r for r in its if r.k == k)
         model = IntervalModel(rec.lower, rec.upper)
@@ -231,12 +245,15 @@ def write_report(run_dir: str | os.PathLike) -> Path:
         parts.append(f"<h3>Iteration {k}: {_e(after)}</h3>")
         parts.append(_figure(tf, f"Transfer functions {after} ({rec.n_points} points).", f"fig-tf-k{k}"))
         parts.append(_figure(pz, f"Open-loop pole-zero pattern {after}.", f"fig-pz-k{k}"))
+    return parts
 
-    # -- appendix B tables ---------------------------------------------------------------------
-    parts.append("<h2 id='intervals'>Parameter intervals and mu-sensitivities</h2>")
-    parts.append("<p>Per iteration, as in the thesis's appendix B: the lower and upper bound of each parameter of "
-                 "G(s) = sum_i (b1_i s + b0_i) / (s^2 + a1_i s + a0_i) and its mu-sensitivity. Also the "
-                 "identification's conservatism (embedding gamma, mismatch ratio) per mode.</p>")
+
+def _intervals_section(its) -> list[str]:
+    """Appendix B's tables per iteration: bounds, widths, mu-sensitivities, and the conservatism per mode."""
+    parts = ["<h2 id='intervals'>Parameter intervals and mu-sensitivities</h2>",
+             "<p>Per iteration, as in the thesis's appendix B: the lower and upper bound of each parameter of "
+             "G(s) = sum_i (b1_i s + b0_i) / (s^2 + a1_i s + a0_i) and its mu-sensitivity. Also the "
+             "identification's conservatism (embedding gamma, mismatch ratio) per mode.</p>"]
     for n, rec in enumerate(its, start=1):
         parts.append(_table(["parameter", "lower bound", "upper bound", "width", "mu-sensitivity"], _interval_rows(rec),
                             f"table-intervals-k{rec.k}",
@@ -244,12 +261,12 @@ def write_report(run_dir: str | os.PathLike) -> Path:
         cons = [[i + 1, _num(g), _num(m)] for i, (g, m) in enumerate(zip(np.atleast_1d(rec.embedding_gamma), np.atleast_1d(rec.mismatch_ratio)))]
         if cons:
             parts.append(_table(["mode", "embedding gamma", "mismatch ratio"], cons, f"table-conservatism-k{rec.k}"))
+    return parts
 
-    if its and its[-1].outputs:
-        parts += _sensors_section(its[-1])
 
-    # -- discrepancy, events, measurements, procedure -------------------------------------------
-    parts.append("<h2 id='discrepancy'>Discrepancy checks</h2>")
+def _records_section(run, its, out_dir: Path) -> list[str]:
+    """Discrepancy checks, the validation, events, every measurement and the procedure's text."""
+    parts = ["<h2 id='discrepancy'>Discrepancy checks</h2>"]
     if run.discrepancies:
         for n, (k, report) in enumerate(run.discrepancies, start=1):
             parts.append(_table(["item", "value"], _discrepancy_rows(report), f"table-discrepancy-{n}",
@@ -265,10 +282,12 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     mrows = [[r["seq"], r["iteration"], r["role"], _num(r["omega_rad_s"], 6), _num(abs(complex(r["re"], r["im"]))),
               _num(math.degrees(math.atan2(r["im"], r["re"])), 4), _num(r["bound"]), r["utc"]] for r in run.rows]
     parts.append(_table(["#", "iteration", "role", "omega (rad/s)", "|G|", "phase (deg)", "bound", "time (UTC)"], mrows, "table-measurements"))
-    parts.append("<h2 id='procedure'>Procedure</h2><pre>" + _e(info["procedure_text"]) + "</pre>")
+    parts.append("<h2 id='procedure'>Procedure</h2><pre>" + _e(run.info["procedure_text"]) + "</pre>")
+    return parts
 
-    body = "\n".join(parts)
-    doc = f"""<!DOCTYPE html>
+
+def _page(title: str, description: str, body: str) -> str:
+    return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{_e(title)}</title>
 <style>
 body {{ font-family: sans-serif; max-width: 1000px; margin: 2em auto; color: #222; }}
@@ -280,12 +299,10 @@ pre {{ background: #f6f6f6; padding: 1em; overflow-x: auto; }}
 </style></head>
 <body>
 <h1>{_e(title)}</h1>
-<p>{_e(_description(info["procedure_text"]))}</p>
+<p>{_e(description)}</p>
 {body}
 </body></html>
 """
-    path = out_dir / REPORT_FILENAME
-    return write_text_atomic(path, doc)
 
 
 VALIDATION_FILENAME = "validate.json"

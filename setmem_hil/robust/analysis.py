@@ -397,37 +397,7 @@ def _analyze_controller(plant, K, omega: np.ndarray, certificate_rtol: float = C
             controller_order=order,
             mu_peak_grid=math.inf,
         )
-    Mw = cl.frequency_response(omega)
-    # pass 1: every grid point, a shorter Newton run (valid bounds, ~1e-4 from optimal)
-    bound = mixed_mu_upper(Mw, structure, tol=FAST_TOL, max_iter=FAST_MAX_ITER)
-    # pass 2: precise solves wherever the peak can be, until every value not solved precisely
-    # (each one an upper bound on its precise value) lies below the largest precise value
-    precise = np.zeros(omega.size, dtype=bool)
-    while True:
-        level = (1.0 - PEAK_WINDOW) * bound.beta.max()
-        cand = np.flatnonzero(~precise & (bound.beta >= level))
-        if cand.size == 0:
-            break
-        bound = _merge(bound, cand, mixed_mu_upper(Mw[cand], structure, tol=PRECISE_TOL, max_iter=PRECISE_MAX_ITER))
-        precise[cand] = True
-    mats, bounds = [Mw], [bound]
-    omegas = [omega]
-    mu = bound.beta
-    if omega.size >= 3:
-        w_all = omega
-        for n_pts in (6, 6):
-            extra = _refine_points(w_all, mu, n_pts)
-            if extra.size == 0:
-                break
-            Me = cl.frequency_response(extra)
-            be = mixed_mu_upper(Me, structure, tol=PRECISE_TOL, max_iter=PRECISE_MAX_ITER)
-            mats.append(Me)
-            bounds.append(be)
-            omegas.append(extra)
-            w_all = np.concatenate([w_all, extra])
-            mu = np.concatenate([mu, be.beta])
-            order_idx = np.argsort(w_all)
-            w_all, mu = w_all[order_idx], mu[order_idx]
+    omegas, mats, bounds = _grid_bounds(cl, structure, omega)
     peak_grid = float(max(b.beta.max() for b in bounds))
     certificate = _certify(cl, structure, omegas, bounds, certificate_rtol)
     n_grid = sum(b.beta.size for b in bounds)  # the grid and its refinement, before the certificate's points
@@ -475,6 +445,43 @@ def _analyze_controller(plant, K, omega: np.ndarray, certificate_rtol: float = C
         mu_certified_intervals=int(certificate.n_intervals),
         mu_peak_grid=peak_grid,
     )
+
+
+def _grid_bounds(cl, structure: MuStructure, omega: np.ndarray) -> tuple[list, list, list]:
+    """mu-bar on the grid, precise where the peak can be, then refined twice around the peaks:
+    the frequencies, the closed loop's matrices and the bounds, one entry per pass."""
+    Mw = cl.frequency_response(omega)
+    # pass 1: every grid point, a shorter Newton run (valid bounds, ~1e-4 from optimal)
+    bound = mixed_mu_upper(Mw, structure, tol=FAST_TOL, max_iter=FAST_MAX_ITER)
+    # pass 2: precise solves wherever the peak can be, until every value not solved precisely
+    # (each one an upper bound on its precise value) lies below the largest precise value
+    precise = np.zeros(omega.size, dtype=bool)
+    while True:
+        level = (1.0 - PEAK_WINDOW) * bound.beta.max()
+        cand = np.flatnonzero(~precise & (bound.beta >= level))
+        if cand.size == 0:
+            break
+        bound = _merge(bound, cand, mixed_mu_upper(Mw[cand], structure, tol=PRECISE_TOL, max_iter=PRECISE_MAX_ITER))
+        precise[cand] = True
+    mats, bounds = [Mw], [bound]
+    omegas = [omega]
+    mu = bound.beta
+    if omega.size >= 3:
+        w_all = omega
+        for n_pts in (6, 6):
+            extra = _refine_points(w_all, mu, n_pts)
+            if extra.size == 0:
+                break
+            Me = cl.frequency_response(extra)
+            be = mixed_mu_upper(Me, structure, tol=PRECISE_TOL, max_iter=PRECISE_MAX_ITER)
+            mats.append(Me)
+            bounds.append(be)
+            omegas.append(extra)
+            w_all = np.concatenate([w_all, extra])
+            mu = np.concatenate([mu, be.beta])
+            order_idx = np.argsort(w_all)
+            w_all, mu = w_all[order_idx], mu[order_idx]
+    return omegas, mats, bounds
 
 
 def _certify(cl, structure: MuStructure, omegas: list, bounds: list, rtol: float = CERTIFICATE_RTOL):

@@ -257,29 +257,56 @@ def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: n
     softmax matrix ``W = U diag(w) U^*``.
     """
     lam, U, MD, g, top_cert = prob.eig(x, idx)
-    K, n = lam.shape
-    p = prob.p
+    n, p = lam.shape[1], prob.p
     top = lam[:, -1]
     e = np.exp((lam - top[:, None]) / tau[:, None])
     s = e.sum(axis=1)
     f = top + tau * np.log(s)
-    top = top_cert  # returned for the choice of the best iterate
     w = e / s[:, None]
+    # Only the rows i of the r eigenvalues with non-negligible softmax weight are needed: the
+    # gradient weights E_a[i, i] by w_i, and the divided differences vanish when both w_i, w_j do.
+    r = int(max(1, (w > 1e-15).sum(axis=1).max()))
+    E = _eigen_derivatives(U, MD, g, p, r)
+    diagE = E[:, :, np.arange(r), np.arange(n - r, n)].real  # E_a[i, i], i in the top r
+    grad_yg = (diagE * w[:, None, n - r:]).sum(axis=2)
+    # chain rule to x = (y, h), g_k = h_k exp(-2 y_k)
+    ny, nv = n - 1, n - 1 + p
+    e2 = np.exp(-2.0 * np.log(prob.unpack(x)[0][:, :p]))  # exp(-2 y_k), k < p
+    J = np.broadcast_to(np.eye(nv), (lam.shape[0], nv, nv)).copy()
+    kk = np.arange(1, p)
+    if prob.param_h:
+        J[:, ny + kk, kk - 1] = -2.0 * g[:, kk]
+        J[:, ny + np.arange(p), ny + np.arange(p)] = e2
+        grad = np.einsum("kij,ki->kj", J, grad_yg)
+    else:
+        grad = grad_yg
+    if not hessian:
+        return f, top_cert, grad, None
+    Hs = _softmax_curvature(lam, w, tau, E, r, grad_yg) + _scaling_curvature(U, w, MD, g, p)
+    if not prob.param_h:
+        return f, top_cert, grad, 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
+    Hs = np.swapaxes(J, 1, 2) @ Hs @ J
+    fg = grad_yg[:, ny:]
+    Hs[:, kk - 1, kk - 1] += 4.0 * fg[:, kk] * g[:, kk]
+    Hs[:, kk - 1, ny + kk] += -2.0 * fg[:, kk] * e2[:, kk]
+    Hs[:, ny + kk, kk - 1] += -2.0 * fg[:, kk] * e2[:, kk]
+    return f, top_cert, grad, 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
+
+
+def _eigen_derivatives(U: np.ndarray, MD: np.ndarray, g: np.ndarray, p: int, r: int) -> np.ndarray:
+    """``E[:, a, i, j] = (U^* (dH / dx_a) U)[i, j]`` for every variable ``a``, ``i`` among the top
+    ``r`` eigenvalues and every ``j``: ``E_a = X_a + X_a^*`` with rank-one-sum ``X_a`` built from
+    rows k of U, V = M_D U, W = M_D^* V, Z = M_D^* G U (y_k) and of U, V (g_k)."""
+    K, n = U.shape[0], U.shape[-1]
     MDh = np.conj(np.swapaxes(MD, -1, -2))
     V = MD @ U
     W = MDh @ V
     Z = MDh @ (g[:, :, None] * U)
-    Uc, Vc = np.conj(U), np.conj(V)
-    # E_a = U^* (dH / dx_a) U = X_a + X_a^* for every variable a, with rank-one-sum X_a built
-    # from rows k of U, V = M_D U, W = M_D^* V, Z = M_D^* G U (y_k) and of U, V (g_k). Only the
-    # rows i of the r eigenvalues with non-negligible softmax weight are needed: the gradient
-    # weights E_a[i, i] by w_i, and the divided differences vanish when both w_i, w_j do.
-    r = int(max(1, (w > 1e-15).sum(axis=1).max()))
+    Uc = np.conj(U)
     A = slice(n - r, n)
-    a = Vc + 1j * g[:, :, None] * Uc
+    a = np.conj(V) + 1j * g[:, :, None] * Uc
     b = np.conj(W) + 1j * np.conj(Z)
-    nv = n - 1 + p
-    E = np.empty((K, nv, r, n), dtype=complex)  # E[:, a, i, j] for i in the top r, all j
+    E = np.empty((K, n - 1 + p, r, n), dtype=complex)
     aA, bA, UA, VA = a[:, 1:, A], b[:, 1:, A], U[:, 1:, A], V[:, 1:, A]
     E[:, : n - 1] = (
         aA[:, :, :, None] * V[:, 1:, None, :]
@@ -289,22 +316,14 @@ def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: n
     E[:, n - 1 :] = 1j * (Uc[:, :p, A][:, :, :, None] * V[:, :p, None, :]) + np.conj(
         1j * Uc[:, :p, None, :] * V[:, :p, A][:, :, :, None]
     )
-    diagE = E[:, :, np.arange(r), np.arange(n - r, n)].real  # E_a[i, i], i in the top r
-    grad_yg = (diagE * w[:, None, A]).sum(axis=2)
-    # chain rule to x = (y, h), g_k = h_k exp(-2 y_k)
-    ny = n - 1
-    e2 = np.exp(-2.0 * np.log(prob.unpack(x)[0][:, :p]))  # exp(-2 y_k), k < p
-    J = np.broadcast_to(np.eye(nv), (K, nv, nv)).copy()
-    kk = np.arange(1, p)
-    if prob.param_h:
-        J[:, ny + kk, kk - 1] = -2.0 * g[:, kk]
-        J[:, ny + np.arange(p), ny + np.arange(p)] = e2
-        grad = np.einsum("kij,ki->kj", J, grad_yg)
-    else:
-        grad = grad_yg
-    if not hessian:
-        return f, top, grad, None
-    # divided differences of the softmax: Gamma_ij = (w_i - w_j) / (lambda_i - lambda_j)
+    return E
+
+
+def _softmax_curvature(lam: np.ndarray, w: np.ndarray, tau: np.ndarray, E: np.ndarray, r: int, grad_yg: np.ndarray) -> np.ndarray:
+    """The Hessian's first part: the divided differences of the softmax weights,
+    ``Gamma_ij = (w_i - w_j) / (lambda_i - lambda_j)``, over the eigenvector derivatives."""
+    K, n = lam.shape
+    nv = E.shape[1]
     dl = lam[:, :, None] - lam[:, None, :]
     adl = np.abs(dl)
     whi = np.where(dl >= 0, w[:, :, None], w[:, None, :])
@@ -312,13 +331,19 @@ def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: n
     with np.errstate(invalid="ignore", divide="ignore"):
         Gam = np.where(adl > 1e-12 * t, whi * (-np.expm1(-adl / t)) / np.where(adl > 0, adl, 1.0), whi / t)
     # sum over pairs (i, j) with i in the top r: (i, j) and (j, i) both counted when j is not
-    GamA = Gam[:, A, :].copy()
+    GamA = Gam[:, n - r:, :].copy()
     GamA[:, :, : n - r] *= 2.0
     Er = np.concatenate([E.real.reshape(K, nv, r * n), E.imag.reshape(K, nv, r * n)], axis=2)
     G2 = np.concatenate([GamA.reshape(K, 1, r * n)] * 2, axis=2)
     H1 = Er @ np.swapaxes(Er * G2, 1, 2)
     H1 -= grad_yg[:, :, None] * grad_yg[:, None, :] / tau[:, None, None]
-    # trace(Ws d^2 H)
+    return H1
+
+
+def _scaling_curvature(U: np.ndarray, w: np.ndarray, MD: np.ndarray, g: np.ndarray, p: int) -> np.ndarray:
+    """The Hessian's second part: ``trace(Ws d^2 H)`` with the softmax matrix ``Ws = U diag(w) U^*``."""
+    K, n = U.shape[0], U.shape[-1]
+    MDh = np.conj(np.swapaxes(MD, -1, -2))
     Ws = (U * w[:, None, :]) @ np.conj(np.swapaxes(U, -1, -2))
     Ws = 0.5 * (Ws + np.conj(np.swapaxes(Ws, -1, -2)))
     eye = np.eye(n)
@@ -340,20 +365,12 @@ def _smoothed_derivatives(prob: _Problem, x: np.ndarray, idx: np.ndarray, tau: n
     )
     Hyy = 2.0 * np.real(phi(P1)) + 2.0 * np.real(Tb) - 2.0 * np.imag(phi(P2))
     Hyg = -2.0 * np.imag(np.diagonal(MWs, axis1=1, axis2=2)[:, :, None] * eye - np.swapaxes(MD, 1, 2) * Ws)
+    ny, nv = n - 1, n - 1 + p
     H2 = np.zeros((K, nv, nv))
-    ny = n - 1
     H2[:, :ny, :ny] = Hyy[:, 1:, 1:]
     H2[:, :ny, ny:] = Hyg[:, 1:, :p]
     H2[:, ny:, :ny] = np.swapaxes(Hyg[:, 1:, :p], 1, 2)
-    Hs = H1 + H2
-    if not prob.param_h:
-        return f, top, grad, 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
-    Hs = np.swapaxes(J, 1, 2) @ Hs @ J
-    fg = grad_yg[:, ny:]
-    Hs[:, kk - 1, kk - 1] += 4.0 * fg[:, kk] * g[:, kk]
-    Hs[:, kk - 1, ny + kk] += -2.0 * fg[:, kk] * e2[:, kk]
-    Hs[:, ny + kk, kk - 1] += -2.0 * fg[:, kk] * e2[:, kk]
-    return f, top, grad, 0.5 * (Hs + np.swapaxes(Hs, 1, 2))
+    return H2
 
 
 def _newton_direction(Hs: np.ndarray, gr: np.ndarray) -> np.ndarray:

@@ -28,7 +28,6 @@ Exit codes: 0 no checked plant violates the claim; 3 one does; 2 bad arguments o
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
@@ -104,8 +103,7 @@ def run(args: argparse.Namespace) -> int:
     from setmem_hil.io.atomic_file import write_json_atomic
     from setmem_hil.io.journal import Journal
     from setmem_hil.io.procedure_file import parse_procedure_text
-    from setmem_hil.model.modal_model import ModalParameters
-    from setmem_hil.robust.validation import closed_loop_simulation, closed_loop_stable, rp_peak
+    from setmem_hil.robust.validation import closed_loop_simulation
 
     if args.samples < 0:
         raise InputFormatError("setmem-hil validate", "arguments", f"--samples {args.samples}: expected >= 0")
@@ -117,27 +115,10 @@ def run(args: argparse.Namespace) -> int:
     k_grid = _controller_on(K, grid)
     claimed = float(record.mu_peak)
 
-    truth_doc, truth = None, true_structure(procedure)
-    if truth is not None:
-        peak, where = rp_peak(truth, K, weights, grid, k_grid)
-        truth_doc = {"stable": closed_loop_stable(truth, K), "rp_peak": peak, "rp_peak_omega": where,
-                     "modes": int(truth.n_modes)}
-        if truth_doc["stable"]:
-            truth_doc.update(_certified_truth_peak(truth, K, weights))
-            if truth_doc["rp_peak_certified"] > peak:  # the certificate found more than the dense grid: report that
-                truth_doc["rp_peak"], truth_doc["rp_peak_omega"] = truth_doc["rp_peak_certified"], truth_doc["rp_certified_omega"]
-
+    truth = true_structure(procedure)
+    truth_doc = None if truth is None else _truth_check(truth, K, weights, grid, k_grid)
     plants, drawn = _claimed_set(record, args.samples)
-    worst = (-math.inf, math.nan, None)
-    violations = []
-    for values in plants:
-        plant = ModalParameters(values)
-        stable = closed_loop_stable(plant, K)
-        peak, where = rp_peak(plant, K, weights, grid, k_grid, refine=1) if stable else (math.inf, math.nan)
-        if peak > worst[0]:
-            worst = (peak, where, values)
-        if claimed < 1.0 and (not stable or peak >= 1.0):
-            violations.append((values, peak, where, stable))
+    worst, violations = _sampled_check(plants, K, weights, grid, k_grid, claimed)
     samples_doc = {"n": int(len(plants)), "drawn": f"{drawn} + {args.samples} random", "worst_rp_peak": float(worst[0]),
                    "worst_omega": float(worst[1]), "violations": len(violations),
                    "worst_plant": None if worst[2] is None else np.asarray(worst[2]).tolist()}
@@ -165,20 +146,56 @@ def run(args: argparse.Namespace) -> int:
           + f"{len(plants)} plants ({drawn}), worst peak {worst[0]:.4g} at {worst[1]:.4g} rad/s, {len(violations)} violations")
     falsified = violations or (truth_doc is not None and claimed < 1.0 and (not truth_doc["stable"] or truth_doc["rp_peak"] >= 1.0))
     if falsified:
-        import sys
-
-        if violations:
-            values, peak, where, stable = max(violations, key=lambda v: v[1])
-            plant = "; ".join(f"mode {i + 1}: a1 {v[0]:.6g}, a0 {v[1]:.6g}, b1 {v[2]:.6g}, b0 {v[3]:.6g}" for i, v in enumerate(values))
-            what = f"an unstable closed loop" if not stable else f"|W2 S| + |W1 K S| = {peak:.4g} at {where:.6g} rad/s"
-            print(f"setmem-hil: claim falsified: mu-bar {claimed:.4g} < 1 was claimed, but the plant ({plant}) in the interval box "
-                  f"gives {what}", file=sys.stderr)
-        else:
-            what = "an unstable closed loop" if not truth_doc["stable"] else \
-                f"|W2 S| + |W1 K S| = {truth_doc['rp_peak']:.4g} at {truth_doc['rp_peak_omega']:.6g} rad/s"
-            print(f"setmem-hil: claim falsified: mu-bar {claimed:.4g} < 1 was claimed, but the true structure gives {what}", file=sys.stderr)
+        _say_falsified(claimed, violations, truth_doc)
         return EXIT_FALSIFIED
     return 0
+
+
+def _truth_check(truth, K, weights, grid, k_grid) -> dict:
+    """The simulated truth's closed loop: stable?, its peak of ``|W2 S| + |W1 K S|`` (certified on the band)."""
+    from setmem_hil.robust.validation import closed_loop_stable, rp_peak
+
+    peak, where = rp_peak(truth, K, weights, grid, k_grid)
+    doc = {"stable": closed_loop_stable(truth, K), "rp_peak": peak, "rp_peak_omega": where, "modes": int(truth.n_modes)}
+    if doc["stable"]:
+        doc.update(_certified_truth_peak(truth, K, weights))
+        if doc["rp_peak_certified"] > peak:  # the certificate found more than the dense grid: report that
+            doc["rp_peak"], doc["rp_peak_omega"] = doc["rp_peak_certified"], doc["rp_certified_omega"]
+    return doc
+
+
+def _sampled_check(plants, K, weights, grid, k_grid, claimed: float):
+    """Every sampled plant of the box: the worst ``(peak, omega, plant)`` and the plants that
+    falsify a claimed mu-bar < 1 (unstable, or a peak >= 1)."""
+    from setmem_hil.model.modal_model import ModalParameters
+    from setmem_hil.robust.validation import closed_loop_stable, rp_peak
+
+    worst = (-math.inf, math.nan, None)
+    violations = []
+    for values in plants:
+        plant = ModalParameters(values)
+        stable = closed_loop_stable(plant, K)
+        peak, where = rp_peak(plant, K, weights, grid, k_grid, refine=1) if stable else (math.inf, math.nan)
+        if peak > worst[0]:
+            worst = (peak, where, values)
+        if claimed < 1.0 and (not stable or peak >= 1.0):
+            violations.append((values, peak, where, stable))
+    return worst, violations
+
+
+def _say_falsified(claimed: float, violations: list, truth_doc: dict | None) -> None:
+    import sys
+
+    if violations:
+        values, peak, where, stable = max(violations, key=lambda v: v[1])
+        plant = "; ".join(f"mode {i + 1}: a1 {v[0]:.6g}, a0 {v[1]:.6g}, b1 {v[2]:.6g}, b0 {v[3]:.6g}" for i, v in enumerate(values))
+        what = "an unstable closed loop" if not stable else f"|W2 S| + |W1 K S| = {peak:.4g} at {where:.6g} rad/s"
+        print(f"setmem-hil: claim falsified: mu-bar {claimed:.4g} < 1 was claimed, but the plant ({plant}) in the interval box "
+              f"gives {what}", file=sys.stderr)
+    else:
+        what = "an unstable closed loop" if not truth_doc["stable"] else \
+            f"|W2 S| + |W1 K S| = {truth_doc['rp_peak']:.4g} at {truth_doc['rp_peak_omega']:.6g} rad/s"
+        print(f"setmem-hil: claim falsified: mu-bar {claimed:.4g} < 1 was claimed, but the true structure gives {what}", file=sys.stderr)
 
 
 def _figure(path: Path, truth, plants, worst, K, weights, grid, k_grid) -> None:
