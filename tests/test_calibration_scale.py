@@ -147,6 +147,7 @@ def test_the_uncertain_plant_with_a_common_gain_holds_every_gain_times_every_box
         assert np.allclose(np.ravel(plant.C) + rows.T @ q, target, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_mu_bar_with_a_common_gain_bounds_every_plant_of_the_set_and_costs_less_than_widening():
     """The claim checked plant by plant (the exact one-plant test of ``validate``): every
     vertex of a box times either end of the gain stays below the analysis's mu-bar; and one

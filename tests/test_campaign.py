@@ -136,6 +136,7 @@ def test_replay_refuses_a_journal_from_another_procedure(complete_run, tmp_path)
     journal.close()
 
 
+@pytest.mark.slow
 def test_budget_stops_the_loop_without_reaching_the_goal():
     summary = run_campaign(procedure(max_experiments=0), SimulatedBeamExperiment(seed=SEED), strategy="log-sweep")
     assert not summary.reached_goal and summary.stop_reason == "budget"

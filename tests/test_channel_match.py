@@ -82,6 +82,7 @@ def test_the_amplitude_bound_holds_a_quantized_noisy_sine(noise_codes):
     assert worst <= 1.0
 
 
+@pytest.mark.slow
 def test_the_emulated_scopes_match_holds_its_true_gain_at_every_scale():
     from setmem_hil.drivers.instruments.instrument_set import calibrate_scope_channels
     from setmem_hil.io.procedure_file import parse_procedure_text
@@ -129,6 +130,7 @@ def test_a_real_rig_without_its_channel_match_is_exit_2_naming_the_key(tmp_path,
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_a_match_from_another_scope_is_exit_4_naming_it(tmp_path, capsys):
     path = _write(tmp_path)
     assert main(["calibrate-channels", str(path), "--seed", "5"]) == 0  # another emulated unit
@@ -139,6 +141,7 @@ def test_a_match_from_another_scope_is_exit_4_naming_it(tmp_path, capsys):
     assert len(err) == 1 and "channel match" in err[0] and "DS1ZA123400005" in err[0] and "calibrate-channels" in err[0], err
 
 
+@pytest.mark.slow
 def test_an_old_or_malformed_match_is_exit_2_naming_it(tmp_path, capsys):
     path = _write(tmp_path)
     assert main(["calibrate-channels", str(path)]) == 0

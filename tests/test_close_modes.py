@@ -90,6 +90,7 @@ def _nonlinear_extreme(data, x0, lower, upper, p, sign):
     return full(res.x)[p], float(np.min(fit(res.x)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("separation", [0.10, 0.03])
 def test_a_close_pair_is_bounded_within_1_5x_of_the_exact_set_and_holds_every_fitting_parameter(separation):
     truth, data, prior = close_pair_case(separation)
@@ -114,6 +115,7 @@ def test_a_close_pair_is_bounded_within_1_5x_of_the_exact_set_and_holds_every_fi
                 assert lo[p] - 1e-9 * abs(lo[p]) <= value <= hi[p] + 1e-9 * abs(hi[p])
 
 
+@pytest.mark.slow
 def test_the_one_mode_split_alone_stays_at_the_prior_for_a_3_percent_pair():
     """The failure the issue measured, kept as the reason for the groups (chapter 3's path)."""
     from setmem_hil.identification.algorithm import IdentifySettings

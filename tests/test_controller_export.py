@@ -60,6 +60,7 @@ def _last(run_dir):
         return j.iterations()[-1]
 
 
+@pytest.mark.slow
 def test_json_contract_and_the_continuous_form_is_the_analysed_compensator(run_dir, exported):
     assert exported["sign"] == "positive" and exported["iteration"] == _last(run_dir).k
     assert {"A", "B", "C", "D"} <= set(exported["continuous"]) and {"A", "B", "C", "D", "Ts", "prewarp_rad_s"} <= set(exported["discrete"])
@@ -161,6 +162,7 @@ def test_a_run_with_no_iteration_is_refused_naming_it(tmp_path, capsys):
     assert main(["controller", str(tmp_path / "empty"), "--out", str(tmp_path / "K.h")]) == 2  # sections need --fs
 
 
+@pytest.mark.slow
 def test_a_journal_from_before_stored_compensators_gets_the_h2_design_again(h2_run_dir):
     from setmem_hil.campaign.compensator import designed_again
 
@@ -207,6 +209,7 @@ def test_version_2_journals_are_upgraded_and_export_designs_again(h2_run_dir, tm
 
 # -- setmem-hil validate -----------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(run_dir, tmp_path):
     from setmem_hil.robust.validation import rp_curve
     from setmem_hil.sim_backends.beam import beam_parameters
@@ -256,6 +259,7 @@ def test_validate_exits_3_naming_the_plant_when_the_claim_is_false(run_dir, tmp_
     assert doc["samples"]["violations"] > 0 or not doc["truth"]["stable"] or doc["truth"]["rp_peak"] >= 1
 
 
+@pytest.mark.slow
 def test_the_report_shows_the_validation(run_dir, tmp_path):
     copy = tmp_path / "run"
     shutil.copytree(run_dir, copy)

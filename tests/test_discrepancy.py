@@ -142,6 +142,7 @@ def outcomes():
     return _run_cases()
 
 
+@pytest.mark.slow
 def test_names_the_hidden_effect(outcomes):
     hidden = [(c, r) for c, r in outcomes if c.effect != "none"]
     right = sum(r.decision == c.effect for c, r in hidden)

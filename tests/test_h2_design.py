@@ -29,6 +29,7 @@ def test_closed_loop_stable_and_controller_order(design):
     assert np.max(np.linalg.eigvals(cl.A).real) < 0
 
 
+@pytest.mark.slow
 def test_h2_norm_gramian_matches_modal_integral(design):
     _, _, cl = design
     gram = h2_norm(cl)

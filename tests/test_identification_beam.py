@@ -16,6 +16,7 @@ def results_b1_fixed():
     return [(identify(data, thesis_beam_prior(b1_fixed=True)), beam) for data, beam in (section_6_2_data(s) for s in SEEDS)]
 
 
+@pytest.mark.slow
 def test_truth_inside_every_interval_on_20_seeds(results_b1_fixed):
     for result, beam in results_b1_fixed:
         assert result.model.contains(beam.modelled_truth).all()
@@ -41,6 +42,7 @@ def test_widths_beside_table_6_4(results_b1_fixed, capsys):
         print("\n" + "\n".join(lines))
 
 
+@pytest.mark.slow
 def test_b1_free_gives_wider_intervals_and_larger_mismatch(results_b1_fixed):
     """Section 6.2.1 vs 6.2.2: ignoring b1 = 0 widens the intervals and raises the mismatch."""
     free = [identify(section_6_2_data(s)[0], thesis_beam_prior(b1_fixed=False)) for s in range(5)]

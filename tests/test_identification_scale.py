@@ -115,6 +115,7 @@ from hypothesis import strategies as st  # noqa: E402
     edge_offsets=st.lists(st.sampled_from([0.0, 0.0, 1e-12, -1e-12, 1e-6, -1e-6, 1e-3, -1e-3]), min_size=6, max_size=6),
     seed=st.integers(0, 2**16),
 )
+@pytest.mark.slow
 def test_truth_inside_with_points_on_or_near_band_edges(log_s, log_m, edge_offsets, seed):
     """Issue 18 property: random scale, data points on or near the prior band edges, truth inside."""
     S, magnitude = 10.0**log_s, 10.0**log_m

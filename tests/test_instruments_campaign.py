@@ -274,6 +274,7 @@ def test_sigterm_during_a_run_exits_130_with_the_output_off(tmp_path, monkeypatc
     assert len(read_snapshot(tmp_path / "r").measurements) == 2  # the two finished dwells are kept
 
 
+@pytest.mark.slow
 def test_the_journal_records_which_instruments_measured(tmp_path):
     procedure = load_procedure(PROCEDURES["Modbus+SR830+SR860"])
     procedure = dataclasses.replace(procedure, goal=dataclasses.replace(procedure.goal, max_experiments=0))

@@ -99,6 +99,7 @@ def test_a_link_that_stays_down_is_reported_as_such_never_as_commanded_to_zero(t
         j.close()
 
 
+@pytest.mark.slow
 def test_resume_after_sigkill_switches_the_output_off_first_and_says_so(tmp_path):
     run_dir = tmp_path / "killed"
     child = subprocess.Popen([sys.executable, "-m", "setmem_hil.cli.main", "run", str(EMULATED), "--out", str(run_dir), "--quiet"],
@@ -259,6 +260,7 @@ def test_siglent_compound_replies_are_read_back_on_either_channel():
         server.close()
 
 
+@pytest.mark.slow
 def test_campaign_through_sdg2042x_sr830_sr865a_reads_back_and_contains_the_truth(tmp_path):
     import numpy as np
 

@@ -54,6 +54,7 @@ def test_rank_one_matches_closed_form(seed, p, n):
     assert lower <= truth * (1 + 1e-9)
 
 
+@pytest.mark.slow
 def test_upper_at_least_lower_and_certificates_hold():
     rng = np.random.default_rng(5)
     s = MuStructure(3, 2)

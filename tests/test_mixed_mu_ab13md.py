@@ -39,6 +39,7 @@ def beam_closed_loop():
     return model, plant.closed_loop(h2_controller_for_plant(plant))
 
 
+@pytest.mark.slow
 def test_beam_closed_loop_grid_never_above_ab13md(beam_closed_loop):
     _, cl = beam_closed_loop
     w = default_omega_grid()
@@ -50,6 +51,7 @@ def test_beam_closed_loop_grid_never_above_ab13md(beam_closed_loop):
     assert np.all(rel <= 1e-4)
 
 
+@pytest.mark.slow
 def test_analysis_peak_never_above_ab13md(beam_closed_loop):
     model, cl = beam_closed_loop
     r = analyze_robust_performance(model)

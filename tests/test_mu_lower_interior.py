@@ -105,6 +105,7 @@ def _two_cart_closed_loop() -> StateSpaceMatrices:
     return StateSpaceMatrices(A, B, Cm, Dzw)
 
 
+@pytest.mark.slow
 def test_the_two_cart_benchmark_of_robstab():
     """MATLAB reports the critical frequency as 575 rad/s; real mu is discontinuous in frequency,
     and the destabilising perturbation makes the closed loop singular at 575.03 rad/s: found here

@@ -106,6 +106,7 @@ def _coverage_records(seeds):
     return outcome
 
 
+@pytest.mark.slow
 def test_multisine_lines_cover_the_truth_like_single_sines():
     """Truth inside the bound for >= 99% of lines (the single sine's coverage test), 6 seeds x 20 lines."""
     inside, total = 0, 0
@@ -119,6 +120,7 @@ def test_multisine_lines_cover_the_truth_like_single_sines():
     assert inside / total >= 0.99, f"{inside}/{total} lines inside their bounds"
 
 
+@pytest.mark.slow
 def test_a_record_costs_one_settling_not_one_per_line():
     procedure = default_procedure()
     core = FakeDeviceCore.from_procedure(procedure, 2)
@@ -255,6 +257,7 @@ def _strip(rows):
     return [(r["seq"], r["iteration"], r["role"], r["omega_rad_s"], r["re"], r["im"], r["bound"]) for r in rows]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stop", ["record", "journal"])
 def test_resumed_multisine_campaign_equals_the_uninterrupted_one(tmp_path, monkeypatch, capsys, stop):
     """Kill at the first dwell after the initial record (time-domain backend), or while the initial

@@ -28,6 +28,7 @@ def finished_run(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_a_journal_damaged_in_the_middle_is_exit_2_naming_the_file(finished_run, tmp_path, capsys):
     """Before: exit 1 "internal error (DatabaseError: database disk image is malformed)"."""
     damaged = tmp_path / "damaged"
@@ -106,6 +107,7 @@ def test_iteration_axes_have_whole_number_ticks(finished_run, tmp_path, monkeypa
                 assert shown and all(float(t).is_integer() for t in shown), shown
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["demo", "campaign"])
 def test_progress_written_to_a_file_keeps_its_lines_whole(tmp_path, command):
     """Before: rich wrapped `demo`'s (and `campaign`'s) lines at 80 columns when stdout was a file:

@@ -91,6 +91,7 @@ def test_modal_estimate_finds_the_true_poles_and_residues():
     np.testing.assert_allclose([m.b0 for m in found], TRUTH.values[:, 3], rtol=0.1)
 
 
+@pytest.mark.slow
 def test_prior_then_identify_contains_the_truth(tmp_path, capsys):
     w = 2 * np.pi * F_HZ
     g = _receptance()

@@ -63,6 +63,7 @@ def _journal(tmp_path, n_iterations=5, discrepancy=True):
     return run
 
 
+@pytest.mark.slow
 def test_report_holds_every_figure_and_table(tmp_path):
     run = _journal(tmp_path)
     path = write_report(run)

@@ -33,6 +33,7 @@ def test_sine_dwell_rig_time_is_the_device_clock():
             assert m.rig_s > 0
 
 
+@pytest.mark.slow
 def test_summary_and_iterations_carry_rig_time(tmp_path):
     procedure = load_procedure(REPO / "procedures" / "serial_loopback.toml")
     outcome = start_run(procedure, tmp_path / "run", opener=open_experiment, quiet_report_hint=True)
@@ -88,6 +89,7 @@ def _sim_procedure(extra: str, max_experiments: int = 4):
     return parse_procedure_text(text, "p.toml")
 
 
+@pytest.mark.slow
 def test_defaults_stated_explicitly_reproduce_todays_campaign(tmp_path):
     from setmem_hil.campaign.runner import run_campaign
 
@@ -102,6 +104,7 @@ def test_defaults_stated_explicitly_reproduce_todays_campaign(tmp_path):
     assert runs[0].rig_s == runs[1].rig_s
 
 
+@pytest.mark.slow
 def test_batch_of_two_frequencies_per_iteration(tmp_path):
     procedure = _sim_procedure("per_iteration = 2", 4)
     outcome = start_run(procedure, tmp_path / "run", opener=open_experiment, quiet_report_hint=True)

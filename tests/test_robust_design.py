@@ -76,6 +76,7 @@ def test_the_floor_at_the_edges_of_its_condition(edit, expected):
     assert floor_modes(IntervalModel(lower, upper)) == expected
 
 
+@pytest.mark.slow
 def test_the_floor_plant_puts_a_closed_loop_pole_on_the_axis_for_any_compensator():
     """Why the floor holds: the box's plant with a1 = b1 = b0 = 0 has the mode in its state but
     not in its transfer function, so the closed loop keeps its poles at +-j sqrt(a0)."""
@@ -119,6 +120,7 @@ def test_the_tuning_gradient_matches_finite_differences():
         assert fd == pytest.approx(grad @ v, rel=1e-4, abs=1e-9 * np.abs(grad).sum())
 
 
+@pytest.mark.slow
 def test_the_tuned_compensator_beats_h2_and_its_claim_holds_for_plants_of_the_box():
     from setmem_hil.robust.validation import box_plants, closed_loop_stable, rp_peak
     from setmem_hil.model.modal_model import ModalParameters
@@ -259,6 +261,7 @@ def test_candidates_that_remove_a_floor_rank_ahead_of_larger_improvements():
     assert _with_floors_first(np.array([0.9, 0.1]), np.zeros(2)).tolist() == [0.9, 0.1]
 
 
+@pytest.mark.slow
 def test_the_lower_bound_reaches_one_wherever_the_floor_holds():
     """Inside the floor mode's a0 interval mu >= 1 (the floor plant's closed loop is singular
     there): the reported lower bound says so, and never exceeds the upper bound."""

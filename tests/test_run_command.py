@@ -92,6 +92,7 @@ def test_resume_uses_the_stored_procedure_not_the_edited_file(tmp_path, cheap, m
     j.close()
 
 
+@pytest.mark.slow
 def test_device_fault_zeroes_the_exciter_and_can_be_resumed(tmp_path, cheap, monkeypatch, capsys):
     import setmem_hil.cli.commands.run as run_cmd
 
@@ -300,6 +301,7 @@ def test_run_check_runs_the_residue_bootstrap_before_any_dwell(tmp_path, capsys)
     assert main(["run", "--check", str(REPO / "procedures" / "beam_6_3_2.toml")]) == 0
 
 
+@pytest.mark.slow
 def test_resume_with_a_corrected_procedure_reuses_every_stored_measurement(tmp_path, capsys):
     """Issue 17: a run stopped by a prior that excludes the first mode (exit 3 after measuring the
     initial points) continues with the corrected prior; nothing is measured twice; the change is

@@ -165,6 +165,7 @@ def _mass_line_report(S: float, m: float):
     return discrepancy_from_prior(FrequencyData(w1 * S, g * m, bound * m), prior).to_document()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("S, m", [(314.159, 1.0), (1.0, 1e-6), (1e-2, 1e6)])
 def test_discrepancy_is_scale_invariant(S, m):
     ref, doc = _mass_line_report(1.0, 1.0), _mass_line_report(S, m)

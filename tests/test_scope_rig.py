@@ -76,6 +76,7 @@ def dwells():
     return out, bench, counters
 
 
+@pytest.mark.slow
 def test_every_channel_holds_its_sensors_truth(dwells):
     measurements, _, _ = dwells
     for m in measurements:
@@ -139,6 +140,7 @@ def test_a_keysight_triggers_on_its_ext_input():
 MULTISINE_TEXT = DATASHEET_TEXT.replace("[safety]", '[dwell]\nsignal = "multisine"\n\n[safety]', 1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("generator", ["keysight-33500b", "rigol-dg800", "siglent-sdg2000x"])
 def test_a_multisine_record_through_the_arbitrary_waveform_holds_every_lines_truth(generator):
     """The generator plays the record as an arbitrary waveform (held points: the 33500B's ASCII
@@ -163,6 +165,7 @@ def test_a_multisine_record_through_the_arbitrary_waveform_holds_every_lines_tru
     assert not exp.bench.output_on
 
 
+@pytest.mark.slow
 def test_the_first_record_through_the_sdg_holds_every_points_truth_on_seed_105(tmp_path):
     """Found by the rig-time benchmark: in seed 105's first record through the SDG2000X the tip
     channel's search for an unmodelled transient refined its pole into the line at 0.9 rad/s
@@ -242,6 +245,7 @@ def test_a_scope_fault_is_exit_4_one_line_naming_the_scope_with_the_output_off(t
     assert not bench.output_on
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signal", ["sine", "multisine"])
 def test_a_campaign_through_the_matched_scope_reaches_the_goal_with_every_truth_inside(tmp_path, signal):
     """The shipped 33500B + DS1104Z procedure as a technician runs it: `calibrate-channels` (the
@@ -379,6 +383,7 @@ def test_a_line_near_a_lightly_damped_mode_driven_from_rest_beats_up_to_twice_it
     assert 1.9 * steady < np.max(np.abs(y)) <= (1.0 + line / omega_n) * steady
 
 
+@pytest.mark.slow
 def test_a_reply_late_past_its_timeout_mid_campaign_is_retried_with_the_whole_setup_restored(tmp_path, monkeypatch, capsys):
     """Issue 46: one `:TRIG:STAT?` reply arrives after the link gave up on it (the scope emulator
     sends it late, on purpose). The dwell's retry opens a fresh session, sends the scope's whole

@@ -54,6 +54,7 @@ def test_one_output_is_the_thesis_algorithm_bit_for_bit():
     np.testing.assert_array_equal(joint.models[0].upper, alone.model.upper)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3, 4])
 def test_shared_poles_contain_the_truth_and_are_never_wider_than_one_output_alone(seed):
     truths, datas = sensors(seed)
@@ -137,6 +138,7 @@ def test_disagreeing_sensors_exit_3_on_the_command_line(tmp_path, capsys):
     assert "Traceback" not in err and not (tmp_path / "r.json").exists()
 
 
+@pytest.mark.slow
 def test_prior_with_several_outputs_proposes_common_poles_and_per_output_residues(tmp_path, capsys):
     """Three sensors on one frequency axis: `prior` then `identify` contain the truth of every output."""
     rng = np.random.default_rng(11)
@@ -259,6 +261,7 @@ def _prior_alone_and_joint(tmp_path, files: list[Path], modes: int) -> tuple[lis
     return alone, joint.read_text()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [11, 12])
 def test_each_outputs_brackets_in_a_joint_prior_are_no_wider_than_its_own_proposal(tmp_path, seed):
     """Issue 40, item 8: a second sensor must never make the answer worse than the first alone:

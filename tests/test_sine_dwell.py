@@ -20,6 +20,7 @@ def _experiment(seed=1, faults=None, **kw):
     return core, SineDwellExperiment(CoreRig(core), SafetyLimits(), model=thesis_beam_prior().initial_bounds(), **kw)
 
 
+@pytest.mark.slow
 def test_seeded_sweep_of_200_dwells_contains_the_truth_in_99_percent():
     # the acceptance test: 200 dwells, fully damped noise profile, from 0.3 to 40 rad/s
     rng = np.random.default_rng(2024)

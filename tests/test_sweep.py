@@ -127,6 +127,7 @@ def test_plot_writes_a_png(tmp_path):
 
 
 # ---------------------------------------------------------------------------- storage, failures, skip
+@pytest.mark.slow
 def test_failed_campaign_is_recorded_not_fatal_and_retried(tmp_path):
     proc = fast_procedure(0)
     result = run_sweep(proc, [1, 2], ["mu"], tmp_path, serial=True, task=task_failing_seed_2, plot=False)
@@ -248,6 +249,7 @@ def _wait_for(predicate, timeout_s: float, proc: subprocess.Popen | None = None)
         time.sleep(0.05)
 
 
+@pytest.mark.slow
 def test_killed_serial_sweep_leaves_no_half_run_and_resumes(tmp_path, capsys):
     out = tmp_path / "sweep"
     args = ["sweep", "--procedure", str(PROCEDURE_FILE), "--seeds", "1-2", "--strategies", "log-sweep",
@@ -343,6 +345,7 @@ def test_progress_counts_done_total_and_failures(tmp_path):
                                    "median_experiments_reached": 2.0}
 
 
+@pytest.mark.slow
 def test_sweep_stores_the_discrepancy_check_of_every_iteration_as_run_does(tmp_path, monkeypatch):
     """[discrepancy] check_each_iteration means the same in a sweep as in `setmem-hil run` (one runner)."""
     from setmem_hil.campaign.session import start_run
@@ -379,6 +382,7 @@ def _rounded(obj, digits: int = 9):
     return obj
 
 
+@pytest.mark.slow
 def test_a_sweep_over_designs_runs_each_design_and_reports_it(tmp_path):
     """Issue 46: ``--designs h2,robust`` is an axis like ``--strategies``. Each run is the
     campaign of that design (its journal and summary say so, the truth: the design each

@@ -82,6 +82,7 @@ class _Uninformative:
         return self.inner.total_bound(omega_rad_s)
 
 
+@pytest.mark.slow
 def test_a_campaign_whose_points_carry_nothing_leaves_the_region_and_never_returns(tmp_path):
     from setmem_hil.campaign.runner import UNPRODUCTIVE_REGION_EVENT, run_campaign
     from setmem_hil.experiment_factory import open_experiment
