@@ -116,15 +116,7 @@ def parse_strategies(text: str | Sequence[str]) -> tuple[str, ...]:
     InputFormatError
         Naming ``--strategies``, the unknown name and the allowed ones.
     """
-    items = [s.strip() for s in (text.split(",") if isinstance(text, str) else text)]
-    if not items or any(not s for s in items):
-        raise InputFormatError("--strategies", "", f"expected a comma list of {', '.join(STRATEGIES)}, found {text!r}")
-    for s in items:
-        if s not in STRATEGIES:
-            raise InputFormatError("--strategies", "", f"expected one of {', '.join(STRATEGIES)}, found {s!r}")
-    if len(set(items)) != len(items):
-        raise InputFormatError("--strategies", "", f"a strategy appears twice in {text!r}")
-    return tuple(items)
+    return _parse_names(text, "--strategies", STRATEGIES, "strategy")
 
 
 def parse_designs(text: str | Sequence[str]) -> tuple[str, ...]:
@@ -135,14 +127,19 @@ def parse_designs(text: str | Sequence[str]) -> tuple[str, ...]:
     InputFormatError
         Naming ``--designs``, the unknown name and the allowed ones.
     """
+    return _parse_names(text, "--designs", DESIGN_METHODS, "design")
+
+
+def _parse_names(text: str | Sequence[str], option: str, allowed: Sequence[str], what: str) -> tuple[str, ...]:
+    """A comma list (or a sequence) of names from ``allowed``, each once."""
     items = [s.strip() for s in (text.split(",") if isinstance(text, str) else text)]
     if not items or any(not s for s in items):
-        raise InputFormatError("--designs", "", f"expected a comma list of {', '.join(DESIGN_METHODS)}, found {text!r}")
+        raise InputFormatError(option, "", f"expected a comma list of {', '.join(allowed)}, found {text!r}")
     for s in items:
-        if s not in DESIGN_METHODS:
-            raise InputFormatError("--designs", "", f"expected one of {', '.join(DESIGN_METHODS)}, found {s!r}")
+        if s not in allowed:
+            raise InputFormatError(option, "", f"expected one of {', '.join(allowed)}, found {s!r}")
     if len(set(items)) != len(items):
-        raise InputFormatError("--designs", "", f"a design appears twice in {text!r}")
+        raise InputFormatError(option, "", f"a {what} appears twice in {text!r}")
     return tuple(items)
 
 
