@@ -21,6 +21,7 @@ def quick_procedure(tmp_path):
     return path
 
 
+@pytest.mark.slow
 def test_campaign_command_writes_summary_and_journal_and_refuses_to_overwrite(quick_procedure, tmp_path, capsys):
     out = tmp_path / "run"
     argv = ["campaign", "--procedure", str(quick_procedure), "--backend", "sim", "--out", str(out), "--seed", "3", "--quiet"]

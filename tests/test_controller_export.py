@@ -91,6 +91,7 @@ def test_json_contract_and_the_continuous_form_is_the_analysed_compensator(run_d
     assert np.max(np.abs(zpk - frequency_response(K, w)) / np.abs(frequency_response(K, w))) < 1e-8
 
 
+@pytest.mark.slow
 def test_discrete_and_sections_match_an_independent_tustin_map(exported):
     K = statespace_from_lists(exported["continuous"])
     d = exported["discrete"]
@@ -114,6 +115,7 @@ def test_discrete_and_sections_match_an_independent_tustin_map(exported):
     assert np.max(np.abs(out - y[:, 0])) <= 1e-9 * np.max(np.abs(y))
 
 
+@pytest.mark.slow
 def test_c_header_compiles_and_its_step_matches_sosfilt(run_dir, exported, tmp_path):
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
@@ -139,6 +141,7 @@ int main(void) {
     assert np.max(np.abs(y - reference)) <= 1e-12 * np.max(np.abs(reference))
 
 
+@pytest.mark.slow
 def test_mat_and_csv_round_trip(run_dir, exported, tmp_path):
     mat = tmp_path / "K.mat"
     assert main(["controller", str(run_dir), "--out", str(mat), "--fs", str(FS)]) == 0
@@ -176,6 +179,7 @@ def test_a_journal_from_before_stored_compensators_gets_the_h2_design_again(h2_r
     assert np.max(np.abs(frequency_response(again, w) / frequency_response(stored, w) - 1)) < 1e-8
 
 
+@pytest.mark.slow
 def test_version_2_journals_are_upgraded_and_export_designs_again(h2_run_dir, tmp_path, capsys):
     import sqlite3
 
@@ -239,6 +243,7 @@ def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(run
     assert Path(doc["figure"]).is_file()
 
 
+@pytest.mark.slow
 def test_validate_exits_3_naming_the_plant_when_the_claim_is_false(run_dir, tmp_path, capsys):
     """A journal whose last iteration claims mu-bar < 1 for a compensator with three times the
     gain it was designed with: a claim made false on purpose."""

@@ -149,11 +149,13 @@ def test_names_the_hidden_effect(outcomes):
     assert right >= 0.9 * len(hidden), [(c.effect, r.decision) for c, r in hidden if r.decision != c.effect]
 
 
+@pytest.mark.slow
 def test_clean_data_answer_none(outcomes):
     clean = [(c, r) for c, r in outcomes if c.effect == "none"]
     assert sum(r.decision == "none" and r.effects == () for c, r in clean) >= 0.95 * len(clean)
 
 
+@pytest.mark.slow
 def test_gap_shrinks_after_adding_the_effect(outcomes):
     for case, report in outcomes:
         if case.effect == "none" or report.decision != case.effect:
@@ -164,6 +166,7 @@ def test_gap_shrinks_after_adding_the_effect(outcomes):
         assert report.disagreement_bands
 
 
+@pytest.mark.slow
 def test_document_has_the_contract_keys(outcomes):
     for case, report in outcomes[:: max(1, len(outcomes) // 5)]:
         doc = report.to_document()

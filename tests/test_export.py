@@ -121,6 +121,7 @@ def test_export_command(tmp_path, capsys):
     assert "no journal" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_export_uff_writes_one_58_record_per_output_that_identify_reads_back(tmp_path, capsys):
     """Issue 39, item 4: `export RUN --uff FILE.uff` (with or without --csv): UFF dataset 58, one
     FRF record per output, frequency in Hz, displacement over force, double precision (58b);

@@ -64,6 +64,7 @@ def _wait_for(predicate, timeout_s: float = 60.0):
     raise AssertionError("condition not met in time")
 
 
+@pytest.mark.slow
 def test_api_token_pause_resume_abort_then_resume_equals_uninterrupted(tmp_path):
     procedure = _procedure(tmp_path)
     run_dir = tmp_path / "live"
@@ -116,6 +117,7 @@ def test_api_token_pause_resume_abort_then_resume_equals_uninterrupted(tmp_path)
         straight.close()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian package chromium; .ci/run installs it)")
 def test_page_in_a_real_browser_shows_points_and_its_buttons_steer_the_run(tmp_path):
     pytest.importorskip("playwright", reason="playwright (pip) drives the browser")
@@ -154,6 +156,7 @@ def test_page_in_a_real_browser_shows_points_and_its_buttons_steer_the_run(tmp_p
     assert (shots / "live-view-paused.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_view_serves_a_finished_run_read_only(tmp_path):
     from setmem_hil.cli.main import main
     from setmem_hil.io.journal import Journal
@@ -212,6 +215,7 @@ def _several_sensor_run(tmp_path: Path) -> Path:
     return tmp_path / "three"
 
 
+@pytest.mark.slow
 def test_state_carries_every_output_of_a_several_sensor_run(tmp_path):
     from setmem_hil.live.state import journal_state
 
@@ -222,6 +226,7 @@ def test_state_carries_every_output_of_a_several_sensor_run(tmp_path):
     assert last["outputs"]["names"] == state["outputs"] and len(last["outputs"]["lower"]) == 3
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium installed (Debian package chromium; .ci/run installs it)")
 def test_page_shows_every_sensor_with_a_legend_and_its_residues(tmp_path):
     pytest.importorskip("playwright", reason="playwright (pip) drives the browser")

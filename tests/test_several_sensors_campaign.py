@@ -51,6 +51,7 @@ def run_dir(tmp_path_factory):
     return tmp / "run"
 
 
+@pytest.mark.slow
 def test_three_sensor_campaign_reaches_the_goal_with_every_truth_inside(run_dir):
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["reached_goal"] is True
@@ -67,6 +68,7 @@ def test_three_sensor_campaign_reaches_the_goal_with_every_truth_inside(run_dir)
         np.testing.assert_array_equal(np.array(record.outputs["lower"])[:, :, :2], np.array(record.outputs["lower"][:1] * 3)[:, :, :2])  # shared poles
 
 
+@pytest.mark.slow
 def test_three_sensor_export_has_an_output_column_and_files_identify_reads(run_dir, tmp_path):
     assert main(["export", str(run_dir), "--csv", str(tmp_path / "csv")]) == 0
     with open(tmp_path / "csv" / "measurements.csv", newline="") as fh:
@@ -89,6 +91,7 @@ def test_three_sensor_export_has_an_output_column_and_files_identify_reads(run_d
             assert o["b0"][0] <= truth[i, 3] <= o["b0"][1]
 
 
+@pytest.mark.slow
 def test_the_report_lists_every_sensor(run_dir):
     assert main(["report", str(run_dir)]) == 0
     html = (run_dir / "report.html").read_text()

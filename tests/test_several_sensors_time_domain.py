@@ -78,6 +78,7 @@ def test_each_sensor_truth_lies_inside_its_dwell_bound_and_the_control_data_are_
             assert abs(g - truth.frequency_response(np.array([m.omega_rad_s]))[0]) <= bound, (m.omega_rad_s, truth)
 
 
+@pytest.mark.slow
 def test_a_three_sensor_time_domain_campaign_reaches_the_goal_with_every_truth_inside(tmp_path):
     procedure = time_domain()
     text = format_procedure(procedure)

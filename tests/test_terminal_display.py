@@ -24,6 +24,7 @@ def short_campaign_events():
     return events, summary
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("width", [80, 120])
 def test_live_display_fits_the_terminal_and_ends_without_a_stale_choice(short_campaign_events, width):
     """Every frame of the live display (rendered at the terminal's width after each event) shows
@@ -46,6 +47,7 @@ def test_live_display_fits_the_terminal_and_ends_without_a_stale_choice(short_ca
     assert "iteration 1: 15 points, mu-bar peak" in printed and "finished:" in printed
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("width", [80, 120])
 def test_iteration_table_rounds_mu_bar(short_campaign_events, width):
     _, summary = short_campaign_events
@@ -57,6 +59,7 @@ def test_iteration_table_rounds_mu_bar(short_campaign_events, width):
     assert all(len(line.rstrip()) <= width for line in text.splitlines())
 
 
+@pytest.mark.slow
 def test_a_several_sensor_campaign_prints_the_shared_poles_and_every_output_residues():
     """Issue 25: each iteration's terminal lines name every sensor with its b0 intervals; the
     truth (the cantilever's residues at each sensor, beam theory) lies inside what is printed."""
