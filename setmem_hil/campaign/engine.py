@@ -4,7 +4,7 @@ A plan is a generator: it ``yield``\\ s a request and receives the engine's repl
 the ``yield`` expression. The plan says *what* to do; the engine runs it, whichever plan it is:
 
 * **commands**: each request type has a handler, ``handler(engine, request) -> reply``. The
-  engine knows three (:class:`Emit`, :class:`Checkpoint`, :class:`Replayed`); a plan brings its
+  engine knows two (:class:`Emit`, :class:`Checkpoint`); a plan brings its
   own with :meth:`RunEngine.register_command` (e.g. the thesis loop's, in ``measurement_service``)
   without touching this module;
 * **errors go back into the plan**: a handler that raises has its exception thrown into the plan
@@ -42,7 +42,7 @@ from typing import Any, Callable, Generator, Hashable, Mapping, Sequence
 from setmem_hil.errors import ReplayError, RunAborted
 from setmem_hil.numerics.blas_threads import blas_one_thread
 
-__all__ = ["RunEngine", "RunStart", "Emit", "Checkpoint", "Replayed", "Subscriber", "START", "STOP", "NOTE",
+__all__ = ["RunEngine", "RunStart", "Emit", "Checkpoint", "Subscriber", "START", "STOP", "NOTE",
            "EXIT_SUCCESS", "EXIT_ABORT", "EXIT_FAIL"]
 
 Subscriber = Callable[..., None]
@@ -76,13 +76,6 @@ class Checkpoint:
 
 
 @dataclass(frozen=True)
-class Replayed:
-    """Ask whether a stored document holds ``key`` (reply: bool)."""
-
-    key: Hashable
-
-
-@dataclass(frozen=True)
 class RunStart:
     """What the ``start`` document says about a run: the plan's name and arguments (JSON-able),
     the seed, and the number of points it plans (the progress display's total)."""
@@ -113,7 +106,6 @@ class RunEngine:
         self._commands: dict[type, Handler] = {}
         self.register_command(Emit, RunEngine._emit_request)
         self.register_command(Checkpoint, RunEngine._checkpoint)
-        self.register_command(Replayed, lambda engine, request: request.key in engine.stored)
 
     def register_command(self, request_type: type, handler: Handler) -> None:
         """Perform every ``request_type`` request with ``handler(engine, request)``; its return

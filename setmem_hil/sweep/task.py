@@ -63,14 +63,9 @@ def open_sim_experiment(procedure: Procedure, seed: int):
 
 def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str, design: str | None = None) -> dict:
     """Run one campaign of a sweep and store it in ``out_dir/runs/<strategy>-seed<N>`` (the Dask task;
-    ``<strategy>-<design>-seed<N>`` with ``design``, the compensator design of a sweep over designs)."""
-    return _sweep_campaign(procedure, seed, strategy, out_dir, design)
+    ``<strategy>-<design>-seed<N>`` with ``design``, the compensator design of a sweep over designs).
 
-
-def _sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str, design: str | None) -> dict:
-    """:func:`sweep_campaign` (the Dask task).
-
-    Algorithm 5.1 (:func:`setmem_hil.campaign.session.run_journaled_campaign`: the runner with the
+    Algorithm 5.1 (:func:`setmem_hil.campaign.journaled_run.run_journaled_campaign`: the runner with the
     same subscribers as ``setmem-hil run``) on the simulated experiment with
     noise seed ``seed``, input choice ``strategy`` (eq. 5.3 for ``"mu"``) and single-threaded
     BLAS. Skips a run whose ``summary.json`` exists. Writes into a temporary directory that is
