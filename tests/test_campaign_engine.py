@@ -302,6 +302,39 @@ def test_the_journal_holds_the_run_start_and_stop(tmp_path):
     journal.close()
 
 
+def test_the_plan_clock_counts_the_plans_computation_and_not_its_requests():
+    """Truth: process_time of a busy loop the plan runs, against a handler that only sleeps."""
+    import time
+
+    from setmem_hil.campaign.persistence import IterationClock
+
+    def slow_fire(engine, request):
+        time.sleep(0.3)  # a dwell: wall time, no CPU, not the plan's
+        return 0
+
+    def plan():
+        for k in (1, 2):
+            yield Fire(k)
+            cpu = time.process_time()
+            while time.process_time() - cpu < 0.05 * k:  # the plan's own work: 0.05 s, then 0.1 s
+                pass
+            yield Emit(ITERATION_RECORD, {"k": k, "choice": None})
+
+    clock = IterationClock()
+    engine = RunEngine([clock])
+    engine.register_command(Fire, slow_fire)
+    engine.run(plan())
+    (wall1, cpu1), (wall2, cpu2) = clock.by_iteration[1], clock.by_iteration[2]
+    assert 0.05 <= cpu1 < 0.2 and 0.1 <= cpu2 < 0.25, (cpu1, cpu2)
+    assert wall1 < 0.3 and wall2 < 0.3  # the sleeping handler is not counted
+    assert engine.elapsed_s >= 0.6
+
+
+def test_the_plan_holds_no_clock_and_no_journal_layout():
+    text = (CAMPAIGN / "plan.py").read_text(encoding="utf-8")
+    assert not re.search(r"^import time|perf_counter|process_time|IterationRecord|wall_s", text, re.M)
+
+
 def _journal(tmp_path) -> Journal:
     return Journal.create(tmp_path / "journal.sqlite", procedure_text="x", procedure_name="toy", seed=1, software_version="t",
                           backend="sim", strategy="mu")
@@ -325,3 +358,37 @@ def test_the_engine_names_no_campaign_concept():
     words = set(re.findall(r"[A-Za-z_]+", text.lower()))
     assert not words & {"next_omega", "added", "iteration", "iterations", "campaign", "measure", "measurement", "dwell"}, \
         words & {"next_omega", "added", "iteration", "iterations", "campaign", "measure", "measurement", "dwell"}
+
+
+def test_the_robust_loop_keeps_its_compensator_without_tuning_when_the_box_did_not_move():
+    """A box that moved by less than BOX_UNCHANGED_RTOL of its widths: the previous outcome (its
+    bound holds on the inner box) and no design call; a box that moved more: the design runs."""
+    from setmem_hil.campaign import plan
+    from setmem_hil.design.safeguard import SafeguardOutcome
+    from setmem_hil.model.modal_model import IntervalModel
+
+    lower, upper = np.array([[0.1, 4.0, -0.1, 1.0]]), np.array([[0.2, 5.0, 0.1, 2.0]])
+    previous_model = IntervalModel(lower, upper)
+    previous = SafeguardOutcome(analysis=SimpleNamespace(design="robust"), analysis_model=previous_model, branch="new-design",
+                                mu_peak=1.14, tried={"new-design": 1.14}, certified_mu=1.1401)
+    calls = []
+
+    def analyzer(state):
+        def analyze(model, controller):
+            calls.append(controller)
+            raise AssertionError("tuned again")
+        return analyze
+
+    loop = SimpleNamespace(method="robust", analyzer=analyzer, procedure=None)
+    state = plan.LoopState([point(1.0)], previous_model=previous_model, previous_outcome=previous)
+    state.rows.append(SimpleNamespace(design="robust"))
+    inner = IntervalModel(lower + 1e-8, upper - 1e-8)
+    outcome, kept = plan._design_and_analyse(loop, state, inner)
+    assert outcome.branch == "previous-controller" and outcome.mu_peak == 1.14 and outcome.certified_mu == 1.1401
+    assert kept == "robust" and calls == []
+    moved = IntervalModel(lower + np.array([[0.0, 0.01, 0.0, 0.0]]), upper)
+    with pytest.raises(AssertionError, match="tuned again"):
+        plan._design_and_analyse(loop, state, moved)
+    loop.method = "h2"  # the thesis's loop: always designs
+    with pytest.raises(AssertionError, match="tuned again"):
+        plan._design_and_analyse(loop, state, inner)

@@ -22,7 +22,10 @@ the ``yield`` expression. The plan says *what* to do; the engine runs it, whiche
   stored ones, else :class:`~setmem_hil.errors.ReplayError`;
 * **the plan's own computation** runs inside ``compute`` (by default single-threaded BLAS,
   :func:`setmem_hil.numerics.blas_threads.blas_one_thread`: small matrices, results independent of
-  the machine's thread count); the handlers run outside it.
+  the machine's thread count); the handlers run outside it. The engine clocks it: every document
+  a plan emits carries ``plan_s`` and ``plan_cpu_s``, the wall and CPU seconds the plan has
+  computed since the run started (not counting its requests' handlers), so a store
+  times a step of the plan as the difference of two documents' clocks and the plan holds no clock.
 
 Subscribers are called in order as ``subscriber(name, **info)``; stores come first so that
 displays and checks that read them see every document's effect.
@@ -103,6 +106,7 @@ class RunEngine:
         self.stored = dict(stored or {})
         self.compute, self.source = compute, source
         self.run_id: str | None = None
+        self.plan_s = self.plan_cpu_s = 0.0  # the plan's own computation so far (see the module docstring)
         self._commands: dict[type, Handler] = {}
         self.register_command(Emit, RunEngine._emit_request)
         self.register_command(Checkpoint, RunEngine._checkpoint)
@@ -111,6 +115,12 @@ class RunEngine:
         """Perform every ``request_type`` request with ``handler(engine, request)``; its return
         value is the plan's reply. A later registration replaces an earlier one."""
         self._commands[request_type] = handler
+
+    @property
+    def elapsed_s(self) -> float:
+        """Wall seconds since the current run's ``start`` document (0 before any run)."""
+        started = getattr(self, "_started", None)
+        return 0.0 if started is None else time.perf_counter() - started
 
     def subscribe(self, subscriber: Subscriber) -> None:
         self.subscribers.append(subscriber)
@@ -125,6 +135,8 @@ class RunEngine:
         return the plan's return value; an exception that leaves the plan leaves here too."""
         start = start or RunStart(getattr(plan, "__name__", "plan"))
         self.run_id = uuid.uuid4().hex
+        self.plan_s = self.plan_cpu_s = 0.0
+        self._started = time.perf_counter()
         self.emit(START, **_start_document(start, self.run_id))
         try:
             result = self._drive(plan)
@@ -141,11 +153,15 @@ class RunEngine:
         reply: Any = None
         error: BaseException | None = None
         while True:
+            wall, cpu = time.perf_counter(), time.process_time()
             try:
                 with self.compute():
                     request = plan.send(reply) if error is None else plan.throw(error)
             except StopIteration as done:
                 return done.value
+            finally:
+                self.plan_s += time.perf_counter() - wall
+                self.plan_cpu_s += time.process_time() - cpu
             try:
                 reply, error = self._perform(request), None
             except BaseException as exc:  # noqa: BLE001 - thrown into the plan, so its finally runs
@@ -163,7 +179,7 @@ class RunEngine:
 
     # -- the built-in commands --------------------------------------------------------------------
     def _emit_request(self, request: Emit) -> None:
-        info = dict(request.info)
+        info = dict(request.info, plan_s=self.plan_s, plan_cpu_s=self.plan_cpu_s)
         if request.key is not None:
             info["replayed"] = request.key in self.stored
             if info["replayed"]:

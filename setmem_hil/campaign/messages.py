@@ -29,8 +29,10 @@ from setmem_hil.model.experiment import Measurement
 __all__ = ["Checkpoint", "Continuation", "Emit", "InformModel", "Measure", "StoredData", "ITERATION_RECORD", "NOTE"]
 
 ITERATION_RECORD = "iteration-record"
-"""Document: one iteration's stored result (``fields``: the journal's ``IterationRecord``); the
-engine compares a replayed iteration's choice with the stored one."""
+"""Document: one iteration's choice (``k``, ``choice``: the ``InputChoice`` or None at the last
+iteration), after its ``iteration`` document; the journal's ``IterationRecord`` is laid out from
+the two by :func:`setmem_hil.campaign.persistence.iteration_fields`. The engine compares a
+replayed iteration's choice with the stored one."""
 
 
 

@@ -9,7 +9,7 @@ subscribers add what every campaign of a procedure gets, whoever starts it (``ru
 
 * :class:`CounterLogger`: the experiment's fault/retry counters, journaled as events;
 * :class:`DiscrepancyChecker`: ``[discrepancy] check_each_iteration = true``, the discrepancy
-  check of every stored iteration, journaled.
+  check of every new iteration (from its documents), stored in the journal.
 
 Terminal progress and the live view are further subscribers their callers add.
 """
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Sequence
 
+from setmem_hil.campaign.messages import ITERATION_RECORD
 from setmem_hil.errors import SetmemError
 from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure import Procedure
@@ -47,35 +48,31 @@ class CounterLogger:
 
 
 class DiscrepancyChecker:
-    """``[discrepancy] check_each_iteration``: after each stored iteration, run the discrepancy
-    workflow (:func:`setmem_hil.discrepancy.workflow.check_discrepancy`) on the data used and the
-    bounds identified, and journal the result. It only observes: the campaign's choices do not
-    depend on it, so a replayed run is unchanged; iterations already checked are not checked again."""
+    """``[discrepancy] check_each_iteration``: with each new iteration's record, run the discrepancy
+    workflow (:func:`setmem_hil.discrepancy.workflow.check_discrepancy`) on the data the iteration
+    identified from and the bounds it found (its ``iteration`` document), and store the result. It
+    reads documents only and only observes: the campaign's choices do not depend on it, so a
+    replayed run is unchanged; replayed iterations were checked when they ran."""
 
     def __init__(self, procedure: Procedure, journal: Journal):
         self.procedure, self.journal = procedure, journal
-        self.done = {k for k, _ in journal.discrepancies()}
+        self._iteration: dict | None = None
 
     def __call__(self, event: str, **info: Any) -> None:
-        if event not in ("chosen", "finished"):  # the iteration record is stored by then
+        if event == "iteration":
+            self._iteration = info
+        if event != ITERATION_RECORD or info.get("replayed") or self._iteration is None:
             return
         from setmem_hil.discrepancy.workflow import check_discrepancy
-        from setmem_hil.model.frequency_data import FrequencyData
         from setmem_hil.model.modal_model import IntervalModel
 
-        measurements = None
-        for rec in self.journal.iterations():
-            if rec.k in self.done:
-                continue
-            measurements = measurements or self.journal.measurements()
-            data = FrequencyData.from_measurements(measurements[: rec.n_points])
-            try:
-                report = check_discrepancy(data, IntervalModel(rec.lower, rec.upper), self.procedure.prior).to_document()
-            except (SetmemError, ValueError, ArithmeticError) as exc:  # a failed check must not stop the campaign
-                self.journal.add_event("discrepancy-error", f"iteration {rec.k}: {type(exc).__name__}: {exc}")
-            else:
-                self.journal.add_discrepancy(rec.k, report)
-            self.done.add(rec.k)
+        k, plant = int(self._iteration["k"]), self._iteration["plant"]
+        try:
+            report = check_discrepancy(self._iteration["data"], IntervalModel(plant.lower, plant.upper), self.procedure.prior).to_document()
+        except (SetmemError, ValueError, ArithmeticError) as exc:  # a failed check must not stop the campaign
+            self.journal.add_event("discrepancy-error", f"iteration {k}: {type(exc).__name__}: {exc}")
+        else:
+            self.journal.add_discrepancy(k, report)
 
 
 def broadcast(observers: Sequence[Observer]) -> Observer:

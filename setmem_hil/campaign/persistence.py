@@ -1,9 +1,12 @@
 """The run's stores as subscribers of the engine (:mod:`setmem_hil.campaign.engine`).
 
 :class:`RawRecordWriter` writes every ``raw-record`` document to ``RUN_DIR/raw.h5``
-(:mod:`setmem_hil.io.raw_store`); :class:`JournalWriter` commits every new ``measured``,
-``note`` and ``iteration-record`` document to the journal, the run's ``start`` and ``stop`` as
-events ``run-start`` and ``run-stop`` (the document as JSON), and finishes it. The engine sends a
+(:mod:`setmem_hil.io.raw_store`); :class:`JournalWriter` commits every new ``measured`` and
+``note`` document to the journal, each iteration (its ``iteration`` document and its choice, the
+``iteration-record`` document, laid out as the journal's ``IterationRecord`` here, by
+:func:`iteration_fields`), the run's ``start`` and ``stop`` as events ``run-start`` and
+``run-stop`` (the document as JSON), and finishes it. :class:`IterationClock` times each
+iteration from the engine's plan clock (the plan holds no clock). The engine sends a
 dwell's raw records before its points, and both writers are subscribed before any display, so
 a point is in the journal only once its record is on disk, and a display or check that reads the
 journal sees every document's effect. Replayed documents (a resumed run's stored points and
@@ -15,22 +18,76 @@ from __future__ import annotations
 import json
 from typing import Any
 
+import numpy as np
+
 from setmem_hil.campaign.engine import START, STOP
+from setmem_hil.campaign.loop_steps import controller_matrices
 from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE
 from setmem_hil.io.journal import IterationRecord, Journal
 from setmem_hil.io.raw_store import RawStore
 
-__all__ = ["JournalWriter", "RawRecordWriter"]
+__all__ = ["IterationClock", "JournalWriter", "RawRecordWriter", "iteration_fields"]
+
+
+class IterationClock:
+    """The plan's computation per iteration (wall and CPU seconds): how far the engine's plan clock
+    (``plan_s``, ``plan_cpu_s`` on every document) advanced from the previous iteration's record
+    to this one's: identification, design, analysis and the input choice (the dwells, which the
+    engine performs, are not counted). Replayed iterations are clocked too, so a resumed run's
+    first new iteration does not include the replay."""
+
+    def __init__(self):
+        self.mark = (0.0, 0.0)
+        self.by_iteration: dict[int, tuple[float, float]] = {}
+
+    def __call__(self, event: str, **info: Any) -> None:
+        if event == ITERATION_RECORD:
+            now = (float(info["plan_s"]), float(info["plan_cpu_s"]))
+            self.by_iteration[int(info["k"])] = (now[0] - self.mark[0], now[1] - self.mark[1])
+            self.mark = now
+
+
+def iteration_fields(iteration: dict, choice: Any, wall_s: float) -> dict:
+    """The journal's ``IterationRecord`` fields from an ``iteration`` document and its choice
+    (:class:`~setmem_hil.design.input_design.InputChoice`, or None at the last iteration)."""
+    model, analysis, result, plant, gain = (iteration[name] for name in ("model", "analysis", "identification", "plant", "gain"))
+    return dict(
+        k=int(iteration["k"]), n_points=int(iteration["n_points"]), lower=plant.lower, upper=plant.upper,
+        mu_peak=float(iteration["mu_peak"]), mu_peak_omega=float(analysis.mu_peak_omega), mu_lower_peak=float(analysis.mu_lower_peak),
+        omega=np.asarray(analysis.omega, dtype=float), mu=np.asarray(analysis.mu, dtype=float),
+        sensitivities={str(key): float(v) for key, v in analysis.sensitivities.items()},
+        next_omega=None if choice is None else choice.next_omega_rad_s,
+        candidate_omega=np.zeros(0) if choice is None else choice.candidate_omega_rad_s,
+        estimated_improvement=np.zeros(0) if choice is None else choice.estimated_improvement,
+        controller_order=int(analysis.controller_order), safeguard=iteration["safeguard"], wall_s=float(wall_s),
+        embedding_gamma=np.asarray(result.embedding_gamma, dtype=float), mismatch_ratio=np.asarray(result.mismatch_ratio, dtype=float),
+        controller=controller_matrices(analysis.controller), mu_peak_certified=bool(iteration["mu_peak_certified"]),
+        mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)), outputs=iteration["outputs"],
+        common_gain=None if gain is None else {"gain": list(gain), "lower": model.lower.tolist(), "upper": model.upper.tolist()},
+        design=iteration["design"], floor_modes=tuple(iteration["floor_modes"]),
+    )
 
 
 class JournalWriter:
-    """Commits the run to its journal (every measurement before the next dwell: a durability rule)."""
+    """Commits the run to its journal (every measurement before the next dwell: a durability rule).
 
-    def __init__(self, journal: Journal):
+    ``clock`` times the iterations (default: its own :class:`IterationClock`; the runner shares one
+    with the summary)."""
+
+    def __init__(self, journal: Journal, clock: IterationClock | None = None):
         self.journal = journal
         self.already_finished = bool(journal.run_info().get("finished"))
+        self.clock = clock
+        self._own_clock = clock is None
+        if clock is None:
+            self.clock = IterationClock()
+        self._iteration: dict | None = None
 
     def __call__(self, event: str, **info: Any) -> None:
+        if event == "iteration":
+            self._iteration = info  # stored with its choice
+        if self._own_clock:
+            self.clock(event, **info)
         if info.get("replayed"):
             return
         if event == "measured":
@@ -40,7 +97,10 @@ class JournalWriter:
         elif event == NOTE:
             self.journal.add_event(info["kind"], info["message"])
         elif event == ITERATION_RECORD:
-            self.journal.add_iteration(IterationRecord(**info["fields"]))
+            if self._iteration is None or int(self._iteration["k"]) != int(info["k"]):
+                raise RuntimeError(f"{self.journal.path}: iteration {info['k']}'s choice came without its iteration document")
+            wall_s = self.clock.by_iteration.get(int(info["k"]), (0.0, 0.0))[0]
+            self.journal.add_iteration(IterationRecord(**iteration_fields(self._iteration, info["choice"], wall_s)))
         elif event == "finished" and not self.already_finished:
             self.journal.finish(info["summary"].to_document())
         elif event in (START, STOP):  # the run's lifecycle: one event each, the document as JSON

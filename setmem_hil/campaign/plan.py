@@ -38,13 +38,12 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Generator
 
 import numpy as np
 
-from setmem_hil.campaign.loop_steps import controller_matrices, goal_certified, identify_sensors, kept_design_of, polished, sensors_document
+from setmem_hil.campaign.loop_steps import goal_certified, identify_sensors, kept_design_of, polished, sensors_document
 from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE, Checkpoint, Emit, InformModel, Measure, StoredData
 from setmem_hil.campaign.next_input import batch_frequencies, identify_settings, next_frequency
 from setmem_hil.campaign.summary import CampaignSummary, IterationSummary
@@ -69,6 +68,9 @@ FLOOR_EVENT = "floor"
 """Event of an iteration whose box blocks every compensator (:mod:`setmem_hil.model.mu_floor`)."""
 UNPRODUCTIVE_REGION_EVENT = "left-out"
 """Event of a frequency region left out of the candidates (:mod:`setmem_hil.design.unproductive_region`)."""
+BOX_UNCHANGED_RTOL = 1e-6
+"""An iteration whose box moved less than this (relative to each interval's width) keeps the
+compensator without tuning it again (the robust design only; :func:`_box_unchanged`)."""
 BATCH_EVENT = "batch"
 """Event of an iteration that chose several frequencies (``[input_design] per_iteration``)."""
 
@@ -81,7 +83,6 @@ def thesis_plan(procedure: Procedure, experiment: Any, *, seed: int | None = Non
     that remove a floor first (default: with the robust design only, so ``--design h2`` stays the
     thesis's loop bit for bit)."""
     loop = LoopSettings.of(procedure, experiment, seed, strategy, design, floor_aware)
-    started = time.perf_counter()
     state = yield from _starting_data(loop)  # step 1: the initial experiments
     while True:
         step = yield from _identify(loop, state)  # step 2: eq. 5.4-5.5
@@ -93,7 +94,7 @@ def thesis_plan(procedure: Procedure, experiment: Any, *, seed: int | None = Non
         choice = None if state.reached or spent else _choose(loop, state, step, outcome)  # steps 5-6
         yield from _record(loop, state, step, outcome, kept, choice)
         if choice is None:
-            return _summary(loop, state, started)
+            return _summary(loop, state)
         yield from _measure_choice(loop, state, step, outcome, choice)  # step 7
 
 
@@ -171,7 +172,6 @@ class Identified:
     model: Any
     sensor_models: Any
     data: FrequencyData
-    started: tuple[float, float]  # wall and CPU clocks when the iteration began
     floor: tuple[int, ...]  # modes whose box blocks every compensator (setmem_hil.model.mu_floor)
 
 
@@ -208,7 +208,6 @@ def _starting_data(loop: LoopSettings):
 
 
 def _identify(loop: LoopSettings, state: LoopState):
-    started = (time.perf_counter(), time.process_time())
     data = FrequencyData.from_measurements(state.measured)
     sensor_models = None
     try:
@@ -223,11 +222,14 @@ def _identify(loop: LoopSettings, state: LoopState):
         raise
     model = result.model if state.previous_model is None else result.model.intersect(state.previous_model)
     yield InformModel(model, sensor_models)  # later dwells model their transients with these poles
-    return Identified(result, model, sensor_models, data, started, floor_modes(model))
+    return Identified(result, model, sensor_models, data, floor_modes(model))
 
 
 def _design_and_analyse(loop: LoopSettings, state: LoopState, model) -> tuple[SafeguardOutcome, str]:
     previous_design = state.rows[-1].design if state.rows else "h2"
+    if _box_unchanged(loop, state, model):
+        return replace(state.previous_outcome, branch="previous-controller", tried={"box unchanged, kept": state.previous_outcome.mu_peak}), \
+            previous_design
     outcome = safeguarded_design(model, state.previous_outcome, loop.analyzer(state))
     if loop.method == "robust" and goal_certified(outcome, loop.procedure.goal):  # the delivered compensator: more margin
         outcome = polished(outcome, lambda box, warm: loop.robust_analysis(box, design="robust", warm_start=warm, tuning=FINAL_TUNING),
@@ -235,16 +237,36 @@ def _design_and_analyse(loop: LoopSettings, state: LoopState, model) -> tuple[Sa
     return outcome, kept_design_of(outcome, previous_design)
 
 
+def _box_unchanged(loop: LoopSettings, state: LoopState, model) -> bool:
+    """The robust design only: an experiment that moved no interval endpoint by more than
+    :data:`BOX_UNCHANGED_RTOL` of its width keeps the compensator and its certified mu-bar
+    without tuning again (20 s of tuning for nothing, iteration after iteration, when a strategy
+    measures where nothing is learnt). Still guaranteed: the new box lies inside the previous one
+    (the bounds are intersected), so the previous bound holds for every plant of it. The H2 loop
+    stays the thesis's, bit for bit."""
+    previous = state.previous_model
+    if loop.method != "robust" or state.previous_outcome is None or previous is None or state.measured[0].others:
+        return False
+    width = np.maximum(previous.upper - previous.lower, np.finfo(float).tiny)
+    moved = np.maximum(np.abs(model.lower - previous.lower), np.abs(model.upper - previous.upper)) / width
+    return bool(np.all(moved <= BOX_UNCHANGED_RTOL))
+
+
 def _outputs_document(loop: LoopSettings, step: Identified):
     return None if step.sensor_models is None else sensors_document(loop.procedure, step.sensor_models, loop.scales)
 
 
 def _announce(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, kept: str):
-    """The iteration's progress document (before the choice, which takes a while)."""
+    """The iteration's document (before the choice, which takes a while): what it found, for the
+    displays, and the objects the stores lay out (the plant's bounds: with calibration scales, the
+    model's interval hull widened by them)."""
+    plant = step.model if loop.scales is None else plant_bounds(step.model, loop.scales[0])
     yield Emit("iteration", dict(k=state.k, n_points=len(state.measured), mu_peak=outcome.mu_peak,
                                  mu_peak_omega=float(outcome.analysis.mu_peak_omega), safeguard=outcome.branch, design=kept,
                                  floor_modes=step.floor, rig_s=float(sum(m.rig_s for m in state.measured)),
-                                 mu_peak_certified=outcome.certified, outputs=_outputs_document(loop, step)))
+                                 mu_peak_certified=outcome.certified, outputs=_outputs_document(loop, step),
+                                 identification=step.result, data=step.data, model=step.model, plant=plant, gain=loop.gain,
+                                 analysis=outcome.analysis))
 
 
 def _leave_out_unproductive_region(state: LoopState, outcome: SafeguardOutcome):
@@ -257,8 +279,7 @@ def _leave_out_unproductive_region(state: LoopState, outcome: SafeguardOutcome):
     if region is not None:
         state.left_out.append(region)
         message = f"iteration {state.k}: {describe(region, state.outcomes[-RUN:])}"
-        yield _document(NOTE, {"kind": UNPRODUCTIVE_REGION_EVENT, "message": message}, state.k)
-        yield Emit("left-out", {"k": state.k, "region": region, "message": message})
+        yield _document(NOTE, {"kind": UNPRODUCTIVE_REGION_EVENT, "message": message, "k": state.k, "region": region}, state.k)
         state.outcomes.clear()
 
 
@@ -270,13 +291,11 @@ def _choose(loop: LoopSettings, state: LoopState, step: Identified, outcome: Saf
 
 
 def _record(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, kept: str, choice: InputChoice | None):
-    """The iteration's stored record and its events, and its row of the summary."""
+    """The iteration's choice (the stores pair it with the iteration's document), its notes, and
+    its row of the summary."""
     k, analysis, floor = state.k, outcome.analysis, step.floor
-    compute_s, compute_cpu_s = time.perf_counter() - step.started[0], time.process_time() - step.started[1]
     next_omega = None if choice is None else choice.next_omega_rad_s
-    certified_intervals = int(getattr(analysis, "mu_certified_intervals", 0))
-    yield _document(ITERATION_RECORD, {"fields": _iteration_fields(loop, state, step, outcome, kept, choice, compute_s)}, k,
-                    next_omega=next_omega)
+    yield _document(ITERATION_RECORD, {"k": k, "choice": choice}, k, next_omega=next_omega)
     if floor:
         yield _document(NOTE, {"kind": FLOOR_EVENT, "message": f"iteration {k}: {floor_message(floor)}"}, k)
     if choice is not None and np.size(choice.resolved_omega_rad_s):
@@ -286,36 +305,12 @@ def _record(loop: LoopSettings, state: LoopState, step: Identified, outcome: Saf
     if outcome.branch != "new-design":
         tried = ", ".join(f"{b} {v:.4f}" for b, v in outcome.tried.items())
         yield _document(NOTE, {"kind": "safeguard", "message": f"iteration {k}: eq. 5.12 branch {outcome.branch} (mu-bar {tried})"}, k)
-    state.rows.append(IterationSummary(
+    state.rows.append(IterationSummary(  # its compute time is the engine's clock (the runner fills it in)
         k=k, n_points=len(state.measured), mu_peak=float(outcome.mu_peak), mu_peak_omega=float(analysis.mu_peak_omega),
         next_omega=next_omega, safeguard=outcome.branch, basis="" if choice is None else choice.basis,
-        compute_s=float(compute_s), compute_cpu_s=float(compute_cpu_s), mu_peak_certified=bool(outcome.certified),
-        mu_certified_intervals=certified_intervals, design=kept, floor_modes=floor, certified_mu=float(outcome.certified_mu),
+        mu_peak_certified=bool(outcome.certified), mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)),
+        design=kept, floor_modes=floor, certified_mu=float(outcome.certified_mu),
     ))
-
-
-def _iteration_fields(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, kept: str,
-                      choice: InputChoice | None, compute_s: float) -> dict:
-    """The journal's ``IterationRecord`` fields (the plant's bounds: with calibration scales, the
-    model's interval hull widened by them)."""
-    model, analysis = step.model, outcome.analysis
-    plant = model if loop.scales is None else plant_bounds(model, loop.scales[0])
-    return dict(
-        k=state.k, n_points=len(state.measured), lower=plant.lower, upper=plant.upper, mu_peak=float(outcome.mu_peak),
-        mu_peak_omega=float(analysis.mu_peak_omega), mu_lower_peak=float(analysis.mu_lower_peak),
-        omega=np.asarray(analysis.omega, dtype=float), mu=np.asarray(analysis.mu, dtype=float),
-        sensitivities={str(key): float(v) for key, v in analysis.sensitivities.items()},
-        next_omega=None if choice is None else choice.next_omega_rad_s,
-        candidate_omega=np.zeros(0) if choice is None else choice.candidate_omega_rad_s,
-        estimated_improvement=np.zeros(0) if choice is None else choice.estimated_improvement,
-        controller_order=int(analysis.controller_order), safeguard=outcome.branch, wall_s=float(compute_s),
-        embedding_gamma=np.asarray(step.result.embedding_gamma, dtype=float),
-        mismatch_ratio=np.asarray(step.result.mismatch_ratio, dtype=float),
-        controller=controller_matrices(analysis.controller), mu_peak_certified=bool(outcome.certified),
-        mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)), outputs=_outputs_document(loop, step),
-        common_gain=None if loop.gain is None else {"gain": list(loop.gain), "lower": model.lower.tolist(), "upper": model.upper.tolist()},
-        design=kept, floor_modes=step.floor,
-    )
 
 
 def _measure_choice(loop: LoopSettings, state: LoopState, step: Identified, outcome: SafeguardOutcome, choice: InputChoice):
@@ -339,11 +334,12 @@ def _measure_choice(loop: LoopSettings, state: LoopState, step: Identified, outc
     state.k += 1
 
 
-def _summary(loop: LoopSettings, state: LoopState, started: float) -> CampaignSummary:
+def _summary(loop: LoopSettings, state: LoopState) -> CampaignSummary:
+    """The campaign's summary (its clocks are the engine's: the runner fills them in)."""
     goal = loop.procedure.goal
     return CampaignSummary(
         reached_goal=bool(state.reached), final_mu_peak=state.rows[-1].mu_peak, experiments_added=state.n_added,
-        wall_s=time.perf_counter() - started, iterations=tuple(state.rows), strategy=loop.strategy, seed=loop.seed,
+        iterations=tuple(state.rows), strategy=loop.strategy, seed=loop.seed,
         goal_mu=float(goal.mu_target), max_experiments=int(goal.max_experiments), stop_reason="goal" if state.reached else "budget",
         rig_s=float(sum(m.rig_s for m in state.measured)),
     )

@@ -31,7 +31,7 @@ from setmem_hil.campaign.next_input import (
     other_outputs,
 )
 from setmem_hil.campaign.measurement_service import MeasurementService, register_measurements, stored_iterations
-from setmem_hil.campaign.persistence import JournalWriter, RawRecordWriter
+from setmem_hil.campaign.persistence import IterationClock, JournalWriter, RawRecordWriter
 from setmem_hil.campaign.plan import BATCH_EVENT, EXACT_RESOLVE_EVENT, FLOOR_EVENT, UNPRODUCTIVE_REGION_EVENT, planned_measurements, thesis_plan
 from setmem_hil.campaign.summary import CampaignSummary, IterationSummary
 from setmem_hil.errors import CampaignReplayError
@@ -78,8 +78,8 @@ def run_campaign(
         ``progress(event, **info)`` with events ``"measure"`` (index, total, omega_rad_s,
         replayed), ``"iteration"`` (k, n_points, mu_peak, mu_peak_omega, safeguard, outputs: every
         sensor's bounds with several sensors, else None),
-        ``"left-out"`` (k, region, message: a region left out of the candidates,
-        :mod:`setmem_hil.design.unproductive_region`), ``"chosen"`` (k, next_omega) and
+        ``"note"`` (kind, message; kind ``"left-out"`` also k and region: a region left out of the
+        candidates, :mod:`setmem_hil.design.unproductive_region`), ``"chosen"`` (k, next_omega) and
         ``"finished"`` (summary).
     continue_stored : bool, optional
         Continue a stopped run with a changed procedure (``run --resume DIR --procedure FILE``):
@@ -108,9 +108,10 @@ def run_campaign(
     KeyboardInterrupt
         Propagates unchanged; every completed dwell is already in the journal.
     """
-    subscribers: list = []
+    clock = IterationClock()
+    subscribers: list = [clock]
     if journal is not None:  # the stores first: every display sees what they stored
-        subscribers += [RawRecordWriter(Path(journal.path).parent), JournalWriter(journal)]
+        subscribers += [RawRecordWriter(Path(journal.path).parent), JournalWriter(journal, clock)]
     if progress is not None:
         subscribers.append(progress)
     planned = planned_measurements(procedure)
@@ -121,15 +122,18 @@ def run_campaign(
     plan = thesis_plan(procedure, experiment, seed=seed, strategy=strategy, design=design, floor_aware=floor_aware)
     arguments = dict(procedure=procedure.name, strategy=strategy or procedure.input_design.strategy,
                      design=design or procedure.design_method, floor_aware=floor_aware, continue_stored=continue_stored)
-    return engine.run(_finished(plan, service), RunStart("thesis-algorithm-5.1", arguments,
+    return engine.run(_finished(plan, service, engine, clock), RunStart("thesis-algorithm-5.1", arguments,
                                                        procedure.seed if seed is None else int(seed), planned))
 
 
-def _finished(plan, service: MeasurementService):
-    """The plan, then its summary (with how many stored measurements were served) as the
-    ``finished`` document that marks the journal finished."""
+def _finished(plan, service: MeasurementService, engine: RunEngine, clock: IterationClock):
+    """The plan, then its summary (with how many stored measurements were served, and the
+    engine's clocks: the run's wall time, each iteration's computation) as the ``finished``
+    document that marks the journal finished."""
     summary = yield from plan
-    summary = replace(summary, replayed_measurements=service.replayed)
+    timed = tuple(replace(row, compute_s=clock.by_iteration.get(row.k, (0.0, 0.0))[0],
+                          compute_cpu_s=clock.by_iteration.get(row.k, (0.0, 0.0))[1]) for row in summary.iterations)
+    summary = replace(summary, replayed_measurements=service.replayed, iterations=timed, wall_s=engine.elapsed_s)
     yield Emit("finished", {"summary": summary})
     return summary
 

@@ -17,7 +17,6 @@ from typing import Sequence
 
 from rich.console import Console
 
-from setmem_hil import __version__
 from setmem_hil.campaign.journaled_run import Display, ExperimentOpener, RunOutcome, run_journaled_campaign, run_with_journal
 from setmem_hil.campaign.observers import Observer
 from setmem_hil.campaign.preflight import preflight
@@ -29,11 +28,12 @@ from setmem_hil.campaign.run_directory import (
     default_run_dir,
     describe_procedure,
     directory_lock,
+    new_journal,
     run_lock,
 )
 from setmem_hil.errors import InputFormatError
 from setmem_hil.io.atomic_file import write_text_atomic
-from setmem_hil.io.journal import JOURNAL_FILENAME, Journal
+from setmem_hil.io.journal import JOURNAL_FILENAME
 from setmem_hil.io.procedure import DESIGN_METHODS, STRATEGIES, Procedure
 from setmem_hil.io.procedure_file import format_procedure
 
@@ -94,16 +94,7 @@ def start_run(
     # start, must not leave behind a journal whose stored procedure can never run.
     experiment = opener(procedure, seed)
     try:
-        journal = Journal.create(
-            run_dir / JOURNAL_FILENAME,
-            procedure_text=text,
-            procedure_name=procedure.name,
-            seed=seed,
-            software_version=__version__,
-            backend=procedure.backend.kind,
-            strategy=strategy,
-            design=procedure.design_method,
-        )
+        journal = new_journal(run_dir / JOURNAL_FILENAME, procedure, text, seed=seed, strategy=strategy)
     except BaseException:
         experiment.close()
         raise

@@ -21,7 +21,7 @@ class IterationSummary:
     next_omega: float | None
     safeguard: str
     basis: str
-    compute_s: float
+    compute_s: float = 0.0  # the plan's computation for this iteration (the run engine's clock)
     compute_cpu_s: float = 0.0
     rig_s: float = 0.0  # device seconds of the dwells this iteration asked for (measured after it)
     mu_peak_certified: bool = False  # mu_peak bounds mu-bar on the whole band, not only the grid
@@ -57,13 +57,13 @@ class CampaignSummary:
     reached_goal: bool
     final_mu_peak: float
     experiments_added: int
-    wall_s: float
     iterations: tuple[IterationSummary, ...]
     strategy: str
     seed: int | None
     goal_mu: float
     max_experiments: int
     stop_reason: str
+    wall_s: float = 0.0  # the run's wall time (the run engine's, filled in by the runner)
     replayed_measurements: int = 0
     rig_s: float = 0.0  # device seconds of every dwell, initial points included
     extra: dict = field(default_factory=dict)

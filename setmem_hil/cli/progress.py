@@ -194,7 +194,7 @@ class CampaignProgress:
                 self._line(f"iteration {self.k}: {floor_message(floor)}")
             for line in output_lines(info.get("outputs")):
                 self._line(line)
-        elif event == "left-out":
+        elif event == "note" and info.get("kind") == "left-out":
             self._line(str(info.get("message", "")))
         elif event == "chosen":
             self.next_omega = float(info["next_omega"])

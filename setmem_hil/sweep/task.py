@@ -93,8 +93,8 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str,
         partial directory is then removed).
     """
     from setmem_hil import __version__
-    from setmem_hil.campaign.session import run_journaled_campaign
-    from setmem_hil.io.journal import Journal
+    from setmem_hil.campaign.journaled_run import run_journaled_campaign
+    from setmem_hil.campaign.run_directory import new_journal
     from setmem_hil.numerics.blas_threads import blas_one_thread
 
     seed = int(seed)
@@ -111,9 +111,7 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str,
         fingerprint = procedure_fingerprint(proc)  # the sweep's procedure: every design of it shares the fingerprint
         if design is not None:
             proc = dataclasses.replace(proc, design_method=design)
-        journal = Journal.create(tmp / JOURNAL_NAME, procedure_text=proc.source_text, procedure_name=proc.name,
-                                 seed=seed, software_version=__version__, backend="sim", strategy=strategy,
-                                 design=proc.design_method)
+        journal = new_journal(tmp / JOURNAL_NAME, proc, proc.source_text, seed=seed, strategy=strategy)
         journal.add_event("sweep", f"sweep campaign {final.name}: goal mu-bar < {proc.goal.mu_target:g}, "
                                    f"at most {proc.goal.max_experiments} added experiments, "
                                    f"procedure fingerprint {fingerprint[:16]}, "
