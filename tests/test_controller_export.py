@@ -272,3 +272,33 @@ def test_the_report_shows_the_validation(run_dir, tmp_path):
     assert main(["report", str(copy)]) == 0
     html = (copy / "report.html").read_text()
     assert "Validation of the compensator" in html and "validate.png" in html and "plants violating the claim" in html
+
+
+def test_the_loop_as_a_target_runs_it_is_analysed_and_a_rate_that_loses_the_margin_is_refused(h2_run_dir, tmp_path, capsys):
+    """Issue 45: ``--delay-samples``. Truth: the continuous analysis of the same compensator on
+    the same box (a fast target must come close to it), and the implemented analysis run again at
+    the sample rate the refusal names (it must hold the guarantee there)."""
+    from setmem_hil.robust.implemented_loop import implemented_mu_bar
+
+    record = _last(h2_run_dir)
+    fast = tmp_path / "K.json"
+    assert main(["controller", str(h2_run_dir), "--out", str(fast), "--fs", "2000", "--delay-samples", "1"]) == 0
+    implemented = json.loads(fast.read_text())["implemented"]
+    assert implemented["delay_samples"] == 1 and implemented["nominally_stable"]
+    assert implemented["continuous_mu_bar"] == pytest.approx(record.mu_peak)
+    assert abs(implemented["implemented_mu_bar"] - record.mu_peak) < 0.02 * record.mu_peak
+
+    slow = tmp_path / "K_slow.json"
+    capsys.readouterr()
+    assert main(["controller", str(h2_run_dir), "--out", str(slow), "--fs", "40", "--delay-samples", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "cost the margin" in err and not slow.exists()
+    procedure = load_procedure(REPO / "procedures" / "beam_6_3_2.toml")
+    K = statespace_from_lists(record.controller)
+    box = IntervalModel(record.lower, record.upper)
+    if "at least " in err:  # the rate it names holds the guarantee
+        needed = float(err.split("at least ")[1].split(" Hz")[0])
+        assert implemented_mu_bar(box, procedure.weights, K, needed * 1.001, 2, record.mu_peak_omega).mu_bar < 1.0
+    else:  # the H2 loop ends just below 1 (0.998): no rate it tried holds it with two samples of delay
+        highest = float(err.split("no rate up to ")[1].split(" Hz")[0])
+        assert implemented_mu_bar(box, procedure.weights, K, highest, 2, record.mu_peak_omega).mu_bar >= 1.0

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from setmem_hil.errors import InputFormatError
 
-__all__ = ["kept_controller"]
+__all__ = ["kept_controller", "kept_box", "stored_weights"]
 
 
 def _error(where: str, problem: str) -> InputFormatError:
@@ -53,3 +53,26 @@ def designed_again(run_dir: str, record, procedure_text: str):
     weights = parse_procedure_text(procedure_text, f"{run_dir} (stored procedure)").weights
     analysis = analyze_robust_performance(IntervalModel(record.lower, record.upper), weights)
     return statespace_from_lists(controller_matrices(analysis.controller))
+
+
+def kept_box(record):
+    """``(IntervalModel, gain)`` the iteration's compensator was analysed on: the stored box, or
+    with calibration scales the sensors' box and the common gain interval."""
+    import numpy as np
+
+    from setmem_hil.model.modal_model import IntervalModel
+
+    if record.common_gain:
+        doc = record.common_gain
+        return IntervalModel(np.asarray(doc["lower"], dtype=float), np.asarray(doc["upper"], dtype=float)), tuple(doc["gain"])
+    return IntervalModel(record.lower, record.upper), None
+
+
+def stored_weights(run_dir: str):
+    """The weights of the run's stored procedure."""
+    from setmem_hil.io.journal import Journal
+    from setmem_hil.io.procedure_file import parse_procedure_text
+
+    with Journal.open(run_dir) as journal:
+        text = journal.run_info()["procedure_text"]
+    return parse_procedure_text(text, f"{run_dir} (stored procedure)").weights

@@ -1,0 +1,197 @@
+"""The reference firmware (issue 45): it compiles with -Werror, its core computes what
+scipy.signal.sosfilt computes, its line protocol keeps its state rules, and the host's driver
+(written from the protocol's documentation) works against the firmware itself running as a
+process behind a pseudo-terminal (a real serial line). Truth: scipy's sosfilt, zlib's CRC-32,
+the documented states and replies."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import scipy.signal
+
+from setmem_hil.firmware import BOARD_SOURCES, CORE_SOURCES, SOURCE_DIR
+from setmem_hil.sim_backends.firmware_core import CFLAGS, FirmwareCore, compiler
+
+pytestmark = pytest.mark.skipif(compiler() is None, reason="no C compiler (cc or $CC) to build the reference firmware")
+
+FS = 2000.0
+
+
+def lightly_damped_sections(seed: int = 3) -> np.ndarray:
+    """A compensator like the campaign's: lightly damped poles and zeros, order 8, Tustin at FS
+    in product form (as the export makes them, robust.controller_forms)."""
+    rng = np.random.default_rng(seed)
+    poles, zeros = [], []
+    for w in (40.0, 170.0, 520.0, 1300.0):
+        poles += [w * (-0.01 + 1j * np.sqrt(1 - 1e-4)), w * (-0.01 - 1j * np.sqrt(1 - 1e-4))]
+        wz = w * rng.uniform(0.8, 1.2)
+        zeros += [wz * (-0.02 + 1j * np.sqrt(1 - 4e-4)), wz * (-0.02 - 1j * np.sqrt(1 - 4e-4))]
+    z, p, k = scipy.signal.bilinear_zpk(np.array(zeros), np.array(poles), 3.0, FS)
+    return scipy.signal.zpk2sos(z, p, k, pairing="nearest")
+
+
+def loaded_core(sos, delay=0) -> FirmwareCore:
+    core = FirmwareCore(FS, delay)
+    assert core.command(f"LOAD {len(sos)}") == "OK"
+    for i, row in enumerate(sos):
+        assert core.command(f"SOS {i} " + " ".join(repr(float(v)) for v in row[[0, 1, 2, 4, 5]])) == "OK"
+    return core
+
+
+def test_the_firmware_compiles_without_a_warning_for_a_board_and_for_the_pc_port(tmp_path):
+    cc = compiler()
+    board = [str(SOURCE_DIR / name) for name in BOARD_SOURCES]
+    for extra, out in (([str(SOURCE_DIR / "host" / "hal_host.c")], "host"), ([], "core.o")):
+        flags = [f for f in CFLAGS if f not in ("-shared", "-fPIC")]
+        cmd = [cc, *flags, *(board + extra if extra else ["-c", str(SOURCE_DIR / CORE_SOURCES[0])]), "-o", str(tmp_path / out)]
+        if extra:
+            cmd.append("-lm")
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+
+
+def test_the_core_computes_what_sosfilt_computes_on_2000_samples():
+    sos = lightly_damped_sections()
+    x = np.random.default_rng(7).standard_normal(2000)
+    core = loaded_core(sos)
+    mine = np.array([core.filter(v) for v in x])
+    truth = scipy.signal.sosfilt(sos, x)
+    assert np.max(np.abs(mine - truth)) <= 1e-12 * max(1.0, np.max(np.abs(truth)))
+
+
+def test_an_engaged_target_drives_gain_times_the_compensator_delayed_by_its_samples():
+    sos = lightly_damped_sections()
+    x = np.random.default_rng(8).standard_normal(400)
+    for delay in (0, 1, 3):
+        core = loaded_core(sos, delay)
+        core.command("LIMIT 1e9")
+        assert core.command("ENGAGE 0.5") == "OK" and core.command("STATE?") == "ENGAGED 0.5"
+        drive = np.array([core.tick(v) for v in x])
+        truth = 0.5 * scipy.signal.sosfilt(sos, x)
+        expected = np.concatenate([np.zeros(delay), truth[: len(x) - delay]])
+        assert np.allclose(drive, expected, rtol=0, atol=1e-12 * np.max(np.abs(truth))), delay
+
+
+def test_the_checksum_is_crc32_of_the_coefficients_bits_as_documented():
+    import struct
+    import zlib
+
+    sos = lightly_damped_sections()
+    core = loaded_core(sos)
+    assert core.command("SOSGAIN 1.5") == "OK"
+    payload = struct.pack("<I", len(sos)) + b"".join(struct.pack("<5d", *row[[0, 1, 2, 4, 5]]) for row in sos) + struct.pack("<d", 1.5)
+    assert core.command("CHECKSUM?") == f"CHECKSUM {zlib.crc32(payload):08X}"
+
+
+def test_the_protocol_refuses_what_its_state_forbids():
+    core = FirmwareCore(FS, 1)
+    assert core.command("ENGAGE 1").startswith("ERR no compensator")
+    assert core.command("CHECKSUM?").startswith("ERR not loaded")
+    core.command("LOAD 2")
+    core.command("SOS 0 1 0 0 0 0")
+    assert core.command("ENGAGE 1").startswith("ERR no compensator")  # one section of two
+    assert core.command("SOS 2 1 0 0 0 0").startswith("ERR SOS index")
+    assert core.command("SOS 1 1 0 0 0").startswith("ERR SOS needs")  # four coefficients
+    core.command("SOS 1 1 0 0 0 0")
+    assert core.command("ENGAGE 3").startswith("ERR ENGAGE needs a gain")
+    assert core.command("ENGAGE 1") == "OK"
+    for refused in ("LOAD 1", "SOS 0 1 0 0 0 0", "LIMIT 2", "SOSGAIN 2"):
+        assert core.command(refused).startswith("ERR engaged"), refused
+    assert core.command("FROB").startswith("ERR unknown command")
+    assert core.command("BYPASS") == "OK" and core.command("STATE?") == "BYPASS"
+    assert core.command("LIMIT 2") == "OK" and core.command("LIMIT?") == "2"
+
+
+def test_a_drive_past_its_limit_trips_the_target_to_zero_until_bypassed():
+    core = loaded_core(np.array([[2.0, 0, 0, 1, 0, 0]]))
+    core.command("LIMIT 1")
+    core.command("ENGAGE 1")
+    assert core.tick(0.25) == 0.5
+    assert core.tick(0.75) == 0.0 and core.command("STATE?") == "TRIPPED drive_limit"
+    assert core.tick(0.1) == 0.0 and core.command("ENGAGE 1").startswith("ERR tripped")
+    assert core.command("BYPASS") == "OK" and core.command("STATE?") == "BYPASS"
+
+
+def test_a_silent_host_trips_the_watchdog():
+    core = loaded_core(np.array([[1.0, 0, 0, 1, 0, 0]]))
+    core.command("WATCHDOG 0.01")  # 20 samples at 2 kHz
+    core.command("ENGAGE 1")
+    for _ in range(20):
+        core.tick(0.1)
+    assert core.command("STATE?").startswith("ENGAGED")  # the query itself feeds the watchdog
+    for _ in range(21):
+        core.tick(0.1)
+    assert core.command("STATE?") == "TRIPPED watchdog"
+
+
+def test_the_injection_is_a_sine_at_the_summing_junction():
+    core = FirmwareCore(FS, 1)
+    assert core.command("INJECT 0.2 300") == "OK"
+    drive = np.array([core.tick(0.0) for _ in range(100)])  # bypassed: the drive is the injection alone
+    assert np.allclose(drive, 0.2 * np.sin(300 * np.arange(100) / FS), atol=1e-15)
+
+
+# -- the host's driver against the firmware running as a process on a pseudo-terminal ---------
+@pytest.fixture
+def firmware_on_a_pty(tmp_path):
+    """The firmware's PC port (firmware/host/hal_host.c) on the controller side of a
+    pseudo-terminal; the test opens the device side as a serial port, as it would a board's."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("pseudo-terminals as serial ports: Linux")
+    import tty
+
+    binary = tmp_path / "target"
+    sources = [str(SOURCE_DIR / name) for name in BOARD_SOURCES] + [str(SOURCE_DIR / "host" / "hal_host.c")]
+    flags = [f for f in CFLAGS if f not in ("-shared", "-fPIC")]
+    subprocess.run([compiler(), *flags, "-DSETMEM_DELAY_SAMPLES=2", *sources, "-o", str(binary), "-lm"], check=True)
+    controller_fd, device_fd = os.openpty()
+    tty.setraw(controller_fd)
+    process = subprocess.Popen([str(binary)], stdin=controller_fd, stdout=controller_fd)
+    yield os.ttyname(device_fd)
+    process.kill()
+    process.wait()
+    os.close(controller_fd)
+    os.close(device_fd)
+
+
+def test_the_driver_loads_engages_and_bypasses_the_firmware_with_everything_read_back(firmware_on_a_pty):
+    from setmem_hil.drivers.real_time_target import RealTimeTarget, compensator_checksum
+    from setmem_hil.errors import DeviceRejectedError
+
+    from setmem_hil.drivers.real_time_target import SerialLineChannel
+
+    target = RealTimeTarget(SerialLineChannel(firmware_on_a_pty, timeout_s=5.0), firmware_on_a_pty)
+    identity = target.identity()
+    assert identity.fs_hz == 2000.0 and identity.delay_samples == 2 and identity.version == "1.0"
+    sos = lightly_damped_sections()
+    assert target.load(sos, 1.0) == compensator_checksum(sos, 1.0)
+    target.set_drive_limit(5.0)
+    assert target.engage(0.25).gain == 0.25 and target.engage(0.5).gain == 0.5
+    with pytest.raises(DeviceRejectedError, match="LOAD refused: engaged"):
+        target.load(sos)
+    assert target.bypass().mode == "BYPASS"
+    target.close()
+
+
+def test_a_coefficient_the_target_parses_differently_fails_the_read_back():
+    from setmem_hil.drivers.real_time_target import RealTimeTarget
+    from setmem_hil.errors import DeviceRejectedError
+
+    core = FirmwareCore(FS, 1)
+
+    class Rounding:  # a line that loses digits (a 32-bit float parser on a board, say)
+        def exchange(self, line):
+            if line.startswith("SOS "):
+                line = " ".join([*line.split()[:2], *(f"{float(v):.7g}" for v in line.split()[2:])])
+            return core.command(line)
+
+        def close(self):
+            pass
+
+    with pytest.raises(DeviceRejectedError, match="checksum"):
+        RealTimeTarget(Rounding(), "rounding target").load(lightly_damped_sections())
