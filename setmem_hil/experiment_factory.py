@@ -254,3 +254,35 @@ def true_structure(procedure: Procedure):
     if backend.kind == "sim":
         full = scaled_beam(full, sim.first_mode_rad_s)
     return full if sim.unmodelled_dynamics else full.truncated(procedure.prior.n_modes)
+
+
+@dataclass(frozen=True)
+class OpenedTarget:
+    """A real-time target and the rig around it (the generator at the summing junction and the
+    recorder of injection, drive and response), for ``setmem-hil verify``."""
+
+    target: object  # setmem_hil.drivers.real_time_target.RealTimeTarget
+    rig: object  # setmem_hil.verify.target_service.LoopRig
+
+
+def open_target(target_procedure, procedure: Procedure, seed: int = 1) -> OpenedTarget:
+    """The target of a verification procedure (:mod:`setmem_hil.io.target_file`) on the run's
+    structure: ``"emulated"`` is the run's simulated structure (all its modes) in closed loop
+    with the reference firmware's own C core (:mod:`setmem_hil.sim_backends.emulated_target`)."""
+    from setmem_hil.drivers.real_time_target import RealTimeTarget
+
+    t = target_procedure.target
+    if t.kind != "emulated":
+        raise ProcedureError(str(target_procedure.name), "[target] kind", f"{t.kind!r}: measuring the closed loop needs a generator "
+                             "and a recorder beside the target, which only the emulated rig has so far (a serial target "
+                             "loads and engages through setmem_hil.drivers.real_time_target)")
+    from setmem_hil.sim_backends.emulated_target import EmulatedClosedLoop, TargetEmulation
+
+    structure = true_structure(procedure)
+    if structure is None:
+        raise ProcedureError(str(target_procedure.name), "[target] kind", "\"emulated\" needs a run on a simulated structure")
+    e = t.emulation
+    loop = EmulatedClosedLoop(structure, t.fs_hz, t.delay_samples,
+                              TargetEmulation(e.extra_delay_samples, e.dac_gain, e.antialias_corner_hz, e.drop_link_after_lines, e.undamped),
+                              noise_rms=e.noise_rms, seed=seed)
+    return OpenedTarget(RealTimeTarget(loop.channel(), f"emulated target ({t.fs_hz:g} Hz)"), loop)

@@ -4,7 +4,9 @@
 :func:`firmware_library` compiles ``firmware/target_core.c`` and ``firmware/protocol.c`` (the
 sources the board runs, :mod:`setmem_hil.firmware`) into a shared library with the system's C
 compiler (``$CC``, else ``cc``), once per source content: the library is cached under the user's
-cache directory by the hash of the sources and the flags. :class:`FirmwareCore` holds one
+cache directory by the hash of the sources and the flags. The same library holds
+``sim_backends/sil_loop.c`` (simulation code, not firmware: the closed loop of a sampled
+structure and the core, many samples per call, for :mod:`setmem_hil.sim_backends.emulated_target`). :class:`FirmwareCore` holds one
 target's state (allocated opaquely: its size comes from the library, so no C struct is mirrored
 here) and offers the two things a board does with it: a sample (:meth:`FirmwareCore.tick`) and a
 command line (:meth:`FirmwareCore.command`). Nothing here changes what the C code computes.
@@ -22,6 +24,8 @@ import tempfile
 from functools import lru_cache
 from pathlib import Path
 
+import numpy as np
+
 from setmem_hil.errors import SetmemError
 from setmem_hil.firmware import CORE_SOURCES, SOURCE_DIR
 
@@ -32,6 +36,7 @@ CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2", "-fPIC"
 would; no ``-ffast-math``: the sections must compute what ``scipy.signal.sosfilt`` computes."""
 
 REPLY_CAPACITY = 256
+SIL_SOURCE = Path(__file__).resolve().parent / "sil_loop.c"
 
 
 class FirmwareBuildError(SetmemError):
@@ -58,9 +63,9 @@ def firmware_library() -> Path:
     cc = compiler()
     if cc is None:
         raise FirmwareBuildError(str(SOURCE_DIR), "", "no C compiler (cc, or $CC) to build the firmware's core; install one (e.g. gcc)")
-    sources = [SOURCE_DIR / name for name in CORE_SOURCES]
+    sources = [SOURCE_DIR / name for name in CORE_SOURCES] + [SIL_SOURCE]
     digest = hashlib.sha256()
-    for path in sorted(SOURCE_DIR.glob("*.[ch]")):
+    for path in [*sorted(SOURCE_DIR.glob("*.[ch]")), SIL_SOURCE]:
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
     digest.update(" ".join(CFLAGS).encode() + sys.platform.encode())
     target = _cache_dir() / f"setmem_target_{digest.hexdigest()[:16]}.so"
@@ -69,7 +74,8 @@ def firmware_library() -> Path:
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent) as tmp:  # built beside, renamed into place: no half library
         built = Path(tmp) / target.name
-        done = subprocess.run([cc, *CFLAGS, *map(str, sources), "-o", str(built), "-lm"], capture_output=True, text=True)
+        done = subprocess.run([cc, *CFLAGS, f"-I{SOURCE_DIR}", *map(str, sources), "-o", str(built), "-lm"], capture_output=True,
+                              text=True)
         if done.returncode != 0:
             first = next((line for line in done.stderr.splitlines() if "error" in line), done.stderr.strip()[:200])
             raise FirmwareBuildError(str(SOURCE_DIR), "", f"the firmware's core did not compile: {first}")
@@ -88,6 +94,10 @@ def _library() -> ctypes.CDLL:
     lib.setmem_target_filter.restype = ctypes.c_double
     lib.setmem_protocol_handle.argtypes = (ctypes.c_void_p, ctypes.c_char_p, ctypes.c_char_p, ctypes.c_size_t)
     lib.setmem_protocol_handle.restype = ctypes.c_size_t
+    double_p = ctypes.POINTER(ctypes.c_double)
+    lib.sil_run.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_size_t, double_p, double_p, double_p, ctypes.c_int, double_p,
+                            double_p, double_p, ctypes.c_double, ctypes.c_size_t, double_p, double_p, double_p)
+    lib.sil_run.restype = ctypes.c_int
     return lib
 
 
@@ -107,6 +117,22 @@ class FirmwareCore:
     def filter(self, y: float) -> float:
         """The compensator alone, one sample (``setmem_target_filter``)."""
         return self._lib.setmem_target_filter(self._state, float(y))
+
+    def run_loop(self, n: int, Ad: np.ndarray, Bd: np.ndarray, C: np.ndarray, lagged: bool, x: np.ndarray, r: np.ndarray,
+                 noise: np.ndarray, dac_gain: float, pipeline: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` samples of the closed loop in C (``sim_backends/sil_loop.c``); ``x`` and
+        ``pipeline`` are updated in place; returns ``(u, y)``."""
+        def ptr(a: np.ndarray):
+            return a.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
+
+        Ad, Bd, C = (np.ascontiguousarray(a, dtype=float) for a in (Ad, Bd, C))
+        r, noise = np.ascontiguousarray(r, dtype=float), np.ascontiguousarray(noise, dtype=float)
+        u, y = np.empty(n), np.empty(n)
+        status = self._lib.sil_run(self._state, n, x.size, ptr(Ad), ptr(Bd), ptr(C), int(lagged), ptr(x), ptr(r), ptr(noise),
+                                   float(dac_gain), pipeline.size, ptr(pipeline), ptr(u), ptr(y))
+        if status != 0:
+            raise ValueError(f"the loop harness holds at most 128 states and 65 samples of extra delay (got {x.size}, {pipeline.size})")
+        return u, y
 
     def command(self, line: str) -> str:
         """One protocol line in, its reply out (``setmem_protocol_handle``)."""

@@ -143,9 +143,14 @@ def _sampled_loop_stable(plant: AugmentedPlant, Ts: float, sos: np.ndarray, gain
 
 
 def implemented_mu_bar(model: IntervalModel, weights: Weights, controller, fs_hz: float, delay_samples: int, prewarp_rad_s: float,
-                       gain: tuple[float, float] | None = None, omega_rad_s=None) -> ImplementedLoop:
+                       gain: tuple[float, float] | None = None, omega_rad_s=None, performance: bool = True) -> ImplementedLoop:
     """mu-bar of the implemented loop (module docstring), in the analysis's normalised units
-    (:func:`~setmem_hil.robust.analysis.analyze_robust_performance`'s notes), reported in rad/s."""
+    (:func:`~setmem_hil.robust.analysis.analyze_robust_performance`'s notes), reported in rad/s.
+
+    ``performance=False``: robust **stability** only (the parametric blocks and the unmodelled
+    dynamics ``W1``, without the performance block ``W2``, the last complex block of eq. 6.20-6.22):
+    what a loop engaged at a fraction of its gain must keep, since a smaller gain rejects less and
+    cannot meet the performance it was designed for."""
     from setmem_hil.robust.analysis import default_grid_for
 
     T, M = weights.reference_frequency_rad_s(), weights.reference_magnitude()
@@ -156,11 +161,13 @@ def implemented_mu_bar(model: IntervalModel, weights: Weights, controller, fs_hz
     omega = grid[grid < NYQUIST_FRACTION * nyquist]
     sos, sos_gain = second_order_sections(controller, fs_hz, prewarp_rad_s)
     stable = _sampled_loop_stable(plant, T / fs_hz, sos, M * sos_gain, int(delay_samples))
-    structure = MuStructure(plant.n_real, plant.n_complex)
+    keep = plant.n_real + plant.n_complex - (0 if performance else 1)  # the performance block is the last
+    structure = MuStructure(plant.n_real, plant.n_complex - (0 if performance else 1))
 
     def mu_at(w: np.ndarray) -> np.ndarray:
         K = M * implemented_response(controller, fs_hz, delay_samples, prewarp_rad_s, w)
-        return mixed_mu_upper(_closed_loop_response(plant, w / T, K), structure, tol=PRECISE_TOL, max_iter=PRECISE_MAX_ITER).beta
+        matrices = _closed_loop_response(plant, w / T, K)[:, :keep, :keep]
+        return mixed_mu_upper(matrices, structure, tol=PRECISE_TOL, max_iter=PRECISE_MAX_ITER).beta
 
     mu = mu_at(omega)
     for _ in range(2):  # refine around the peak, as the continuous analysis does

@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("run", "run a campaign from a procedure file (or resume one)"),
     "sweep": ("sweep", "many campaigns (seeds x input-design strategies x designs) on Dask, resumable"),
     "validate": ("validate", "check the compensator a run kept against the truth and plants sampled from the interval box"),
+    "verify": ("verify", "load the compensator into a real-time target, engage it in steps and check the closed loop against the box"),
     "view": ("view", "watch a run (going on elsewhere, or finished) in the browser, read-only"),
 }
 """command name -> (module in this package, one-line help)."""

@@ -1,0 +1,47 @@
+"""One closed-loop point from a record of the injection, the drive and the response (issue 45).
+
+With the loop closed (positive feedback, injection ``r`` summed into the drive ``u``), the
+sensitivity is ``S = U / R`` and the plant in closed loop ``G = Y / U``, each the ratio of two
+phasors at the injection's frequency fitted on the same samples (:func:`~setmem_hil.estimation.
+sine_fit.fit_sine`, the IEEE-1057 fit), so no timing between channels or instruments enters.
+The bounds are confidence radii of the ratios' covariances at the dwells' confidence (first-order
+propagation as :func:`~setmem_hil.estimation.sine_fit.phasor_ratio`; the drive's noise is the
+response's fed back, so the two channels of ``G`` are not independent: the radius treats them as
+if they were, a choice stated here because it is not exact).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from setmem_hil.estimation.sine_fit import confidence_radius, fit_sine, phasor_ratio
+
+__all__ = ["ClosedLoopPoint", "closed_loop_point", "CONFIDENCE"]
+
+CONFIDENCE = 0.9995
+"""The dwells' confidence (``DwellSettings.confidence``)."""
+
+
+@dataclass(frozen=True)
+class ClosedLoopPoint:
+    omega_rad_s: float
+    S: complex
+    S_bound: float
+    G: complex
+    G_bound: float
+    injection_amplitude: float
+    peak_drive: float
+    peak_response: float
+
+
+def closed_loop_point(t_s: np.ndarray, r: np.ndarray, u: np.ndarray, y: np.ndarray, omega_rad_s: float,
+                      confidence: float = CONFIDENCE) -> ClosedLoopPoint:
+    """``S = U/R`` and ``G = Y/U`` at ``omega_rad_s`` with their bounds (see the module docstring)."""
+    t0 = float(t_s[0])
+    fr, fu, fy = (fit_sine(t_s, v, omega_rad_s, t_ref_s=t0) for v in (r, u, y))
+    S, cov_s = phasor_ratio(fu, fr)
+    G, cov_g = phasor_ratio(fy, fu)
+    return ClosedLoopPoint(float(omega_rad_s), S, confidence_radius(cov_s, confidence), G, confidence_radius(cov_g, confidence),
+                           float(abs(fr.phasor)), float(np.max(np.abs(u))), float(np.max(np.abs(y))))

@@ -1,0 +1,193 @@
+"""The closed-loop verification as a plan on the run engine (issue 45).
+
+``verification_plan(setup)`` yields requests (:mod:`setmem_hil.verify.messages`) and documents;
+the engine performs them (:mod:`setmem_hil.verify.target_service`). It reads the target's
+identity, loads the compensator (checksum read back), then for each gain of ``[verify] gains``,
+ascending:
+
+1. certifies the loop at that gain before engaging it, with the target's sections, delay and
+   hold (:mod:`setmem_hil.robust.implemented_loop`): below the full gain, robust stability of
+   ``gain * K`` (mu-bar of the parametric and unmodelled blocks below 1: a smaller gain rejects
+   less, so the performance it was designed for is not asked of it); at the full gain, robust
+   performance (the implemented mu-bar below 1). Else :class:`NotEngaged`, nothing more engaged;
+2. engages it (confirmed by the state read back);
+3. at each frequency, injects a sine at the summing junction and measures ``S = u/r`` and
+   ``G = y/u`` with their bounds (:mod:`setmem_hil.estimation.closed_loop_point`), and checks
+   ``S`` against the box's guaranteed prediction (:mod:`setmem_hil.robust.closed_loop_prediction`);
+4. stops engaging higher gains after a step with a point outside the prediction (the model is
+   falsified: a careful engineer does not push a loop whose model just failed further).
+
+However it ends (an error thrown in, an abort), its ``finally`` turns the generator off and
+bypasses the target (confirmed). The frequencies, when the procedure gives none, come from the
+prediction (:func:`chosen_frequencies`): the predicted peak of ``|W2 S|``, each modelled mode,
+and the band's ends.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from setmem_hil.campaign.engine import Checkpoint, Emit
+from setmem_hil.estimation.closed_loop_point import ClosedLoopPoint, closed_loop_point
+from setmem_hil.model.modal_model import IntervalModel
+from setmem_hil.model.weights import Weights
+from setmem_hil.robust.closed_loop_prediction import PredictedSensitivity, predicted_sensitivity
+from setmem_hil.robust.implemented_loop import implemented_mu_bar, implemented_response
+from setmem_hil.verify.messages import Bypass, Engage, IdentifyTarget, InjectAndRecord, LoadCompensator
+
+__all__ = ["VerifySetup", "VerifiedPoint", "VerifyResult", "NotEngaged", "verification_plan", "chosen_frequencies", "settle_time_s"]
+
+
+class NotEngaged(Exception):
+    """A gain step whose implemented mu-bar is not below 1: never engaged."""
+
+
+@dataclass(frozen=True)
+class VerifySetup:
+    """Everything the plan needs: the box and the compensator of the run, the target's timing."""
+
+    model: IntervalModel
+    calibration_gain: tuple[float, float] | None
+    weights: Weights
+    controller: Any  # continuous, rad/s, positive feedback
+    sos: np.ndarray
+    sos_gain: float
+    prewarp_rad_s: float
+    fs_hz: float
+    delay_samples: int
+    gains: tuple[float, ...]
+    frequencies_rad_s: tuple[float, ...]
+    injection_amplitude: float
+    settle_s: float
+    periods: int
+
+
+@dataclass(frozen=True)
+class VerifiedPoint:
+    gain: float
+    measured: ClosedLoopPoint
+    prediction: PredictedSensitivity
+    inside: bool
+    weighted_performance: float  # |W2 S| + |W1 g K_impl S| with the measured S
+
+    def to_document(self) -> dict:
+        lo, hi = self.prediction.abs_range
+        m = self.measured
+        return {"omega_rad_s": m.omega_rad_s, "S_re": m.S.real, "S_im": m.S.imag, "S_bound": m.S_bound,
+                "predicted_abs_S_min": lo, "predicted_abs_S_max": hi if math.isfinite(hi) else None, "inside": bool(self.inside),
+                "G_re": m.G.real, "G_im": m.G.imag, "G_bound": m.G_bound, "weighted_performance": self.weighted_performance,
+                "peak_drive": m.peak_drive, "peak_response": m.peak_response}
+
+
+@dataclass
+class VerifyResult:
+    identity: Any = None
+    checksum: int | None = None
+    steps: list[dict] = field(default_factory=list)
+    implemented_mu_bar: float = math.nan
+    points: list[VerifiedPoint] = field(default_factory=list)
+
+    @property
+    def first_outside(self) -> VerifiedPoint | None:
+        return next((p for p in self.points if not p.inside), None)
+
+
+def _w(num, den, omega: float) -> complex:
+    return complex(np.polyval(num, 1j * omega) / np.polyval(den, 1j * omega))
+
+
+def verification_plan(setup: VerifySetup, result: VerifyResult | None = None):
+    """See the module docstring; fills and returns ``result`` (a caller that passes its own keeps
+    what was measured however the plan ends)."""
+    result = VerifyResult() if result is None else result
+    result.identity = yield IdentifyTarget()
+    yield Emit("target", {"identity": result.identity.text, "fs_hz": result.identity.fs_hz,
+                          "delay_samples": result.identity.delay_samples})
+    result.checksum = yield LoadCompensator(setup.sos, setup.sos_gain)
+    yield Emit("loaded", {"checksum": f"{result.checksum:08X}", "sections": int(len(setup.sos))})
+    try:
+        for gain in setup.gains:
+            certified = _certify_step(setup, gain)
+            if gain >= 1.0:
+                result.implemented_mu_bar = certified
+            yield Checkpoint(f"engaging at gain {gain:g}")
+            yield Engage(gain)
+            yield Emit("engaged", {"gain": gain, "implemented_mu_bar": certified, "certified": "performance" if gain >= 1.0 else "stability"})
+            points = yield from _measure_step(setup, gain)
+            result.points += points
+            result.steps.append({"gain": gain, "implemented_mu_bar": certified, "certified": "performance" if gain >= 1.0 else "stability",
+                                 "points": [p.to_document() for p in points]})
+            yield Emit("step", {"gain": gain, "points": len(points), "outside": sum(not p.inside for p in points)})
+            if any(not p.inside for p in points):
+                break
+    finally:
+        yield Bypass("the verification ended")
+    return result
+
+
+def _certify_step(setup: VerifySetup, gain: float) -> float:
+    """The step's certified value: robust stability below the full gain, robust performance at it."""
+    full = gain >= 1.0
+    loop = implemented_mu_bar(setup.model, setup.weights, _scaled(setup.controller, gain), setup.fs_hz, setup.delay_samples,
+                              setup.prewarp_rad_s, setup.calibration_gain, performance=full)
+    if not loop.mu_bar < 1.0:
+        what = "mu-bar" if full else "robust-stability mu-bar"
+        raise NotEngaged(f"gain {gain:g}: the loop as the target runs it has {what} {loop.mu_bar:.4g} >= 1: not engaged")
+    return float(loop.mu_bar)
+
+
+def _scaled(K, gain: float):
+    import control
+
+    return control.ss(K.A, K.B, np.asarray(K.C) * gain, np.asarray(K.D) * gain)
+
+
+def _measure_step(setup: VerifySetup, gain: float):
+    points = []
+    for w in setup.frequencies_rad_s:
+        yield Checkpoint(f"gain {gain:g}, {w:.4g} rad/s")
+        record_s = setup.periods * 2 * math.pi / w
+        record = yield InjectAndRecord(w, setup.injection_amplitude, setup.settle_s, record_s)
+        point = closed_loop_point(record.t_s, record.r, record.u, record.y, w)
+        k = complex(implemented_response(setup.controller, setup.fs_hz, setup.delay_samples, setup.prewarp_rad_s, [w])[0])
+        prediction = predicted_sensitivity(setup.model, setup.weights, k, w, setup.calibration_gain, loop_gain=gain)
+        performance = abs(_w(setup.weights.w2_num, setup.weights.w2_den, w) * point.S) \
+            + abs(_w(setup.weights.w1_num, setup.weights.w1_den, w) * gain * k * point.S)
+        verified = VerifiedPoint(gain, point, prediction, prediction.holds(point.S, point.S_bound), float(performance))
+        yield Emit("point", verified.to_document() | {"gain": gain})
+        points.append(verified)
+    return points
+
+
+def chosen_frequencies(model: IntervalModel, weights: Weights, controller, fs_hz: float, delay_samples: int, prewarp_rad_s: float,
+                       gain=None) -> tuple[float, ...]:
+    """The predicted peak of ``|W2 S|`` (the largest predicted ``|S|`` weighted), every modelled
+    mode's natural frequency (the box's midpoint), and the band's ends (half the lowest mode,
+    twice the highest, below 0.4 Nyquist)."""
+    modes = np.sqrt(np.maximum(0.5 * (model.lower[:, 1] + model.upper[:, 1]), 0.0))
+    lo, hi = 0.5 * float(np.min(modes)), min(2.0 * float(np.max(modes)), 0.4 * math.pi * fs_hz)
+    grid = np.geomspace(lo, hi, 400)
+    k = implemented_response(controller, fs_hz, delay_samples, prewarp_rad_s, grid)
+    weighted = []
+    for w, kw in zip(grid, k):
+        s_max = predicted_sensitivity(model, weights, complex(kw), float(w), gain).abs_range[1]
+        weighted.append(abs(_w(weights.w2_num, weights.w2_den, float(w))) * s_max if math.isfinite(s_max) else -1.0)
+    peak = float(grid[int(np.argmax(weighted))])
+    chosen = sorted({round(float(v), 9) for v in (lo, peak, *modes, hi) if lo <= v <= hi})
+    return tuple(chosen)
+
+
+def settle_time_s(model: IntervalModel, controller, gain: float = 1.0, constants: float = 10.0, floor_s: float = 1.0) -> float:
+    """``constants`` time constants of the slowest pole of the nominal closed loop (the box's
+    midpoint under ``gain * K``), at least ``floor_s``."""
+    nominal = model.midpoint
+    Ap, Bp, Cp, _ = nominal.state_space_matrices()
+    K = _scaled(controller, gain)
+    Ak, Bk, Ck, Dk = (np.atleast_2d(np.asarray(getattr(K, n), dtype=float)) for n in "ABCD")
+    A = np.block([[Ap + Bp @ Dk @ Cp, Bp @ Ck], [Bk @ Cp, Ak]])
+    slowest = float(np.min(-np.linalg.eigvals(A).real))
+    return max(floor_s, constants / slowest) if slowest > 0 else floor_s

@@ -1,0 +1,125 @@
+"""The verification's commands on the run engine: the real-time target and the rig around it.
+
+:class:`TargetService` performs the plan's requests (:mod:`setmem_hil.verify.messages`) with a
+:class:`~setmem_hil.drivers.real_time_target.RealTimeTarget` and a :class:`LoopRig` (the
+generator summed into the drive and a recorder of injection, drive and response). While a point
+settles and records, it watches the loop every :data:`WATCH_S` seconds (and at least once a
+period): the target's state (which also feeds its watchdog) and the response against the
+procedure's limit. A target that tripped, or a response past its limit, stops the point: the
+generator off, the target bypassed, then :class:`LoopFault` (exit 4) naming it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+
+from setmem_hil.campaign.engine import RunEngine
+from setmem_hil.drivers.real_time_target import TRIPPED, RealTimeTarget
+from setmem_hil.errors import DeviceError, DeviceIdentityError
+from setmem_hil.verify.messages import Bypass, Engage, IdentifyTarget, InjectAndRecord, LoadCompensator
+
+__all__ = ["LoopRig", "LoopFault", "TargetService", "register_target_commands", "WATCH_S"]
+
+WATCH_S = 0.25
+"""The host looks at the target at least this often while the loop runs (the watchdog's default is 0.5 s)."""
+
+
+class LoopRig(Protocol):
+    """The generator at the summing junction and the recorder beside the rig."""
+
+    fs_hz: float
+
+    def set_generator(self, amplitude: float, omega_rad_s: float) -> None: ...
+
+    def run(self, n_samples: int): ...  # -> LoopRecord (r, u, y, t_s)
+
+
+class LoopFault(DeviceError):
+    """The loop was stopped for safety: the target tripped, or the response passed its limit."""
+
+
+class TargetService:
+    """Performs the verification's requests (see the module docstring)."""
+
+    def __init__(self, target: RealTimeTarget, rig: LoopRig, *, fs_hz: float, delay_samples: int, drive_limit: float,
+                 watchdog_s: float, response_limit: float | None = None):
+        self.target, self.rig = target, rig
+        self.fs_hz, self.delay_samples, self.drive_limit = float(fs_hz), int(delay_samples), float(drive_limit)
+        self.watchdog_s, self.response_limit = float(watchdog_s), response_limit
+        self.records = 0
+
+    def identify(self, engine: RunEngine, request: IdentifyTarget):
+        identity = self.target.identity()
+        if not math.isclose(identity.fs_hz, self.fs_hz, rel_tol=1e-9) or identity.delay_samples != self.delay_samples:
+            raise DeviceIdentityError(f"{self.target.where}: the target runs at {identity.fs_hz:g} Hz with {identity.delay_samples} "
+                                      f"samples of delay, the procedure says {self.fs_hz:g} Hz and {self.delay_samples}: "
+                                      "the guarantee was computed for the procedure's")
+        return identity
+
+    def load(self, engine: RunEngine, request: LoadCompensator) -> int:
+        self.target.bypass()
+        self.target.set_drive_limit(self.drive_limit)
+        self.target.set_watchdog(self.watchdog_s)
+        return self.target.load(request.sos, request.gain)
+
+    def engage(self, engine: RunEngine, request: Engage):
+        return self.target.engage(request.gain)
+
+    def inject_and_record(self, engine: RunEngine, request: InjectAndRecord):
+        rate = self.rig.fs_hz
+        chunk = max(1, int(min(WATCH_S, 2 * math.pi / request.omega_rad_s) * rate))
+        self.rig.set_generator(request.amplitude, request.omega_rad_s)
+        try:
+            self._run_watched(int(round(request.settle_s * rate)), chunk, request)
+            record = self._run_watched(int(round(request.record_s * rate)), chunk, request, keep=True)
+        finally:
+            self.rig.set_generator(0.0, 0.0)
+        self.records += 1
+        engine.emit("loop-record", seq=self.records, omega_rad_s=request.omega_rad_s, record=record)
+        return record
+
+    def _run_watched(self, n: int, chunk: int, request: InjectAndRecord, keep: bool = False):
+        parts = []
+        done = 0
+        while done < n:
+            part = self.rig.run(min(chunk, n - done))
+            done += part.r.size
+            self._watch(part, request)
+            if keep:
+                parts.append(part)
+        if not keep:
+            return None
+        first = parts[0]
+        return type(first)(first.fs_hz, first.t0_s, *(np.concatenate([getattr(p, c) for p in parts]) for c in ("r", "u", "y")))
+
+    def _watch(self, part, request: InjectAndRecord) -> None:
+        state = self.target.state()
+        where = f"at {request.omega_rad_s:.4g} rad/s"
+        if state.mode == TRIPPED:
+            self._make_safe()
+            raise LoopFault(f"{self.target.where}: the target tripped ({state.reason}) {where}, "
+                            f"peak drive {np.max(np.abs(part.u)):.3g}: the loop grew; bypassed")
+        if self.response_limit is not None and np.max(np.abs(part.y)) > self.response_limit:
+            self._make_safe()
+            raise LoopFault(f"the response reached {np.max(np.abs(part.y)):.3g} {where}, past the limit {self.response_limit:g}: "
+                            "the loop grew; bypassed")
+
+    def _make_safe(self) -> None:
+        self.rig.set_generator(0.0, 0.0)
+        self.target.bypass()
+
+    def bypass(self, engine: RunEngine, request: Bypass):
+        self.rig.set_generator(0.0, 0.0)
+        return self.target.bypass()
+
+
+def register_target_commands(engine: RunEngine, service: TargetService) -> TargetService:
+    engine.register_command(IdentifyTarget, service.identify)
+    engine.register_command(LoadCompensator, service.load)
+    engine.register_command(Engage, service.engage)
+    engine.register_command(InjectAndRecord, service.inject_and_record)
+    engine.register_command(Bypass, service.bypass)
+    return service
