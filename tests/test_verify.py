@@ -168,3 +168,29 @@ def test_ctrl_c_mid_point_bypasses_the_target_and_keeps_the_records(small_run, t
     assert "bypassed" in err
     assert loops[0].core.command("STATE?") == "BYPASS"  # the firmware itself says so
     assert doc is not None and len(list((tmp_path / "out" / "records").glob("*.npz"))) >= 1
+
+
+def test_the_runs_report_shows_the_verification_and_validate_refuses_a_slow_target(small_run, tmp_path, capsys):
+    code, doc, err = run_verify(small_run, target_file(tmp_path, verify="frequencies_rad_s = [0.9, 6.27]\nperiods = 8"),
+                                tmp_path / "out", capsys)
+    assert code == 0, err
+    assert json.loads((small_run / "verify.json").read_text())["steps"] == doc["steps"]
+    assert main(["report", str(small_run)]) == 0
+    page = (small_run / "report.html").read_text()
+    assert "table-verification" in page and "fig-verification" in page
+    capsys.readouterr()
+    assert main(["validate", str(small_run), "--fs", "15", "--delay-samples", "1", "--samples", "0"]) == 2
+    assert "cost the margin" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("change, message", [
+    (("fs_hz = 1000.0", "fs_hs = 1000.0"), "unknown key 'fs_hs'; did you mean 'fs_hz'?"),
+    (("kind = \"emulated\"", "kind = \"usb\""), "kind 'usb' is not one of 'emulated', 'serial'"),
+    (("gains = [0.25, 0.5, 1.0]", "gains = [0.5, 0.25, 1.0]"), "must ascend"),
+    (("injection_amplitude = 0.05", "injection_amplitude = 9.0"), "must be below [target] drive_limit"),
+])
+def test_a_bad_target_procedure_is_named_before_anything_moves(small_run, tmp_path, capsys, change, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(SHIPPED.read_text().replace(*change))
+    code, doc, err = run_verify(small_run, path, tmp_path / "out", capsys)
+    assert code == 2 and doc is None and message in err and str(path) in err, err

@@ -753,6 +753,9 @@ def parse_procedure_mapping(doc: Any, source: str, text: str = "") -> Procedure:
     from setmem_hil.model.prior import MODE_KEYS
     from setmem_hil.model.units import hz_keys_to_rad_s
 
+    if isinstance(doc, Mapping) and "target" in doc:
+        raise ProcedureError(source, "top level", "a [target] table makes this a closed-loop verification procedure: run it with "
+                             f"`setmem-hil verify RUN_DIR --procedure {source}` (a campaign's procedure has no [target])")
     doc = hz_keys_to_rad_s(doc, {**{t: set(keys) for t, keys in _BY_TABLE.items()}, "mode": set(MODE_KEYS)}, source)
     top = _Table(source, "", doc)
     stem = Path(source).stem if source and not source.startswith("<") else ""

@@ -19,7 +19,7 @@ from typing import Any, Mapping
 
 from setmem_hil.errors import ProcedureError
 
-__all__ = ["TargetSettings", "TargetEmulationSettings", "VerifySettings", "VerifyProcedure", "load_target_procedure",
+__all__ = ["is_verification_procedure", "TargetSettings", "TargetEmulationSettings", "VerifySettings", "VerifyProcedure", "load_target_procedure",
            "parse_target_text", "TARGET_KINDS"]
 
 TARGET_KINDS = ("emulated", "serial")
@@ -137,6 +137,14 @@ class _Table:
         if len(bounds) > 1 and not float(v) <= bounds[1]:
             raise self.error(f"{key} {v!r} must be <= {bounds[1]:g}")
         return float(v)
+
+
+def is_verification_procedure(text: str) -> bool:
+    """Does this TOML text have a top-level ``[target]`` table (a verification procedure, not a campaign's)?"""
+    try:
+        return isinstance(tomllib.loads(text).get("target"), Mapping)
+    except tomllib.TOMLDecodeError:
+        return False
 
 
 def parse_target_text(text: str, source: str = "<target>") -> VerifyProcedure:

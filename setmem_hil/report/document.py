@@ -274,6 +274,9 @@ def _records_section(run, its, out_dir: Path) -> list[str]:
     else:
         parts.append("<p>No discrepancy check was run.</p>")
     parts.append(_validation_section(out_dir))
+    from setmem_hil.report.verification_section import verification_section
+
+    parts.append(verification_section(out_dir))
     parts.append("<h2 id='events'>Events</h2>")
     shown = [e for e in run.events if e["kind"] != "exact-resolve"]  # data of figure 6-14, not news
     parts.append(_table(["time (UTC)", "kind", "message"], [[e["utc"], e["kind"], e["message"]] for e in shown], "table-events")

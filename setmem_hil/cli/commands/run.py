@@ -77,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
             raise _arguments_error("give a procedure file, or --resume DIR")
         if args.fixed_procedure:
             raise _arguments_error("--procedure FIXED.toml goes with --resume DIR")
+        if args.check and _checked_verification_procedure(args.procedure, console):
+            return 0
         procedure = load_procedure(args.procedure)
         if args.check:
             from setmem_hil.campaign.preflight import preflight
@@ -137,3 +139,20 @@ def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, pr
     console = console or Console(soft_wrap=True)
     return resume(run_dir, console=console, opener=lambda p, s: open_backend(p, s),
                               display=terminal_display(console), procedure_path=procedure_path, **live)
+
+
+def _checked_verification_procedure(path: str, console) -> bool:
+    """``run --check`` of a closed-loop verification procedure (a top-level ``[target]``): validated
+    with its own schema (:mod:`setmem_hil.io.target_file`) and said what runs it."""
+    from setmem_hil.io.target_file import is_verification_procedure, load_target_procedure
+
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError:
+        return False  # load_procedure names the problem
+    if not is_verification_procedure(text):
+        return False
+    load_target_procedure(path)
+    console.print(f"a closed-loop verification procedure: run it with setmem-hil verify RUN_DIR --procedure {path}", highlight=False)
+    console.print(f"{path}: OK", highlight=False)
+    return True

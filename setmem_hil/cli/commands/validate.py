@@ -19,10 +19,12 @@ the exact robust-performance test of one plant (:mod:`setmem_hil.robust.validati
 REPORT.json keys: ``truth`` (``stable``, ``rp_peak``, ``rp_peak_omega``; null without a truth),
 ``samples`` (``n``, ``worst_rp_peak``, ``worst_omega``, ``violations``, ``drawn``,
 ``worst_plant``), ``closed_loop_sim`` (null without a truth), ``claimed_mu_peak``, ``iteration``, ``design``,
-``figure``. The figure (``validate.png`` beside the report) shows ``|W2 S|`` and ``|W1 K S|`` of the
+``figure``, ``implemented`` (with ``--fs F --delay-samples D``: the loop as a real-time target runs
+it, as ``controller --delay-samples`` reports it; null without). The figure (``validate.png`` beside the report) shows ``|W2 S|`` and ``|W1 K S|`` of the
 truth and of the worst sampled plant against 1.
 
-Exit codes: 0 no checked plant violates the claim; 3 one does; 2 bad arguments or no iteration.
+Exit codes: 0 no checked plant violates the claim; 3 one does; 2 bad arguments, no iteration, or
+(with ``--delay-samples``) an implemented loop whose mu-bar is >= 1.
 """
 
 from __future__ import annotations
@@ -67,6 +69,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="REPORT.json", help="report file (default RUN_DIR/validate.json)")
     p.add_argument("--fs", type=float, metavar="HZ", help="sample rate of the closed-loop simulation (default: 20 samples "
                    "per period of the fastest simulated mode, at least 20 per period of the peak)")
+    p.add_argument("--delay-samples", type=int, metavar="D", help="with --fs: also analyse the loop as a real-time target runs "
+                   "it (the sections, D samples of delay, the hold): implemented_mu_bar in the report; exit 2 when it is >= 1, "
+                   "naming the sample rate needed")
     p.add_argument("--iteration", type=int, metavar="K", help="the compensator of iteration K (default: the last)")
     p.set_defaults(func=run)
 
@@ -107,7 +112,14 @@ def run(args: argparse.Namespace) -> int:
 
     if args.samples < 0:
         raise InputFormatError("setmem-hil validate", "arguments", f"--samples {args.samples}: expected >= 0")
+    if args.delay_samples is not None and (args.fs is None or args.delay_samples < 0):
+        raise InputFormatError("setmem-hil validate", "arguments", f"--delay-samples {args.delay_samples}: needs --fs and a count >= 0")
     record, K = kept_controller(args.run_dir, args.iteration, command="setmem-hil validate")
+    implemented = None
+    if args.delay_samples is not None:  # before the long checks: a rate that loses the margin is bad input
+        from setmem_hil.cli.commands.controller import implemented_guarantee
+
+        implemented = implemented_guarantee(args.run_dir, record, K, args.fs, args.delay_samples, command="setmem-hil validate")
     with Journal.open(args.run_dir) as j:
         procedure = parse_procedure_text(j.run_info()["procedure_text"], f"{args.run_dir} (stored procedure)")
     weights = procedure.weights
@@ -138,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     _figure(figure, truth, plants, worst[2], K, weights, grid, k_grid)
     design = record.design or "h2"
     doc = {"iteration": int(record.k), "claimed_mu_peak": claimed, "design": design, "truth": truth_doc, "samples": samples_doc,
-           "closed_loop_sim": sim_doc, "figure": str(figure)}
+           "closed_loop_sim": sim_doc, "figure": str(figure), "implemented": implemented}
     write_json_atomic(doc, out)
     print(f"{out}: iteration {record.k} ({design} design), claimed mu-bar {claimed:.4g}; "
           + (f"truth {'stable' if truth_doc['stable'] else 'UNSTABLE'}, peak {truth_doc['rp_peak']:.4g} at "

@@ -7,7 +7,8 @@ loop by injecting sines at the summing junction, and checks every point against 
 guaranteed prediction (:mod:`setmem_hil.verify.plan`, a plan on the run engine).
 
 Output: ``DIR/verify.json`` (``verified``, ``target``, ``implemented_mu_bar``, ``steps[]`` with
-their ``points[]``, ``performance``, ``first_outside``, ``discrepancy``), ``DIR/verify.png`` (the
+their ``points[]``, ``performance``, ``first_outside``, ``discrepancy``, ``figure``; also copied
+to ``RUN_DIR/verify.json``, which the run's report shows), ``DIR/verify.png`` (the
 predicted band of ``|S|`` and the measured points), ``DIR/journal.jsonl`` (every document, one
 JSON line each, flushed as written) and ``DIR/records/`` (each point's injection, drive and
 response, ``.npz``).
@@ -74,11 +75,13 @@ def run(args: argparse.Namespace) -> int:
     doc = _document(result, setup, target_procedure, record)
     from setmem_hil.io.atomic_file import write_json_atomic
 
-    write_json_atomic(doc, out / "verify.json")
     if result.points:
         from setmem_hil.verify.figure import write_figure
 
         write_figure(out / "verify.png", setup, result)
+        doc["figure"] = str((out / "verify.png").resolve())
+    write_json_atomic(doc, out / "verify.json")
+    write_json_atomic(doc, Path(args.run_dir) / "verify.json")  # the run's report shows the latest verification
     if failure is not None:
         raise failure
     first = result.first_outside
