@@ -34,10 +34,24 @@ FS = 1000.0
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
+def demo_run_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("controller") / "run"
     assert main(["run", str(REPO / "procedures" / "beam_6_3_2.toml"), "--out", str(out), "--quiet"]) == 0
     return out
+
+
+@pytest.fixture(scope="module", params=["one-iteration", pytest.param("demo", marks=pytest.mark.slow)])
+def run_dir(request, tmp_path_factory):
+    """The export's contracts on a run made in seconds (tests/_synthetic_run.py: one iteration,
+    its H2 design) in the default tier, and on the demo's own run (a robust design) in the slow tier."""
+    if request.param == "demo":
+        return request.getfixturevalue("demo_run_dir")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_synthetic_run", Path(__file__).with_name("_synthetic_run.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.one_iteration_run(tmp_path_factory.mktemp("controller-synthetic") / "run")[0]
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +74,6 @@ def _last(run_dir):
         return j.iterations()[-1]
 
 
-@pytest.mark.slow
 def test_json_contract_and_the_continuous_form_is_the_analysed_compensator(run_dir, exported):
     assert exported["sign"] == "positive" and exported["iteration"] == _last(run_dir).k
     assert {"A", "B", "C", "D"} <= set(exported["continuous"]) and {"A", "B", "C", "D", "Ts", "prewarp_rad_s"} <= set(exported["discrete"])
@@ -91,7 +104,6 @@ def test_json_contract_and_the_continuous_form_is_the_analysed_compensator(run_d
     assert np.max(np.abs(zpk - frequency_response(K, w)) / np.abs(frequency_response(K, w))) < 1e-8
 
 
-@pytest.mark.slow
 def test_discrete_and_sections_match_an_independent_tustin_map(exported):
     K = statespace_from_lists(exported["continuous"])
     d = exported["discrete"]
@@ -115,7 +127,6 @@ def test_discrete_and_sections_match_an_independent_tustin_map(exported):
     assert np.max(np.abs(out - y[:, 0])) <= 1e-9 * np.max(np.abs(y))
 
 
-@pytest.mark.slow
 def test_c_header_compiles_and_its_step_matches_sosfilt(run_dir, exported, tmp_path):
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
@@ -141,7 +152,6 @@ int main(void) {
     assert np.max(np.abs(y - reference)) <= 1e-12 * np.max(np.abs(reference))
 
 
-@pytest.mark.slow
 def test_mat_and_csv_round_trip(run_dir, exported, tmp_path):
     mat = tmp_path / "K.mat"
     assert main(["controller", str(run_dir), "--out", str(mat), "--fs", str(FS)]) == 0
@@ -214,12 +224,12 @@ def test_version_2_journals_are_upgraded_and_export_designs_again(h2_run_dir, tm
 # -- setmem-hil validate -----------------------------------------------------------------------------
 
 @pytest.mark.slow
-def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(run_dir, tmp_path):
+def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(demo_run_dir, tmp_path):
     from setmem_hil.robust.validation import rp_curve
     from setmem_hil.sim_backends.beam import beam_parameters
 
     report = tmp_path / "REPORT.json"
-    assert main(["validate", str(run_dir), "--samples", "100", "--out", str(report)]) == 0
+    assert main(["validate", str(demo_run_dir), "--samples", "100", "--out", str(report)]) == 0
     doc = json.loads(report.read_text())
     assert doc["truth"]["stable"] and doc["truth"]["rp_peak"] < 1.0
     assert doc["samples"]["violations"] == 0 and doc["samples"]["n"] >= 100
@@ -227,7 +237,7 @@ def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(run
     # the truth's peak, independently: a 20000-point grid of the exact formula with python-control's K
     import control
 
-    record = _last(run_dir)
+    record = _last(demo_run_dir)
     K = statespace_from_lists(record.controller)
     w = np.geomspace(0.1, 1000, 20000)
     dense = rp_curve(beam_parameters(), control.ss(K.A, K.B, K.C, K.D), load_procedure(REPO / "procedures" / "beam_6_3_2.toml").weights, w)
@@ -239,15 +249,15 @@ def test_validate_the_demo_claim_holds_for_the_truth_and_every_sampled_plant(run
     assert sim["stable"] and sim["relative_difference"] < 0.02  # the sampled loop agrees with the analysis
     # the robust design need not add damping to mode 1 (0.01 of critical, 100 s time constant):
     # its loop can outlast the simulation's cap, an H2 loop settles within it
-    assert sim["settled"] or _last(run_dir).design == "robust"
+    assert sim["settled"] or _last(demo_run_dir).design == "robust"
     assert Path(doc["figure"]).is_file()
 
 
 @pytest.mark.slow
-def test_validate_exits_3_naming_the_plant_when_the_claim_is_false(run_dir, tmp_path, capsys):
+def test_validate_exits_3_naming_the_plant_when_the_claim_is_false(demo_run_dir, tmp_path, capsys):
     """A journal whose last iteration claims mu-bar < 1 for a compensator with three times the
     gain it was designed with: a claim made false on purpose."""
-    with Journal.open(run_dir) as j:
+    with Journal.open(demo_run_dir) as j:
         info, record = j.run_info(), j.iterations()[-1]
     tampered = dict(record.controller)
     tampered["C"] = (3.0 * np.asarray(record.controller["C"])).tolist()
@@ -265,24 +275,24 @@ def test_validate_exits_3_naming_the_plant_when_the_claim_is_false(run_dir, tmp_
 
 
 @pytest.mark.slow
-def test_the_report_shows_the_validation(run_dir, tmp_path):
+def test_the_report_shows_the_validation(demo_run_dir, tmp_path):
     copy = tmp_path / "run"
-    shutil.copytree(run_dir, copy)
+    shutil.copytree(demo_run_dir, copy)
     assert main(["validate", str(copy), "--samples", "10"]) == 0  # default: RUN_DIR/validate.json and .png
     assert main(["report", str(copy)]) == 0
     html = (copy / "report.html").read_text()
     assert "Validation of the compensator" in html and "validate.png" in html and "plants violating the claim" in html
 
 
-def test_the_loop_as_a_target_runs_it_is_analysed_and_a_rate_that_loses_the_margin_is_refused(h2_run_dir, tmp_path, capsys):
+def test_the_loop_as_a_target_runs_it_is_analysed_and_a_rate_that_loses_the_margin_is_refused(run_dir, tmp_path, capsys):
     """Issue 45: ``--delay-samples``. Truth: the continuous analysis of the same compensator on
     the same box (a fast target must come close to it), and the implemented analysis run again at
     the sample rate the refusal names (it must hold the guarantee there)."""
     from setmem_hil.robust.implemented_loop import implemented_mu_bar
 
-    record = _last(h2_run_dir)
+    record = _last(run_dir)
     fast = tmp_path / "K.json"
-    assert main(["controller", str(h2_run_dir), "--out", str(fast), "--fs", "2000", "--delay-samples", "1"]) == 0
+    assert main(["controller", str(run_dir), "--out", str(fast), "--fs", "2000", "--delay-samples", "1"]) == 0
     implemented = json.loads(fast.read_text())["implemented"]
     assert implemented["delay_samples"] == 1 and implemented["nominally_stable"]
     assert implemented["continuous_mu_bar"] == pytest.approx(record.mu_peak)
@@ -290,7 +300,7 @@ def test_the_loop_as_a_target_runs_it_is_analysed_and_a_rate_that_loses_the_marg
 
     slow = tmp_path / "K_slow.json"
     capsys.readouterr()
-    assert main(["controller", str(h2_run_dir), "--out", str(slow), "--fs", "40", "--delay-samples", "2"]) == 2
+    assert main(["controller", str(run_dir), "--out", str(slow), "--fs", "40", "--delay-samples", "2"]) == 2
     err = capsys.readouterr().err
     assert "cost the margin" in err and not slow.exists()
     procedure = load_procedure(REPO / "procedures" / "beam_6_3_2.toml")

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -30,31 +29,21 @@ REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "procedures" / "closed_loop_emulated.toml"
 
 
+def _synthetic():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_synthetic_run", Path(__file__).with_name("_synthetic_run.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 @pytest.fixture(scope="module")
 def small_run(tmp_path_factory) -> Path:
     """A run directory holding one iteration: a +-0.5 % box around the beam's first three modes
-    and the H2 compensator the analysis designs for it."""
-    from setmem_hil.campaign.persistence import iteration_fields
-    from setmem_hil.campaign.run_directory import new_journal
-    from setmem_hil.io.journal import JOURNAL_FILENAME, IterationRecord
-    from setmem_hil.io.procedure_file import load_procedure
-    from setmem_hil.model.modal_model import IntervalModel
-    from setmem_hil.robust.analysis import analyze_robust_performance
-    from setmem_hil.sim_backends.beam import beam_parameters
-
-    run_dir = tmp_path_factory.mktemp("verify") / "run"
-    run_dir.mkdir()
-    procedure = load_procedure(REPO / "procedures" / "beam_6_3_2.toml")
-    truth = beam_parameters().truncated(3).values
-    box = IntervalModel(np.minimum(truth * 0.995, truth * 1.005), np.maximum(truth * 0.995, truth * 1.005))
-    analysis = analyze_robust_performance(box, procedure.weights)
+    and the H2 compensator the analysis designs for it (tests/_synthetic_run.py)."""
+    run_dir, _, analysis = _synthetic().one_iteration_run(tmp_path_factory.mktemp("verify") / "run")
     assert analysis.mu_peak < 0.97
-    doc = dict(k=1, n_points=15, mu_peak=analysis.mu_peak, safeguard="new-design", mu_peak_certified=analysis.mu_peak_certified,
-               outputs=None, design="h2", floor_modes=(), model=box, plant=box, gain=None, analysis=analysis,
-               identification=SimpleNamespace(embedding_gamma=np.zeros(3), mismatch_ratio=np.zeros(3)))
-    journal = new_journal(run_dir / JOURNAL_FILENAME, procedure, procedure.source_text, seed=1, strategy="mu")
-    journal.add_iteration(IterationRecord(**iteration_fields(doc, None, 0.0)))
-    journal.close()
     return run_dir
 
 

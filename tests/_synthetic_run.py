@@ -1,0 +1,38 @@
+"""A run directory in seconds (not collected: no ``test_`` prefix): one iteration whose box is the
+beam's first three modes +- ``half_width`` and whose compensator is the thesis's H2 design for
+it, on the stored 6.3.2 procedure (the simulated beam). For tests of what reads a finished run
+(export, verify, report) where the campaign itself is not what is tested."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def one_iteration_run(run_dir: Path, half_width: float = 0.005):
+    """Write the run into ``run_dir``; returns ``(run_dir, box, analysis)``."""
+    from setmem_hil.campaign.persistence import iteration_fields
+    from setmem_hil.campaign.run_directory import new_journal
+    from setmem_hil.io.journal import JOURNAL_FILENAME, IterationRecord
+    from setmem_hil.io.procedure_file import load_procedure
+    from setmem_hil.model.modal_model import IntervalModel
+    from setmem_hil.robust.analysis import analyze_robust_performance
+    from setmem_hil.sim_backends.beam import beam_parameters
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    procedure = load_procedure(REPO / "procedures" / "beam_6_3_2.toml")
+    truth = beam_parameters().truncated(3).values
+    low, high = truth * (1 - half_width), truth * (1 + half_width)
+    box = IntervalModel(np.minimum(low, high), np.maximum(low, high))
+    analysis = analyze_robust_performance(box, procedure.weights)
+    doc = dict(k=1, n_points=15, mu_peak=analysis.mu_peak, safeguard="new-design", mu_peak_certified=analysis.mu_peak_certified,
+               outputs=None, design="h2", floor_modes=(), model=box, plant=box, gain=None, analysis=analysis,
+               identification=SimpleNamespace(embedding_gamma=np.zeros(3), mismatch_ratio=np.zeros(3)))
+    journal = new_journal(run_dir / JOURNAL_FILENAME, procedure, procedure.source_text, seed=1, strategy="mu")
+    journal.add_iteration(IterationRecord(**iteration_fields(doc, None, 0.0)))
+    journal.close()
+    return run_dir, box, analysis
