@@ -156,6 +156,42 @@ def test_page_in_a_real_browser_shows_points_and_its_buttons_steer_the_run(tmp_p
     assert (shots / "live-view-paused.png").stat().st_size > 10_000
 
 
+STATE_KEYS = {"status", "procedure", "backend", "started_utc", "iteration", "n_points", "mu_peak", "design", "rig_s", "run_elapsed_s",
+              "dwell", "measurements", "outputs", "iterations", "model_band", "events", "summary"}
+ITERATION_KEYS = {"k", "n_points", "mu_peak", "mu_peak_omega", "next_omega", "omega", "mu", "lower", "upper", "sensitivities", "outputs",
+                  "design", "floor_modes"}
+
+
+def test_the_api_contract_on_a_run_made_in_seconds(tmp_path):
+    """The API's contract (token, state keys, read-only viewer) in the default tier, on a
+    one-iteration run (tests/_synthetic_run.py); the campaigns behind the live view: the slow tier."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_synthetic_run", Path(__file__).with_name("_synthetic_run.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    run_dir, box, analysis = module.one_iteration_run(tmp_path / "run")
+    child = subprocess.Popen([sys.executable, "-m", "setmem_hil.cli.main", "view", str(run_dir)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = child.stdout.readline()
+        assert line.startswith("live view: http://127.0.0.1:"), line + child.stderr.read()
+        url = line.strip().removeprefix("live view: ")
+        base, token = url.split("/?token=")[0], url.split("token=")[1]
+        assert _call(base, "/api/state")[0] in (401, 403)
+        assert _call(base, "/api/state", "not-the-token")[0] in (401, 403)
+        status, state = _call(base, "/api/state", token)
+        assert status == 200 and STATE_KEYS <= set(state), STATE_KEYS - set(state)
+        assert state["iteration"] == 1 and state["n_points"] == 0 and state["mu_peak"] == pytest.approx(analysis.mu_peak)
+        assert ITERATION_KEYS <= set(state["iterations"][0])
+        assert state["iterations"][0]["lower"] == box.lower.tolist()
+        for action in ("pause", "resume", "abort"):  # a viewer cannot steer another process's run
+            assert _call(base, f"/api/{action}", token, "POST")[0] == 409
+    finally:
+        child.terminate()
+        child.wait(timeout=30)
+
+
 @pytest.mark.slow
 def test_view_serves_a_finished_run_read_only(tmp_path):
     from setmem_hil.cli.main import main
