@@ -240,9 +240,7 @@ def true_structure(procedure: Procedure):
         return scaled_beam(ModalParameters.from_modal(beam_natural_frequencies(), damping, BEAM_RESIDUE, 0.0), backend.emulation.first_mode_rad_s)
     sim = backend.simulation
     if sim.truth_modes:  # a truth file's structure (issue 47)
-        modes = sorted(sim.truth_modes)
-        full = ModalParameters.from_modal(*(np.array([m[k] for m in modes], dtype=float) for k in (0, 1, 2)),
-                                          np.array([m[3] for m in modes], dtype=float))
+        full = ModalParameters.from_mode_table(sim.truth_modes)
         return full if sim.unmodelled_dynamics else full.truncated(min(procedure.prior.n_modes, full.n_modes))
     control = sim.sensors[sim.control_output - 1]
     if (control, sim.actuator) == (1.0, 1.0):

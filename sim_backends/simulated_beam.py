@@ -91,9 +91,7 @@ class SimulatedBeamExperiment:
         structure's modes."""
         if tuple(self.sensors) != (1.0,) or self.first_mode_rad_s != 1.0:
             raise ValueError("truth_modes: one sensor (the file's), unscaled")
-        modes = sorted(self.truth_modes)
-        w, z, b0, b1 = (np.array([m[k] for m in modes], dtype=float) for k in range(4))
-        full = ModalParameters.from_modal(w, z, b0, b1)
+        full = ModalParameters.from_mode_table(self.truth_modes)
         self._noise_bounds.append(noise_bound_function(self.noise_profile, full, self.noise_scale))
         self._truths.append(full if self.unmodelled_dynamics else full.truncated(min(self.n_modelled, full.n_modes)))
         self._noise_bound = self._noise_bounds[0]

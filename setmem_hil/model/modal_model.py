@@ -75,6 +75,13 @@ class ModalParameters:
         b1 = np.zeros_like(omega_n) if b1 is None else np.broadcast_to(np.asarray(b1, dtype=float), omega_n.shape)
         return cls(np.column_stack([2 * zeta * omega_n, omega_n**2, b1, b0]))
 
+    @classmethod
+    def from_mode_table(cls, modes) -> "ModalParameters":
+        """From rows ``(omega_n rad/s, zeta, b0, b1)`` (a truth file's modes), sorted by frequency."""
+        rows = sorted(tuple(float(v) for v in m) for m in modes)
+        w, z, b0, b1 = (np.array([m[k] for m in rows], dtype=float) for k in range(4))
+        return cls.from_modal(w, z, b0, b1)
+
     @property
     def natural_frequencies(self) -> np.ndarray:
         return np.sqrt(self.values[:, A0])
