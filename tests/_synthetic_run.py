@@ -13,7 +13,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def one_iteration_run(run_dir: Path, half_width: float = 0.005):
+def one_iteration_run(run_dir: Path, half_width: float = 0.005, groups: tuple = ()):
     """Write the run into ``run_dir``; returns ``(run_dir, box, analysis)``."""
     from setmem_hil.campaign.persistence import iteration_fields
     from setmem_hil.campaign.run_directory import new_journal
@@ -31,7 +31,7 @@ def one_iteration_run(run_dir: Path, half_width: float = 0.005):
     analysis = analyze_robust_performance(box, procedure.weights)
     doc = dict(k=1, n_points=15, mu_peak=analysis.mu_peak, safeguard="new-design", mu_peak_certified=analysis.mu_peak_certified,
                outputs=None, design="h2", floor_modes=(), model=box, plant=box, gain=None, analysis=analysis,
-               identification=SimpleNamespace(embedding_gamma=np.zeros(3), mismatch_ratio=np.zeros(3)))
+               identification=SimpleNamespace(embedding_gamma=np.zeros(3), mismatch_ratio=np.zeros(3), groups=groups))
     journal = new_journal(run_dir / JOURNAL_FILENAME, procedure, procedure.source_text, seed=1, strategy="mu")
     journal.add_iteration(IterationRecord(**iteration_fields(doc, None, 0.0)))
     journal.close()

@@ -203,6 +203,7 @@ def test_version_2_journals_are_upgraded_and_export_designs_again(h2_run_dir, tm
     conn.execute("ALTER TABLE iteration DROP COLUMN outputs")
     conn.execute("ALTER TABLE iteration DROP COLUMN common_gain")
     conn.execute("ALTER TABLE measurement DROP COLUMN others")
+    conn.execute("ALTER TABLE iteration DROP COLUMN groups")  # version 8 (issue 47)
     conn.execute("ALTER TABLE iteration DROP COLUMN design")  # version 7 (issue 38)
     conn.execute("ALTER TABLE iteration DROP COLUMN floor_modes")
     conn.execute("ALTER TABLE run DROP COLUMN design")

@@ -210,6 +210,7 @@ def test_certificate_round_trips_and_version_3_journals_are_upgraded(tmp_path):
     conn.execute("ALTER TABLE iteration DROP COLUMN outputs")
     conn.execute("ALTER TABLE iteration DROP COLUMN common_gain")
     conn.execute("ALTER TABLE measurement DROP COLUMN others")
+    conn.execute("ALTER TABLE iteration DROP COLUMN groups")  # version 8 (issue 47)
     conn.execute("ALTER TABLE iteration DROP COLUMN design")  # version 7 (issue 38)
     conn.execute("ALTER TABLE iteration DROP COLUMN floor_modes")
     conn.execute("ALTER TABLE run DROP COLUMN design")
@@ -226,6 +227,18 @@ def test_certificate_round_trips_and_version_3_journals_are_upgraded(tmp_path):
     from setmem_hil.model.mu_floor import floor_modes
 
     assert [g.floor_modes for g in got] == [floor_modes(IntervalModel(g.lower, g.upper)) for g in got]
+    assert all(g.groups is None for g in got)  # not recorded before issue 47: the report says "-"
+
+
+def test_the_groups_of_closely_spaced_modes_round_trip(tmp_path):
+    import dataclasses
+
+    rng = np.random.default_rng(6)
+    j = _create(tmp_path)
+    j.add_iteration(dataclasses.replace(_record(1, rng), groups=((1, 2),)))
+    j.add_iteration(dataclasses.replace(_record(2, rng), groups=()))
+    assert [g.groups for g in j.iterations()] == [((1, 2),), ()]
+    j.close()
 
 
 def test_other_sensors_round_trip(tmp_path):

@@ -184,3 +184,19 @@ def test_report_needs_no_display(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "False"
     assert (run / "fig_tf_k1.png").stat().st_size > 5000
+
+
+def test_the_report_says_which_modes_were_identified_together(tmp_path):
+    """Issue 47, item 5: per mode, alone or with its group (from the journal's iteration record)."""
+    import importlib.util
+
+    from setmem_hil.report.document import write_report
+
+    spec = importlib.util.spec_from_file_location("_synthetic_run", Path(__file__).with_name("_synthetic_run.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    run_dir = module.one_iteration_run(tmp_path / "run", groups=((1, 2),))[0]
+    page = write_report(run_dir).read_text()
+    table = page[page.index("table-conservatism-k1"):]
+    table = table[: table.index("</table>")]
+    assert table.count("with modes 2 + 3") == 2 and table.count("alone") == 1

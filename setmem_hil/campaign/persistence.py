@@ -65,6 +65,7 @@ def iteration_fields(iteration: dict, choice: Any, wall_s: float) -> dict:
         mu_certified_intervals=int(getattr(analysis, "mu_certified_intervals", 0)), outputs=iteration["outputs"],
         common_gain=None if gain is None else {"gain": list(gain), "lower": model.lower.tolist(), "upper": model.upper.tolist()},
         design=iteration["design"], floor_modes=tuple(iteration["floor_modes"]),
+        groups=tuple(tuple(int(m) for m in group) for group in getattr(result, "groups", ()) or ()),
     )
 
 

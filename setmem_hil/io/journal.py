@@ -65,9 +65,9 @@ __all__ = ["Journal", "IterationRecord", "JournalError", "JournalSnapshot", "rea
 
 JOURNAL_FILENAME = "journal.sqlite"
 APPLICATION_ID = 0x53454D48  # "SEMH": marks an SQLite file as a setmem-hil journal
-SCHEMA_VERSION = 7  # 2: measurement.rig_s; 3: iteration.controller; 4: iteration.mu_peak_certified,
+SCHEMA_VERSION = 8  # 2: measurement.rig_s; 3: iteration.controller; 4: iteration.mu_peak_certified,
 # mu_certified_intervals; 5: measurement.others, iteration.outputs; 6: iteration.common_gain; 7:
-# run.design, iteration.design, floor_modes (older journals are upgraded when opened)
+# run.design, iteration.design, floor_modes; 8: iteration.groups (older journals are upgraded when opened)
 ROLES = ("initial", "added")
 
 
@@ -152,6 +152,7 @@ class IterationRecord:
     common_gain: dict | None = None
     design: str | None = None
     floor_modes: tuple[int, ...] | None = None
+    groups: tuple[tuple[int, ...], ...] | None = None  # 0-based modes identified together (issue 47); None: not recorded
 
 
 _ARRAY_FIELDS = ("lower", "upper", "omega", "mu", "candidate_omega", "estimated_improvement", "embedding_gamma", "mismatch_ratio")
@@ -207,7 +208,8 @@ CREATE TABLE iteration (
     outputs TEXT,
     common_gain TEXT,
     design TEXT,
-    floor_modes TEXT
+    floor_modes TEXT,
+    groups TEXT
 );
 CREATE TABLE discrepancy (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -442,7 +444,8 @@ class Journal:
                     5: "ALTER TABLE iteration ADD COLUMN common_gain TEXT",  # NULL: no calibration scale
                     6: "ALTER TABLE run ADD COLUMN design TEXT NOT NULL DEFAULT 'h2';"  # every earlier run designed with H2
                        "ALTER TABLE iteration ADD COLUMN design TEXT;"
-                       "ALTER TABLE iteration ADD COLUMN floor_modes TEXT"}
+                       "ALTER TABLE iteration ADD COLUMN floor_modes TEXT",
+                    7: "ALTER TABLE iteration ADD COLUMN groups TEXT"}  # NULL: written before groups were recorded
         while version in upgrades:
             try:
                 for statement in upgrades[version].split(";"):
@@ -609,6 +612,8 @@ class Journal:
                 v = None if v is None else str(v)
             elif name == "floor_modes":
                 v = None if v is None else _to_json([int(m) for m in v])
+            elif name == "groups":
+                v = None if v is None else _to_json([[int(m) for m in group] for group in v])
             else:
                 v = _opt_float(v)
             values.append(v)
@@ -640,6 +645,8 @@ class Journal:
                     v = None if v is None else json.loads(v)
                 elif name == "floor_modes":
                     v = None if v is None else tuple(int(m) for m in json.loads(v))
+                elif name == "groups":
+                    v = None if v is None else tuple(tuple(int(m) for m in group) for group in json.loads(v))
                 kw[name] = v
             for name in ("lower", "upper"):
                 kw[name] = kw[name].reshape(-1, 4)

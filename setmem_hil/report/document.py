@@ -248,19 +248,30 @@ def _uncertainty_section(its, run, out_dir: Path) -> list[str]:
     return parts
 
 
+def _identified_with(rec: IterationRecord, i: int) -> str:
+    """How mode ``i`` was identified: alone (thesis chapter 3's split) or with the closely spaced
+    modes of its group (issue 47); "-" where the journal predates recorded groups."""
+    if rec.groups is None:
+        return "-"
+    group = next((g for g in rec.groups if i in g), None)
+    return "alone" if group is None else "with modes " + " + ".join(str(m + 1) for m in group)
+
+
 def _intervals_section(its) -> list[str]:
     """Appendix B's tables per iteration: bounds, widths, mu-sensitivities, and the conservatism per mode."""
     parts = ["<h2 id='intervals'>Parameter intervals and mu-sensitivities</h2>",
              "<p>Per iteration, as in the thesis's appendix B: the lower and upper bound of each parameter of "
              "G(s) = sum_i (b1_i s + b0_i) / (s^2 + a1_i s + a0_i) and its mu-sensitivity. Also the "
-             "identification's conservatism (embedding gamma, mismatch ratio) per mode.</p>"]
+             "identification's conservatism (embedding gamma, mismatch ratio) per mode, and whether it was identified alone or "
+             "with the closely spaced modes of its group (docs/closely-spaced-modes.md).</p>"]
     for n, rec in enumerate(its, start=1):
         parts.append(_table(["parameter", "lower bound", "upper bound", "width", "mu-sensitivity"], _interval_rows(rec),
                             f"table-intervals-k{rec.k}",
                             f"Table {n}: the lower bounds, upper bounds and mu-sensitivities {_after(its, rec.k)} (k = {rec.k}, {rec.n_points} points)."))
-        cons = [[i + 1, _num(g), _num(m)] for i, (g, m) in enumerate(zip(np.atleast_1d(rec.embedding_gamma), np.atleast_1d(rec.mismatch_ratio)))]
+        cons = [[i + 1, _num(g), _num(m), _identified_with(rec, i)]
+                for i, (g, m) in enumerate(zip(np.atleast_1d(rec.embedding_gamma), np.atleast_1d(rec.mismatch_ratio)))]
         if cons:
-            parts.append(_table(["mode", "embedding gamma", "mismatch ratio"], cons, f"table-conservatism-k{rec.k}"))
+            parts.append(_table(["mode", "embedding gamma", "mismatch ratio", "identified"], cons, f"table-conservatism-k{rec.k}"))
     return parts
 
 
