@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from setmem_hil.campaign.engine import RunEngine, RunStart
+from setmem_hil.campaign.rig_safety import Terminated, sigterm_as_interrupt
 from setmem_hil.drivers.real_time_target import BYPASS
 from setmem_hil.errors import DeviceError, InputFormatError, RunInterrupted
 from setmem_hil.verify.plan import NotEngaged, VerifyResult, VerifySetup, verification_plan
@@ -104,13 +105,14 @@ def run_verification(setup: VerifySetup, target_procedure, run_dir: str, out: Pa
     register_target_commands(engine, service)
     result, failure = VerifyResult(), None
     try:
-        engine.run(verification_plan(setup, result), RunStart("closed-loop-verification", {
-            "run_dir": str(run_dir), "procedure": target_procedure.name, "fs_hz": t.fs_hz, "delay_samples": t.delay_samples,
-            "gains": list(setup.gains), "frequencies_rad_s": list(setup.frequencies_rad_s)}))
+        with sigterm_as_interrupt():  # SIGTERM too ends with the target bypassed
+            engine.run(verification_plan(setup, result), RunStart("closed-loop-verification", {
+                "run_dir": str(run_dir), "procedure": target_procedure.name, "fs_hz": t.fs_hz, "delay_samples": t.delay_samples,
+                "gains": list(setup.gains), "frequencies_rad_s": list(setup.frequencies_rad_s)}))
     except NotEngaged as exc:
         failure = InputFormatError("setmem-hil verify", "", str(exc))
-    except KeyboardInterrupt:
-        failure = RunInterrupted("interrupted (Ctrl-C)")
+    except KeyboardInterrupt as exc:
+        failure = RunInterrupted("interrupted (SIGTERM)" if isinstance(exc, Terminated) else "interrupted (Ctrl-C)")
     except DeviceError as exc:
         failure = exc
     finally:
