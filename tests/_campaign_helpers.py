@@ -64,7 +64,8 @@ def cheap_procedure_text(max_experiments: int = 3) -> str:
 def fast_analysis(model, weights=None, omega_rad_s=None, controller=None, gain=None, design="h2", warm_start=None,
                   tuning=None, certificate_rtol=None):
     """Deterministic stand-in for ``analyze_robust_performance`` (same attributes; the design
-    method and its warm start change nothing here)."""
+    method and its warm start change nothing here but the ``design`` it reports, as the real one
+    does: a compensator it designs is the method's, a given one is "given")."""
     rel = np.where(model.fixed, 0.0, model.width / np.maximum(np.abs(model.upper) + np.abs(model.lower), 1e-12))
     mu_peak = 0.5 + float(rel.sum())
     w = np.geomspace(0.1, 100.0, 50)
@@ -75,7 +76,7 @@ def fast_analysis(model, weights=None, omega_rad_s=None, controller=None, gain=N
     return SimpleNamespace(
         mu_peak=mu_peak, mu_peak_omega=4.4, mu_lower_peak=0.9 * mu_peak, omega=w,
         mu=mu_peak * np.exp(-np.log(w / 4.4) ** 2), mu_lower=0.9 * mu_peak * np.exp(-np.log(w / 4.4) ** 2),
-        sensitivities=sens, controller="C", controller_order=6,
+        sensitivities=sens, controller="C", controller_order=6, design=design if controller is None else "given",
     )
 
 

@@ -96,3 +96,23 @@ def test_the_report_lists_every_sensor(run_dir):
     assert main(["report", str(run_dir)]) == 0
     html = (run_dir / "report.html").read_text()
     assert "id='sensors'" in html and "b0 at x=0.4" in html and "b0 at x=0.7" in html and "a1, a0 (shared)" in html
+
+
+def test_the_export_contract_of_several_sensors_on_a_run_of_its_initial_points(tmp_path):
+    """The CSV contract (an ``output`` column in measurements.csv and bounds.csv, every point once
+    per sensor) in the default tier: a run of the initial points only (no added experiment), the
+    thesis's H2 design. The campaign itself: the slow tests above."""
+    p = with_sensors((1.0, 0.4, 0.7))
+    p = dataclasses.replace(p, goal=dataclasses.replace(p.goal, max_experiments=0))
+    proc = tmp_path / "three.toml"
+    proc.write_text(format_procedure(p), encoding="utf-8")
+    assert main(["campaign", "--procedure", str(proc), "--backend", "sim", "--out", str(tmp_path / "run"), "--seed", "1",
+                 "--design", "h2", "--quiet"]) in (0, 1)
+    assert main(["export", str(tmp_path / "run"), "--csv", str(tmp_path / "csv")]) == 0
+    with open(tmp_path / "csv" / "measurements.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {r["output"] for r in rows} == {"x=1", "x=0.4", "x=0.7"}
+    seqs = [r["seq"] for r in rows]
+    assert len(set(seqs)) == len(p.initial_omegas_rad_s) and all(seqs.count(s) == 3 for s in set(seqs))
+    with open(tmp_path / "csv" / "bounds.csv", newline="") as fh:
+        assert {r["output"] for r in csv.DictReader(fh)} == {"x=1", "x=0.4", "x=0.7"}
