@@ -25,10 +25,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 
 from setmem_hil.errors import DeviceDisconnectedError
 from setmem_hil.model.modal_model import ModalParameters
+from setmem_hil.numerics.zero_order_hold import held
 from setmem_hil.sim_backends.firmware_core import FirmwareCore
 
 __all__ = ["TargetEmulation", "EmulatedClosedLoop", "EmulatedTargetChannel", "LoopRecord"]
@@ -130,6 +130,5 @@ def _held_discretisation(structure: ModalParameters, fs_hz: float, corner_hz: fl
         A = np.block([[A, np.zeros((n, 1))], [wc * C, -wc * np.ones((1, 1))]])
         B = np.concatenate([B, [0.0]])
         C = np.vstack([np.concatenate([C[0], [0.0]]), np.concatenate([np.zeros(n), [1.0]])])
-    n = A.shape[0]
-    Phi = scipy.linalg.expm(np.block([[A, B[:, None]], [np.zeros((1, n + 1))]]) / fs_hz)
-    return Phi[:n, :n], Phi[:n, n], C, lag
+    Ad, Bd = held(A, B, 1.0 / fs_hz)
+    return Ad, Bd[:, 0], C, lag

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from setmem_hil.errors import InputFormatError
 
-__all__ = ["kept_controller", "kept_box", "stored_weights"]
+__all__ = ["kept_controller", "kept_box", "stored_procedure"]
 
 
 def _error(where: str, problem: str) -> InputFormatError:
@@ -68,11 +68,11 @@ def kept_box(record):
     return IntervalModel(record.lower, record.upper), None
 
 
-def stored_weights(run_dir: str):
-    """The weights of the run's stored procedure."""
+def stored_procedure(run_dir: str):
+    """The run's stored procedure (the text its journal keeps), parsed."""
     from setmem_hil.io.journal import Journal
     from setmem_hil.io.procedure_file import parse_procedure_text
 
     with Journal.open(run_dir) as journal:
         text = journal.run_info()["procedure_text"]
-    return parse_procedure_text(text, f"{run_dir} (stored procedure)").weights
+    return parse_procedure_text(text, f"{run_dir} (stored procedure)")

@@ -32,6 +32,12 @@ class Weights:
         s = 1j * np.asarray(omega_rad_s, dtype=float)
         return np.abs(np.polyval(self.w1_num, s) / np.polyval(self.w1_den, s))
 
+    def w2_magnitude(self, omega_rad_s) -> np.ndarray:
+        """``|W2(jw)|`` as the analysis uses it (:meth:`w2_for_design`: with the roll-off pole)."""
+        num, den = self.w2_for_design()
+        s = 1j * np.asarray(omega_rad_s, dtype=float)
+        return np.abs(np.polyval(num, s) / np.polyval(den, s))
+
     def reference_frequency_rad_s(self) -> float:
         """The frequency scale of the control problem: half the geometric mean of W2's pole
         magnitudes (W2's nonzero poles, from its denominator's first and last coefficients).

@@ -113,7 +113,6 @@ def predicted_sensitivity(model: IntervalModel, weights: Weights, k_implemented:
     g = plant_disc(model, omega_rad_s, gain)
     if g is None:
         return PredictedSensitivity(float(omega_rad_s), None, None)
-    w1 = abs(complex(np.polyval(weights.w1_num, 1j * omega_rad_s) / np.polyval(weights.w1_den, 1j * omega_rad_s)))
-    g = g + Disc(0j, w1)
+    g = g + Disc(0j, float(weights.w1_magnitude(omega_rad_s)))
     loop = Disc(1.0 + 0j, 0.0) + g.scaled(-loop_gain * k_implemented)
     return PredictedSensitivity(float(omega_rad_s), g, loop.inverse())

@@ -33,11 +33,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 import scipy.signal
 
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.weights import Weights
+from setmem_hil.numerics.zero_order_hold import held
 from setmem_hil.robust.augmented_plant import AugmentedPlant, augmented_plant
 from setmem_hil.robust.controller_forms import second_order_sections
 from setmem_hil.robust.mixed_mu import MuStructure, mixed_mu_upper
@@ -121,8 +121,7 @@ def _sampled_loop_stable(plant: AugmentedPlant, Ts: float, sos: np.ndarray, gain
     """Eigenvalues of the sampled loop (nominal structure with its hold, the sections, the delay
     line) inside the unit circle."""
     n = plant.A.shape[0]
-    Phi = scipy.linalg.expm(np.block([[plant.A, plant.Bu], [np.zeros((1, n + 1))]]) * Ts)
-    Ad, Bd = Phi[:n, :n], Phi[:n, n:]
+    Ad, Bd = held(plant.A, plant.Bu, Ts)
     Ak, Bk, Ck, Dk = _sections_state_space(sos, gain)
     nk = Ak.shape[0]
     size = n + nk + delay

@@ -84,15 +84,16 @@ def rp_peak(plant: ModalParameters, K, weights: Weights, grid: np.ndarray, k_on_
 
 def closed_loop_stable(plant: ModalParameters, K) -> bool:
     """Internal stability of ``u = K y`` around ``plant`` (positive feedback)."""
+    return bool(np.max(np.linalg.eigvals(closed_loop_matrix(plant, K)).real) < 0.0)
+
+
+def closed_loop_matrix(plant: ModalParameters, K) -> np.ndarray:
+    """The state matrix of ``u = K y`` around ``plant`` (positive feedback)."""
     Ap, Bp, Cp, _ = plant.state_space_matrices()
     Ak, Bk, Ck, Dk = (np.atleast_2d(np.asarray(getattr(K, n), dtype=float)) for n in "ABCD")
     nk = Ak.shape[0] if Ak.size else 0
     top = np.hstack([Ap + Bp @ Dk @ Cp, Bp @ Ck]) if nk else Ap + Bp @ Dk @ Cp
-    if nk:
-        A = np.vstack([top, np.hstack([Bk @ Cp, Ak])])
-    else:
-        A = top
-    return bool(np.max(np.linalg.eigvals(A).real) < 0.0)
+    return np.vstack([top, np.hstack([Bk @ Cp, Ak])]) if nk else top
 
 
 def box_plants(model: IntervalModel, n_random: int, seed: int = 0) -> tuple[np.ndarray, str]:
@@ -152,11 +153,7 @@ def closed_loop_simulation(truth: ModalParameters, continuous, discrete, weights
     tail = t >= t[-1] - 20 * period
     basis = np.column_stack([np.sin(omega_rad_s * t[tail]), np.cos(omega_rad_s * t[tail])])
     amp = [float(np.hypot(*np.linalg.lstsq(basis, out[tail, i], rcond=None)[0])) for i in range(2)]
-    s = 1j * omega_rad_s
-    w1 = abs(np.polyval(weights.w1_num, s) / np.polyval(weights.w1_den, s))
-    w2_num, w2_den = weights.w2_for_design()
-    w2 = abs(np.polyval(w2_num, s) / np.polyval(w2_den, s))
-    measured = w2 * amp[0] + w1 * amp[1]
+    measured = float(weights.w2_magnitude(omega_rad_s)) * amp[0] + float(weights.w1_magnitude(omega_rad_s)) * amp[1]
     predicted = float(rp_curve(truth, continuous, weights, np.array([omega_rad_s]))[0])  # the continuous loop
     return {"stable": True, "fs_hz": 1.0 / Ts, "omega_rad_s": float(omega_rad_s), "duration_s": float(steps * Ts),
             "settled": bool(steps < MAX_SIMULATION_STEPS), "measured": float(measured), "S_amplitude": amp[0],

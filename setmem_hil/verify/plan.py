@@ -37,6 +37,7 @@ from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.weights import Weights
 from setmem_hil.robust.closed_loop_prediction import PredictedSensitivity, predicted_sensitivity
 from setmem_hil.robust.implemented_loop import implemented_mu_bar, implemented_response
+from setmem_hil.robust.validation import closed_loop_matrix
 from setmem_hil.verify.messages import Bypass, Engage, IdentifyTarget, InjectAndRecord, LoadCompensator
 
 __all__ = ["VerifySetup", "VerifiedPoint", "VerifyResult", "NotEngaged", "verification_plan", "chosen_frequencies", "settle_time_s"]
@@ -96,10 +97,6 @@ class VerifyResult:
         return next((p for p in self.points if not p.inside), None)
 
 
-def _w(num, den, omega: float) -> complex:
-    return complex(np.polyval(num, 1j * omega) / np.polyval(den, 1j * omega))
-
-
 def verification_plan(setup: VerifySetup, result: VerifyResult | None = None):
     """See the module docstring; fills and returns ``result`` (a caller that passes its own keeps
     what was measured however the plan ends)."""
@@ -155,8 +152,8 @@ def _measure_step(setup: VerifySetup, gain: float):
         point = closed_loop_point(record.t_s, record.r, record.u, record.y, w)
         k = complex(implemented_response(setup.controller, setup.fs_hz, setup.delay_samples, setup.prewarp_rad_s, [w])[0])
         prediction = predicted_sensitivity(setup.model, setup.weights, k, w, setup.calibration_gain, loop_gain=gain)
-        performance = abs(_w(setup.weights.w2_num, setup.weights.w2_den, w) * point.S) \
-            + abs(_w(setup.weights.w1_num, setup.weights.w1_den, w) * gain * k * point.S)
+        # |W2 S| + |W1 K S| with the weights the claimed mu-bar was computed with
+        performance = float(setup.weights.w2_magnitude(w)) * abs(point.S) + float(setup.weights.w1_magnitude(w)) * abs(gain * k * point.S)
         verified = VerifiedPoint(gain, point, prediction, prediction.holds(point.S, point.S_bound), float(performance))
         yield Emit("point", verified.to_document() | {"gain": gain})
         points.append(verified)
@@ -175,7 +172,7 @@ def chosen_frequencies(model: IntervalModel, weights: Weights, controller, fs_hz
     weighted = []
     for w, kw in zip(grid, k):
         s_max = predicted_sensitivity(model, weights, complex(kw), float(w), gain).abs_range[1]
-        weighted.append(abs(_w(weights.w2_num, weights.w2_den, float(w))) * s_max if math.isfinite(s_max) else -1.0)
+        weighted.append(float(weights.w2_magnitude(w)) * s_max if math.isfinite(s_max) else -1.0)
     peak = float(grid[int(np.argmax(weighted))])
     chosen = sorted({round(float(v), 9) for v in (lo, peak, *modes, hi) if lo <= v <= hi})
     return tuple(chosen)
@@ -184,10 +181,5 @@ def chosen_frequencies(model: IntervalModel, weights: Weights, controller, fs_hz
 def settle_time_s(model: IntervalModel, controller, gain: float = 1.0, constants: float = 10.0, floor_s: float = 1.0) -> float:
     """``constants`` time constants of the slowest pole of the nominal closed loop (the box's
     midpoint under ``gain * K``), at least ``floor_s``."""
-    nominal = model.midpoint
-    Ap, Bp, Cp, _ = nominal.state_space_matrices()
-    K = _scaled(controller, gain)
-    Ak, Bk, Ck, Dk = (np.atleast_2d(np.asarray(getattr(K, n), dtype=float)) for n in "ABCD")
-    A = np.block([[Ap + Bp @ Dk @ Cp, Bp @ Ck], [Bk @ Cp, Ak]])
-    slowest = float(np.min(-np.linalg.eigvals(A).real))
+    slowest = float(np.min(-np.linalg.eigvals(closed_loop_matrix(model.midpoint, _scaled(controller, gain))).real))
     return max(floor_s, constants / slowest) if slowest > 0 else floor_s

@@ -87,15 +87,12 @@ def _progress(quiet: bool):
     return show
 
 
-def run_verification(setup: VerifySetup, target_procedure, run_dir: str, out: Path, quiet: bool = False
+def run_verification(setup: VerifySetup, target_procedure, procedure, run_dir: str, out: Path, quiet: bool = False
                      ) -> tuple[VerifyResult, BaseException | None]:
-    """Run the plan; ``(result, failure)``: what was measured, and the error to report (None when it ended)."""
+    """Run the plan on the target of ``target_procedure`` around the structure of the run's
+    ``procedure``; ``(result, failure)``: what was measured, and the error to report (None when it ended)."""
     from setmem_hil.experiment_factory import open_target
-    from setmem_hil.io.journal import Journal
-    from setmem_hil.io.procedure_file import parse_procedure_text
 
-    with Journal.open(run_dir) as journal:
-        procedure = parse_procedure_text(journal.run_info()["procedure_text"], f"{run_dir} (stored procedure)")
     opened = open_target(target_procedure, procedure)
     t = target_procedure.target
     service = TargetService(opened.target, opened.rig, fs_hz=t.fs_hz, delay_samples=t.delay_samples, drive_limit=t.drive_limit,
@@ -135,9 +132,11 @@ def _confirm_safe(service: TargetService) -> str:
 
 
 def _with_safety(failure: BaseException, safety: str) -> BaseException:
-    text = f"{failure}; {safety}"
+    """The failure with what the clean-up achieved: a device fault carries it as the CLI's
+    ``safety_note`` (as a campaign's does); the others say it in their message."""
+    if isinstance(failure, DeviceError):
+        failure.safety_note = safety
+        return failure
     if isinstance(failure, InputFormatError):
         return InputFormatError(failure.source, failure.location, f"{failure.problem}; {safety}")
-    if isinstance(failure, RunInterrupted):
-        return RunInterrupted(text)
-    return type(failure)(text) if isinstance(failure, DeviceError) and type(failure).__init__ is DeviceError.__init__ else DeviceError(text)
+    return RunInterrupted(f"{failure}; {safety}")

@@ -109,11 +109,11 @@ def run(args: argparse.Namespace) -> int:
 def implemented_guarantee(run_dir: str, record, K, fs_hz: float, delay_samples: int, command: str = "setmem-hil controller") -> dict:
     """The implemented loop's document (:class:`~setmem_hil.robust.implemented_loop.ImplementedLoop`),
     or :class:`InputFormatError` when its mu-bar is >= 1, naming the sample rate that would do."""
-    from setmem_hil.campaign.compensator import kept_box, stored_weights
+    from setmem_hil.campaign.compensator import kept_box, stored_procedure
     from setmem_hil.robust.implemented_loop import implemented_mu_bar, required_sample_rate
 
     model, gain = kept_box(record)
-    weights = stored_weights(run_dir)
+    weights = stored_procedure(run_dir).weights
     loop = implemented_mu_bar(model, weights, K, fs_hz, delay_samples, float(record.mu_peak_omega), gain)
     if loop.mu_bar >= 1.0:
         needed = required_sample_rate(model, weights, K, delay_samples, float(record.mu_peak_omega), fs_hz, gain=gain)

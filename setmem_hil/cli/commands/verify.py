@@ -49,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from setmem_hil.campaign.compensator import kept_box, kept_controller, stored_weights
+    from setmem_hil.campaign.compensator import kept_box, kept_controller, stored_procedure
     from setmem_hil.cli.commands.controller import implemented_guarantee
     from setmem_hil.io.target_file import load_target_procedure
     from setmem_hil.robust.controller_forms import second_order_sections
@@ -60,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
     record, K = kept_controller(args.run_dir, args.iteration, command="setmem-hil verify")
     implemented_guarantee(args.run_dir, record, K, t.fs_hz, t.delay_samples, command="setmem-hil verify")  # exit 2 before anything moves
     model, calibration = kept_box(record)
-    weights = stored_weights(args.run_dir)
+    procedure = stored_procedure(args.run_dir)  # the structure (an emulated target's) and the weights
+    weights = procedure.weights
     prewarp = float(record.mu_peak_omega)
     sos, sos_gain = second_order_sections(K, t.fs_hz, prewarp)
     frequencies = v.frequencies_rad_s or vp.chosen_frequencies(model, weights, K, t.fs_hz, t.delay_samples, prewarp, calibration)
@@ -71,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     from setmem_hil.verify.session import run_verification
 
-    result, failure = run_verification(setup, target_procedure, args.run_dir, out, quiet=args.quiet)
+    result, failure = run_verification(setup, target_procedure, procedure, args.run_dir, out, quiet=args.quiet)
     doc = _document(result, setup, target_procedure, record)
     from setmem_hil.io.atomic_file import write_json_atomic
 
