@@ -33,6 +33,14 @@ and accuracy; its distance below the primal objective *is* the tolerance actuall
 empty only when ``z`` satisfies ``b^T z < min_{y in box} (A^T z)^T y`` after the same projection
 and rounding allowance (a checked Farkas certificate).
 
+Products of two parameters (issue 47, the lifted form of a close pair). A residual may also be
+affine in auxiliary variables ``z_k`` that stand for the product ``y_p y_q`` of two normalised
+free parameters. Each ``z_k`` lies in ``[-1, 1]`` and in the product's McCormick envelope over the
+box (four linear inequalities ``G v <= h``; exact at the box's corners). The certificates then
+carry the envelope's multipliers ``lambda >= 0`` too:
+
+    q^T v >= -b^T z - h^T lambda + min_{v in box} (q + A^T z + G^T lambda)^T v.
+
 Status translation (issue 12 item 6), the rule:
 
 - ``Solved``: its dual gives the certified bound; if that lags the primal objective by more than
@@ -63,6 +71,37 @@ SOLVED = "Solved"
 PRIMAL_INFEASIBLE = "PrimalInfeasible"
 CERT_GAP = 1e-6  # certified bound may lag the objective by this fraction of the box width
 _EPS = np.finfo(float).eps
+
+
+@dataclass(frozen=True)
+class ProductTerms:
+    """Auxiliary variables of a residual that stand for products of two normalised parameters.
+
+    ``K`` (complex, ``(N, n_aux)``): each point's coefficient of ``z_k``, in the normalised
+    coordinates of the program's box (``x = c + h y``, ``z_k = y_p y_q``). ``pairs`` (int,
+    ``(n_aux, 2)``): the parameters ``p, q`` (indices into the full parameter vector, both free) of
+    each product.
+    """
+
+    K: np.ndarray
+    pairs: np.ndarray
+
+
+def mccormick_rows(pairs: np.ndarray, free_index: np.ndarray, n_free: int) -> tuple[np.ndarray, np.ndarray]:
+    """The envelope of ``z_k = y_p y_q`` over ``y_p, y_q`` in ``[-1, 1]``, as ``G v <= h`` on
+    ``v = (y_free, z)``: ``-z + y_p + y_q <= 1``, ``-z - y_p - y_q <= 1``, ``z - y_p + y_q <= 1``,
+    ``z + y_p - y_q <= 1`` (McCormick 1976). ``h`` is widened by a few ulps: the y-box is the x-box
+    rounded outward, so its corners may lie an ulp outside ``[-1, 1]``."""
+    n_aux = len(pairs)
+    G = np.zeros((4 * n_aux, n_free + n_aux))
+    for k, (p, q) in enumerate(pairs):
+        i, j, col = free_index[p], free_index[q], n_free + k
+        for r, (sz, sy) in enumerate(((-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0), (1.0, 1.0))):
+            row = 4 * k + r
+            G[row, col] = sz
+            G[row, i] += sy
+            G[row, j] += sy if r < 2 else -sy
+    return G, np.full(4 * n_aux, 1.0 + 16 * _EPS)
 
 
 @dataclass(frozen=True)
@@ -117,11 +156,11 @@ class AffineConeProgram:
         The points' frequencies (kept for diagnostics).
     """
 
-    def __init__(self, r_c, J, err_rc, box_lo, box_hi, omega_rad_s=None):
+    def __init__(self, r_c, J, err_rc, box_lo, box_hi, omega_rad_s=None, products: ProductTerms | None = None):
         box_lo = np.asarray(box_lo, dtype=float)
         box_hi = np.asarray(box_hi, dtype=float)
         self._setup(np.asarray(r_c, dtype=complex), np.asarray(J, dtype=complex), np.asarray(err_rc, dtype=float),
-                    box_lo, box_hi, omega_rad_s)
+                    box_lo, box_hi, omega_rad_s, products)
 
     @staticmethod
     def box_centre(box_lo, box_hi):
@@ -132,7 +171,7 @@ class AffineConeProgram:
         half = np.where(finite & free, 0.5 * (box_hi - box_lo), 1.0)
         return centre, half
 
-    def _setup(self, r_c, J_unscaled, err_rc_abs, box_lo, box_hi, omega_rad_s):
+    def _setup(self, r_c, J_unscaled, err_rc_abs, box_lo, box_hi, omega_rad_s, products: ProductTerms | None = None):
         n_params = box_lo.size
         self.n_params = n_params
         self.omega = None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float)
@@ -141,13 +180,16 @@ class AffineConeProgram:
         self.centre, self.half = self.box_centre(box_lo, box_hi)
         J = J_unscaled * self.half[None, :]
         Jf = J[:, self.free]
+        n_aux = 0 if products is None else len(products.pairs)
+        if n_aux:
+            Jf = np.hstack([Jf, np.asarray(products.K, dtype=complex)])
         n, p = r_c.size, int(self.free.sum())
-        self.n_points, self.n_free = n, p
-        size = np.maximum(np.abs(r_c), np.max(np.abs(Jf), axis=1) if p else 0.0)
+        self.n_points, self.n_free, self.n_aux = n, p, n_aux
+        size = np.maximum(np.abs(r_c), np.max(np.abs(Jf), axis=1) if p + n_aux else 0.0)
         positive = size[size > 0]
         floor = positive.min() if positive.size else 1.0
         self.sigma = np.where(size > 0, size, floor)  # per-point cone scaling
-        A_soc = np.zeros((3 * n, p))
+        A_soc = np.zeros((3 * n, p + n_aux))
         A_soc[1::3] = -Jf.real / self.sigma[:, None]
         A_soc[2::3] = -Jf.imag / self.sigma[:, None]
         b_soc = np.zeros(3 * n)
@@ -159,10 +201,16 @@ class AffineConeProgram:
         self._err_b[1::3] = err_rc
         self._err_b[2::3] = err_rc
         self._abs_A_soc = np.abs(A_soc)
-        A = np.vstack([A_soc, np.eye(p), -np.eye(p)])  # s = b - A y: cones, y <= hi, -y <= -lo
+        free_index = np.cumsum(self.free) - 1
+        self._G, self._h = (mccormick_rows(products.pairs, free_index, p) if n_aux
+                            else (np.zeros((0, p)), np.zeros(0)))
+        nv = p + n_aux
+        # s = b - A v: cones, the products' envelopes, v <= hi, -v <= -lo
+        A = np.vstack([A_soc, self._G, np.eye(nv), -np.eye(nv)])
         self._A = sp.csc_matrix(A)
-        self._P = sp.csc_matrix((p, p))
-        self._cones = [clarabel.SecondOrderConeT(3) for _ in range(n)] + [clarabel.NonnegativeConeT(2 * p)]
+        self._P = sp.csc_matrix((nv, nv))
+        self._cones = ([clarabel.SecondOrderConeT(3) for _ in range(n)]
+                       + [clarabel.NonnegativeConeT(self._h.size + 2 * nv)])
         self._solvers: dict[str, object] = {}
         self.n_solves = 0
         # (parameter index, +1 lower / -1 upper) -> (projected dual z, y-bound) of the last box,
@@ -177,11 +225,17 @@ class AffineConeProgram:
         # outward by one rounding step so the y-box contains the x-box
         return np.nextafter(ylo, -np.inf), np.nextafter(yhi, np.inf)
 
+    def _with_aux(self, ylo, yhi):
+        """The box of ``v = (y, z)``: the products lie in ``[-1, 1]`` (widened by an ulp or two)."""
+        one = 1.0 + 4 * _EPS
+        return (np.concatenate([ylo, np.full(self.n_aux, -one)]), np.concatenate([yhi, np.full(self.n_aux, one)]))
+
     def _b(self, C, ylo, yhi) -> np.ndarray:
         b_soc = self._b_soc.copy()
         b_soc[0::3] = np.asarray(C, dtype=float) / self.sigma * (1.0 + 4 * _EPS)
         big = 1e20
-        return np.concatenate([b_soc, np.where(np.isfinite(yhi), yhi, big), np.where(np.isfinite(ylo), -ylo, big)])
+        vlo, vhi = self._with_aux(ylo, yhi)
+        return np.concatenate([b_soc, self._h, np.where(np.isfinite(vhi), vhi, big), np.where(np.isfinite(vlo), -vlo, big)])
 
     def _solve(self, q, b, mode="default"):
         solver = self._solvers.get(mode)
@@ -203,34 +257,52 @@ class AffineConeProgram:
         z[:, 0] = np.maximum(z[:, 0], norm * (1.0 + 4 * _EPS))  # exactly inside the dual cone
         return z.reshape(-1)
 
-    def _round_allowance(self, z, b_soc, q, ylo, yhi):
-        """Outward allowance for the rounding in ``b^T z`` and ``A^T z`` (a few ulps per term)."""
-        k = (3 * self.n_points + self.n_free + 4) * _EPS * 2.0
-        ymax = np.maximum(np.abs(ylo), np.abs(yhi))
-        return (k * (np.abs(b_soc) @ np.abs(z) + ((self._abs_A_soc.T @ np.abs(z) + np.abs(q)) @ ymax))
-                + self._err_b @ np.abs(z))
+    def _dual_envelope(self, res) -> np.ndarray:
+        """The products' envelope multipliers of ``res``, made exactly nonnegative (empty without
+        products)."""
+        if not self._h.size:
+            return np.zeros(0)
+        z = np.asarray(res.z, dtype=float)
+        lam = z[3 * self.n_points: 3 * self.n_points + self._h.size] if z.size >= 3 * self.n_points + self._h.size else None
+        if lam is None or not np.all(np.isfinite(lam)):
+            return np.zeros(self._h.size)
+        return np.maximum(lam, 0.0)
+
+    def _round_allowance(self, z, lam, b_soc, q, vlo, vhi):
+        """Outward allowance for the rounding in ``b^T z``, ``h^T lambda`` and ``A^T z + G^T lambda``
+        (a few ulps per term)."""
+        k = (3 * self.n_points + self._h.size + self.n_free + self.n_aux + 4) * _EPS * 2.0
+        vmax = np.maximum(np.abs(vlo), np.abs(vhi))
+        dual_sizes = self._abs_A_soc.T @ np.abs(z) + np.abs(self._G).T @ lam + np.abs(q)
+        return k * (np.abs(b_soc) @ np.abs(z) + self._h @ lam + dual_sizes @ vmax) + self._err_b @ np.abs(z)
 
     def certified_lower(self, res, q, b, ylo, yhi) -> float:
-        """Rigorous lower bound of ``q^T y`` over the feasible set, from the dual of ``res``."""
+        """Rigorous lower bound of ``q^T v`` over the feasible set, from the dual of ``res``."""
         z = self._dual_soc(res)
         if z is None:
             return -np.inf
+        lam = self._dual_envelope(res)
+        vlo, vhi = self._with_aux(ylo, yhi)
         b_soc = b[: 3 * self.n_points]
-        r = q + self._A_soc.T @ z
-        box_min = np.sum(np.minimum(r * ylo, r * yhi))
-        value = -(b_soc @ z) + box_min - self._round_allowance(z, b_soc, q, ylo, yhi)
+        r = q + self._A_soc.T @ z + self._G.T @ lam
+        box_min = np.sum(np.minimum(r * vlo, r * vhi))
+        value = -(b_soc @ z) - self._h @ lam + box_min - self._round_allowance(z, lam, b_soc, q, vlo, vhi)
         return float(value) if np.isfinite(value) else -np.inf
 
     def certified_empty(self, res, b, ylo, yhi) -> bool:
-        """Does ``res.z`` prove that no ``y`` in the box satisfies every point cone?"""
+        """Does ``res.z`` prove that no ``v`` in the box satisfies every point cone (and envelope)?"""
         z = self._dual_soc(res)
-        if z is None or not np.any(z):
+        if z is None:
             return False
+        lam = self._dual_envelope(res)
+        if not (np.any(z) or np.any(lam)):
+            return False
+        vlo, vhi = self._with_aux(ylo, yhi)
         b_soc = b[: 3 * self.n_points]
-        r = self._A_soc.T @ z
-        box_min = np.sum(np.minimum(r * ylo, r * yhi))
-        allowance = self._round_allowance(z, b_soc, np.zeros(self.n_free), ylo, yhi)
-        return bool(b_soc @ z < box_min - allowance)
+        r = self._A_soc.T @ z + self._G.T @ lam
+        box_min = np.sum(np.minimum(r * vlo, r * vhi))
+        allowance = self._round_allowance(z, lam, b_soc, np.zeros(self.n_free + self.n_aux), vlo, vhi)
+        return bool(b_soc @ z + self._h @ lam < box_min - allowance)
 
     def _certificate(self, res) -> np.ndarray:
         """Norm of each point's cone dual in the infeasibility certificate (Farkas multipliers)."""
@@ -257,10 +329,10 @@ class AffineConeProgram:
             if bound > best:
                 best = bound
                 self._best_z = self._dual_soc(res)
-                y = np.asarray(res.x, dtype=float)
+                y = np.asarray(res.x, dtype=float)[: self.n_free]
                 y_at = y if np.all(np.isfinite(y)) else None
             if status == SOLVED and y_at is not None:
-                objective = float(q @ y_at)
+                objective = float(q[: self.n_free] @ y_at)
                 if objective - best <= CERT_GAP * float(np.max(yhi - ylo)):
                     break
         return best, y_at, status, res
@@ -284,7 +356,7 @@ class AffineConeProgram:
         free_idx = np.flatnonzero(self.free)
         for k, p in enumerate(free_idx):
             for sign in (1.0, -1.0):
-                q = np.zeros(self.n_free)
+                q = np.zeros(self.n_free + self.n_aux)
                 q[k] = sign
                 bound, y_at, status, res = self._bound_objective(q, b, ylo, yhi)
                 if bound is not None and np.isfinite(bound):
@@ -320,7 +392,7 @@ class AffineConeProgram:
         box_hi = np.asarray(box_hi, dtype=float)
         ylo, yhi = self._to_y(box_lo, box_hi)
         b = self._b(C, ylo, yhi)
-        q = np.zeros(self.n_free)
+        q = np.zeros(self.n_free + self.n_aux)
         if self.n_free:
             q[0] = 1.0
         bound, _, status, _ = self._bound_objective(q, b, ylo, yhi)

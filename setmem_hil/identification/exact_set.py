@@ -46,26 +46,9 @@ def model_jacobian(values: np.ndarray, omega_rad_s) -> tuple[np.ndarray, np.ndar
     return G, J
 
 
-def linearised_extent(omega_rad_s, g, bound, at: np.ndarray, lower: np.ndarray | None = None,
-                      upper: np.ndarray | None = None, sides: int = 64, inscribed: bool = True):
-    """Per-parameter extent of the feasible set linearised at ``at`` (module docstring).
-
-    Parameters
-    ----------
-    omega_rad_s, g, bound : arrays (N,)
-    at : array (n, 4)
-        The linearisation point (the truth, or the identified box's centre).
-    lower, upper : arrays (n, 4), optional
-        The prior box; parameters with ``lower == upper`` are fixed.
-    sides, inscribed : int, bool
-        The polygon replacing each disc: inscribed (the reference is never wider than the disc's
-        set) or circumscribed (never narrower: never empty where the disc's set is not).
-
-    Returns
-    -------
-    (lo, hi) arrays (n, 4), or ``None`` when the linearised set is empty (``at`` too far from the
-    data for the linearisation to mean anything).
-    """
+def _linearised_program(omega_rad_s, g, bound, at, lower, upper, sides: int, inscribed: bool):
+    """The linear program of the linearised set (module docstring): ``(A, b, bounds, free, scale,
+    x0)`` in the unknowns ``dx / scale`` of the free parameters."""
     x0 = np.asarray(at, dtype=float).reshape(-1)
     n_par = x0.size
     lower = np.full(n_par, -np.inf) if lower is None else np.asarray(lower, dtype=float).reshape(-1)
@@ -90,7 +73,18 @@ def linearised_extent(omega_rad_s, g, bound, at: np.ndarray, lower: np.ndarray |
     A, b = A / norm[:, None], b / norm
     bounds = [((lo - x) / s if np.isfinite(lo) else None, (hi - x) / s if np.isfinite(hi) else None)
               for lo, hi, x, s in zip(lower[free], upper[free], x0[free], scale)]
-    lo_out, hi_out = x0.copy(), x0.copy()
+    return A, b, bounds, free, scale, x0
+
+
+def linearised_extremes(omega_rad_s, g, bound, at: np.ndarray, lower: np.ndarray | None = None,
+                        upper: np.ndarray | None = None, sides: int = 64, inscribed: bool = True):
+    """Each free parameter's lowest and highest point of the feasible set linearised at ``at``.
+
+    Returns a list of ``(index, sign, x)``: the parameter's flat index, ``+1`` for its lowest point
+    and ``-1`` for its highest, and the whole parameter vector there (flat; ``None`` where the
+    program was unbounded); ``None`` instead of the list when the linearised set is empty.
+    """
+    A, b, bounds, free, scale, x0 = _linearised_program(omega_rad_s, g, bound, at, lower, upper, sides, inscribed)
     idx = np.flatnonzero(free)
 
     def extreme(task):
@@ -102,14 +96,48 @@ def linearised_extent(omega_rad_s, g, bound, at: np.ndarray, lower: np.ndarray |
     tasks = [(k, sign) for k in range(idx.size) for sign in (1.0, -1.0)]
     with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:  # HiGHS runs outside the GIL
         results = list(pool.map(extreme, tasks))
+    out = []
     for (k, sign), res in results:
         if res.status == 2:
             return None
-        value = float(res.x[k]) if res.status == 0 else (-np.inf if sign > 0 else np.inf)
+        x = None
+        if res.status == 0:
+            x = x0.copy()
+            x[idx] = x0[idx] + scale * res.x
+        out.append((int(idx[k]), sign, x))
+    return out
+
+
+def linearised_extent(omega_rad_s, g, bound, at: np.ndarray, lower: np.ndarray | None = None,
+                      upper: np.ndarray | None = None, sides: int = 64, inscribed: bool = True):
+    """Per-parameter extent of the feasible set linearised at ``at`` (module docstring).
+
+    Parameters
+    ----------
+    omega_rad_s, g, bound : arrays (N,)
+    at : array (n, 4)
+        The linearisation point (the truth, or the identified box's centre).
+    lower, upper : arrays (n, 4), optional
+        The prior box; parameters with ``lower == upper`` are fixed.
+    sides, inscribed : int, bool
+        The polygon replacing each disc: inscribed (the reference is never wider than the disc's
+        set) or circumscribed (never narrower: never empty where the disc's set is not).
+
+    Returns
+    -------
+    (lo, hi) arrays (n, 4), or ``None`` when the linearised set is empty (``at`` too far from the
+    data for the linearisation to mean anything).
+    """
+    extremes = linearised_extremes(omega_rad_s, g, bound, at, lower, upper, sides, inscribed)
+    if extremes is None:
+        return None
+    x0 = np.asarray(at, dtype=float).reshape(-1)
+    lo_out, hi_out = x0.copy(), x0.copy()
+    for p, sign, x in extremes:
         if sign > 0:
-            lo_out[idx[k]] = x0[idx[k]] + scale[k] * value
+            lo_out[p] = -np.inf if x is None else x[p]
         else:
-            hi_out[idx[k]] = x0[idx[k]] + scale[k] * value
+            hi_out[p] = np.inf if x is None else x[p]
     return lo_out.reshape(-1, 4), hi_out.reshape(-1, 4)
 
 

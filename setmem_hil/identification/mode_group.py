@@ -45,8 +45,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from setmem_hil.identification.certified_cone_program import AffineConeProgram
+from setmem_hil.identification.certified_cone_program import AffineConeProgram, ProductTerms
 from setmem_hil.identification.embedding import denominator_max, denominator_min
+from setmem_hil.identification import feasible_points as _fp
 from setmem_hil.model.modal_model import A0, A1, B0, B1
 
 _EPS = np.finfo(float).eps
@@ -61,9 +62,16 @@ class GroupSettings:
     bound (then the relaxation is within about ``1 + fine_ratio`` of the exact set there).
     ``max_boxes``: boxes processed at most; past it the open boxes' hull is kept (still guaranteed).
     ``contraction_tolerance``: relative shrink of the box (any width) that counts as progress.
+    ``settle_fraction``: a box that sticks out of the witnesses' hull (points checked to fit,
+    :mod:`setmem_hil.identification.feasible_points`) by at most this fraction of the hull's width
+    on every side is a leaf: no split can narrow the answer by more.
+    ``tight_ratio``: a box whose remainders are all below this fraction of the bound is a leaf
+    whatever the witnesses (its relaxation is within about ``1 + tight_ratio`` of the exact set).
     """
 
     fine_ratio: float = 1.0
+    settle_fraction: float = 0.25
+    tight_ratio: float = 0.1
     max_boxes: int = 400
     max_contractions: int = 8
     contraction_tolerance: float = 0.02
@@ -279,6 +287,74 @@ def multiplied_group(omega_rad_s, g, lo, hi):
     return P_c, J, err, rho * (1.0 + 1e-12), scale
 
 
+def _affine_factors(w, c_mode, h_mode):
+    """``D = D_c + sum_p dD_p y_p`` and ``N = N_c + sum_p dN_p y_p`` of one mode over its box, in
+    the normalised coordinates ``x = c + h y`` (``dD_p, dN_p``: shape ``(4, N)``)."""
+    jw = 1j * w
+    D_c = (c_mode[A0] - w * w) + jw * c_mode[A1]
+    N_c = c_mode[B0] + jw * c_mode[B1]
+    dD = np.zeros((4, w.size), dtype=complex)
+    dN = np.zeros((4, w.size), dtype=complex)
+    dD[A1], dD[A0] = jw * h_mode[A1], h_mode[A0]
+    dN[B1], dN[B0] = jw * h_mode[B1], h_mode[B0]
+    return D_c, dD, N_c, dN
+
+
+def _product_of_affine(A_c, dA, B_c, dB):
+    """``A(y_1) B(y_2)`` for ``A`` affine in the first mode's ``y_1`` and ``B`` in the second's:
+    its constant, its linear coefficients on ``(y_1, y_2)`` (shape ``(N, 8)``) and its coefficients
+    on the sixteen products ``y_1p y_2q`` (shape ``(N, 16)``, ``p`` major). Exact: no remainder."""
+    linear = np.concatenate([B_c[None] * dA, A_c[None] * dB]).T
+    bilinear = (dA[:, None, :] * dB[None, :, :]).reshape(16, -1).T
+    return A_c * B_c, linear, bilinear
+
+
+def lifted_pair(omega_rad_s, g, lo, hi):
+    """A pair's multiplied constraint (the thesis's embedding, eq. 3.26, over ``D_1 D_2``) written
+    exactly, with each product of the two modes' parameters as its own variable (our choice):
+
+        |g D_1 D_2 - N_1 D_2 - N_2 D_1| <= E max_box |D_1| max_box |D_2|.
+
+    The left side is bilinear: one factor from each mode. In the box's normalised coordinates
+    ``x = c + h y`` it is ``r_c + J_y y + K z`` with ``z_pq = y_1p y_2q``, exact; the products are
+    relaxed by their McCormick envelopes in the conic program
+    (:class:`~setmem_hil.identification.certified_cone_program.ProductTerms`). Unlike the
+    first-order expansion with a remainder (:func:`multiplied_group`), every point shares the
+    same ``z``, so a coarse box whose pole ranges cover both resonances is still held by all the
+    points together: in the pair's quartic coefficients, which the data fix well, the box's
+    products must agree. This is what prunes the coarse boxes of a pair 1 % apart (one
+    half-power bandwidth).
+
+    Returns ``(r_c, J, err, scale, products)``: ``J`` per unit of ``x`` (as the other forms), the
+    rounding allowance of the formed row, the factor ``max |D_1| max |D_2|`` of ``E``, and the
+    products' coefficients (columns identically zero left out).
+    """
+    w, jw, c, h, L, H, m = _box_terms(omega_rad_s, lo, hi)
+    if m != 2:
+        raise ValueError(f"lifted_pair: a pair of modes, found {m}")
+    g = np.asarray(g, dtype=complex)
+    D1, dD1, N1, dN1 = _affine_factors(w, c[0], h[0])
+    D2, dD2, N2, dN2 = _affine_factors(w, c[1], h[1])
+    dd = _product_of_affine(D1, dD1, D2, dD2)
+    nd = _product_of_affine(N1, dN1, D2, dD2)
+    dn = _product_of_affine(D1, dD1, N2, dN2)
+    r_c = g * dd[0] - nd[0] - dn[0]
+    J_y = g[:, None] * dd[1] - nd[1] - dn[1]
+    K = g[:, None] * dd[2] - nd[2] - dn[2]
+    half = h.reshape(-1)
+    J = np.where(half > 0, J_y / np.where(half > 0, half, 1.0), 0.0)
+    used = np.flatnonzero(np.any(K != 0, axis=0))
+    pairs = np.array([(k // 4, 4 + k % 4) for k in used], dtype=int).reshape(-1, 2)
+    # rounding: every coefficient is a sum of products of at most three factors, each below these
+    # sizes over the box (a0 - w^2 cancels near resonance: sized with a0 + w^2)
+    big_D = [np.abs(c[i, A0]) + h[i, A0] + w * w + w * (np.abs(c[i, A1]) + h[i, A1]) for i in range(2)]
+    big_N = [np.abs(c[i, B0]) + h[i, B0] + w * (np.abs(c[i, B1]) + h[i, B1]) for i in range(2)]
+    err = 64 * _EPS * (np.abs(g) * big_D[0] * big_D[1] + big_N[0] * big_D[1] + big_N[1] * big_D[0])
+    scale = (denominator_max(w, L[0, A0], H[0, A0], H[0, A1]) * denominator_max(w, L[1, A0], H[1, A0], H[1, A1])
+             * (1.0 + 1e-12))
+    return r_c, J, err, scale, ProductTerms(K[:, used], pairs)
+
+
 def _remainders(omega, lo, hi) -> np.ndarray:
     return linearised_group(omega, np.zeros(np.size(omega), dtype=complex), lo, hi, with_jacobian=False)[3]
 
@@ -314,35 +390,103 @@ class _Search:
         self.n_solves = 0
         self.unverified: list[str] = []
         self._lock = threading.Lock()
+        self.root: tuple[np.ndarray, np.ndarray] | None = None  # the searched box (set by the search)
+        self.anchor: np.ndarray | None = None  # a point that fits (a Chebyshev fit), once found
+        self.inner: tuple[np.ndarray, np.ndarray] | None = None  # the hull of the witnesses
+
+    # -- witnesses: where refining can no longer narrow the answer -----------------------------
+    def _add_witnesses(self, points) -> None:
+        if not points:
+            return
+        stack = np.array(points)
+        with self._lock:
+            lo, hi = stack.min(axis=0), stack.max(axis=0)
+            if self.inner is not None:
+                lo, hi = np.minimum(self.inner[0], lo), np.maximum(self.inner[1], hi)
+            self.inner = (lo, hi)
+
+    def look_for_witnesses(self, lo, hi, candidates) -> None:
+        """Find the anchor in this box if there is none yet, and keep every candidate (the
+        contraction's points nearest each bound) that, pulled back towards the anchor, fits and
+        widens the hull. (The linearised set's extremes would be better candidates before any
+        contraction, but their linear programs cost as much as the search with a thousand points.)"""
+        if self.anchor is None:
+            x, f = _fp.chebyshev_fit(self.omega, self.g, self.E, lo, hi, 0.5 * (lo + hi))
+            if f > 1.0:
+                return
+            with self._lock:
+                if self.anchor is None:
+                    self.anchor = x
+            self._add_witnesses([x])
+        inner = self.inner
+        found = []
+        for x in candidates:
+            if inner is not None and np.all(x >= inner[0]) and np.all(x <= inner[1]):
+                continue
+            fitted = _fp.pulled_back(x, self.anchor, self.omega, self.g, self.E)
+            if fitted is not None:
+                found.append(fitted)
+        self._add_witnesses(found)
+
+    def settled(self, lo, hi) -> bool:
+        """Does the box stick out of the witnesses' hull by at most ``settle_fraction`` of its width?"""
+        inner = self.inner
+        if inner is None:
+            return False
+        tol = self.settings.settle_fraction * (inner[1] - inner[0])
+        return bool(np.all(lo >= inner[0] - tol) and np.all(hi <= inner[1] + tol))
+
+    def tight(self, lo, hi) -> bool:
+        finite = np.isfinite(self.E)
+        return bool(np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.tight_ratio * self.E[finite]))
 
     def _cones(self, lo, hi):
-        """Each point's cone: the divided form where its remainder is below the point's bound, the
-        multiplied form elsewhere (both are outer relaxations; the choice only picks the tighter)."""
+        """Each point's cone: the divided form where its remainder is below the point's bound; a pair
+        elsewhere in its lifted form (:func:`lifted_pair`), a larger group in its multiplied form
+        (all are outer relaxations; the choice only picks the tighter). Returns ``(r_c, J, err, C,
+        products)`` with the points whose cone holds over the whole box left out (they bound
+        nothing there)."""
         r_c, J, err, rho = linearised_group(self.omega, self.g, lo, hi)
         C = self.E + rho
         divided = rho <= self.E
+        products = None
         if not divided.all():
-            P_c, J_m, err_m, rho_m, scale = multiplied_group(self.omega, self.g, lo, hi)
             mult = ~divided
             r_c, J, err, C = r_c.copy(), J.copy(), err.copy(), C.copy()
+            if np.size(lo) == 8:
+                P_c, J_m, err_m, scale, lifted = lifted_pair(self.omega, self.g, lo, hi)
+                K = np.where(mult[:, None], lifted.K, 0.0)
+                products = ProductTerms(K, lifted.pairs)
+                C[mult] = scale[mult] * self.E[mult]
+            else:
+                P_c, J_m, err_m, rho_m, scale = multiplied_group(self.omega, self.g, lo, hi)
+                C[mult] = scale[mult] * self.E[mult] + rho_m[mult]
             r_c[mult], J[mult], err[mult] = P_c[mult], J_m[mult], err_m[mult]
-            C[mult] = scale[mult] * self.E[mult] + rho_m[mult]
-        return r_c, J, err, np.where(np.isfinite(self.E), C, np.inf)
+        C = np.where(np.isfinite(self.E), C, np.inf)
+        h = 0.5 * (np.asarray(hi, dtype=float) - np.asarray(lo, dtype=float))
+        reach = np.abs(r_c) + np.abs(J) @ h + err
+        if products is not None:
+            reach = reach + np.sum(np.abs(products.K), axis=1)
+        active = np.isfinite(C) & ~(reach * (1.0 + 1e-9) < C)
+        if products is not None:
+            products = ProductTerms(products.K[active], products.pairs)
+        return r_c[active], J[active], err[active], C[active], products, active
 
     def contract(self, lo, hi):
         """Certified bounds of the box's feasible set, repeated while it shrinks (by more than the
         coarse tolerance while its remainders are large, the fine one after).
 
-        Returns ``(lo, hi, fine)`` or ``None`` when the box is proved empty.
+        Returns ``(lo, hi, fine, candidates)`` or ``None`` when the box is proved empty;
+        ``candidates`` are the last pass's points near each bound (the relaxation's, not checked).
         """
         finite = np.isfinite(self.E)
+        sol = None
         for _ in range(self.settings.max_contractions):
-            r_c, J, err, C = self._cones(lo, hi)
-            use = np.isfinite(C)
-            if not use.any():
+            r_c, J, err, C, products, active = self._cones(lo, hi)
+            if not active.any():
                 return lo, hi, False
-            program = AffineConeProgram(r_c[use], J[use], err[use], lo, hi, self.omega[use])
-            sol = program.bound_box(C[use], lo, hi)
+            program = AffineConeProgram(r_c, J, err, lo, hi, self.omega[active], products)
+            sol = program.bound_box(C, lo, hi)
             with self._lock:
                 self.n_solves += program.n_solves
                 if sol.unverified:
@@ -358,7 +502,10 @@ class _Search:
             if shrink < (self.settings.contraction_tolerance if fine else self.settings.coarse_contraction_tolerance):
                 break
         fine = bool(np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.fine_ratio * self.E[finite]))
-        return lo, hi, fine
+        candidates = []
+        if sol is not None:
+            candidates = [x for x in np.vstack([sol.argmin, sol.argmax]) if np.all(np.isfinite(x))]
+        return lo, hi, fine, candidates
 
 
 def _search_subset(omega: np.ndarray, n_max: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -382,42 +529,66 @@ def _search_subset(omega: np.ndarray, n_max: int, lo: np.ndarray, hi: np.ndarray
     return np.sort(np.concatenate([inside, outside]))
 
 
+def _priority(search: _Search, lo: np.ndarray, hi: np.ndarray) -> float:
+    """Which open box to refine first: the one that sticks out furthest beyond the witnesses' hull
+    (in units of the hull's width), or before any witness the largest (in units of the searched
+    box). The answer is the hull of the leaves, so the box that widens it most goes first; a box
+    inside the hull never needs refining."""
+    inner = search.inner
+    if inner is None:
+        root_lo, root_hi = search.root
+        width = np.where(root_hi > root_lo, root_hi - root_lo, 1.0)
+        return float(np.max((hi - lo) / width))
+    width = np.maximum(inner[1] - inner[0], 1e-12 * np.maximum(np.abs(inner[0]), 1e-300))
+    return float(np.max(np.maximum(inner[0] - lo, hi - inner[1]) / width))
+
+
 def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings: GroupSettings, counts: dict):
-    """Depth-first search of the box by ``settings.workers`` threads (the conic solver runs outside
-    the GIL); returns the leaves (contracted, not proved empty). Past ``max_boxes`` every open box
-    becomes a leaf as it stands: the hull is still guaranteed, only wider."""
-    stack = [(lo, hi, 0)]
+    """Best-first search of the box (:func:`_priority`) by ``settings.workers`` threads (the conic
+    solver runs outside the GIL); returns the leaves (contracted, not proved empty). Past
+    ``max_boxes`` every open box becomes a leaf as it stands: the hull is still guaranteed, only
+    wider."""
+    open_boxes = [(lo, hi, 0)]
+    search.root = (lo, hi)
     leaves: list[tuple[np.ndarray, np.ndarray]] = []
     cond = threading.Condition()
-    state = {"active": 0, "error": None}
+    state = {"active": 0, "error": None, "boxes": 0}
 
     def take():
         with cond:
             while True:
                 if state["error"] is not None:
                     return None
-                if stack and counts["boxes"] >= settings.max_boxes:
+                if open_boxes and state["boxes"] >= settings.max_boxes:
                     counts["exhausted"] = True
-                    leaves.extend((b_lo, b_hi) for b_lo, b_hi, _ in stack)
-                    stack.clear()
-                if stack:
+                    leaves.extend((b_lo, b_hi) for b_lo, b_hi, _ in open_boxes)
+                    open_boxes.clear()
+                while open_boxes:
+                    k = int(np.argmax([_priority(search, b_lo, b_hi) for b_lo, b_hi, _ in open_boxes]))
+                    b_lo, b_hi, depth = open_boxes.pop(k)
+                    if depth > 0 and search.settled(b_lo, b_hi):
+                        leaves.append((b_lo, b_hi))  # the witnesses grew since it was split: nothing to gain
+                        continue
                     state["active"] += 1
+                    state["boxes"] += 1
                     counts["boxes"] += 1
-                    return stack.pop()
+                    return b_lo, b_hi, depth
                 if state["active"] == 0:
                     cond.notify_all()
                     return None
                 cond.wait()
 
-    def settle(b_lo, b_hi, depth, out):
+    def settle(depth, out):
         with cond:
             state["active"] -= 1
             if out is None:
                 counts["pruned"] += 1
             else:
-                c_lo, c_hi, fine = out
+                c_lo, c_hi, fine, _ = out
                 k = -1
-                if not (fine or depth >= settings.max_depth or counts["exhausted"]):
+                # a leaf: settled against the witnesses, or tight, or (no witness yet) fine
+                leaf = search.settled(c_lo, c_hi) or (fine and (search.inner is None or search.tight(c_lo, c_hi)))
+                if not (leaf or depth >= settings.max_depth):
                     k = _split_dimension(search.omega, search.E, c_lo, c_hi)
                 if k < 0:
                     leaves.append((c_lo, c_hi))
@@ -425,8 +596,8 @@ def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings:
                     mid = 0.5 * (c_lo[k] + c_hi[k])
                     left_hi, right_lo = c_hi.copy(), c_lo.copy()
                     left_hi[k], right_lo[k] = mid, mid
-                    stack.append((right_lo, c_hi, depth + 1))
-                    stack.append((c_lo, left_hi, depth + 1))
+                    open_boxes.append((c_lo, left_hi, depth + 1))
+                    open_boxes.append((right_lo, c_hi, depth + 1))
             cond.notify_all()
 
     def work():
@@ -437,13 +608,15 @@ def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings:
             b_lo, b_hi, depth = item
             try:
                 out = search.contract(b_lo, b_hi)
+                if out is not None and (out[2] or depth == 0):
+                    search.look_for_witnesses(out[0], out[1], out[3])
             except BaseException as exc:  # noqa: BLE001 - handed to the caller below
                 with cond:
                     state["error"] = exc
                     state["active"] -= 1
                     cond.notify_all()
                 return
-            settle(b_lo, b_hi, depth, out)
+            settle(depth, out)
 
     threads = [threading.Thread(target=work, daemon=True) for _ in range(max(1, settings.workers) - 1)]
     for t in threads:
