@@ -13,8 +13,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def one_iteration_run(run_dir: Path, half_width: float = 0.005, groups: tuple = ()):
-    """Write the run into ``run_dir``; returns ``(run_dir, box, analysis)``."""
+def one_iteration_run(run_dir: Path, half_width: float = 0.005, groups: tuple = (), measured: bool = False):
+    """Write the run into ``run_dir``; returns ``(run_dir, box, analysis)``. ``measured``: the
+    iteration's 15 points are in the journal too (the truth's response, bound 1 % of it + 1e-4)."""
     from setmem_hil.campaign.persistence import iteration_fields
     from setmem_hil.campaign.run_directory import new_journal
     from setmem_hil.io.journal import JOURNAL_FILENAME, IterationRecord
@@ -33,6 +34,14 @@ def one_iteration_run(run_dir: Path, half_width: float = 0.005, groups: tuple = 
                outputs=None, design="h2", floor_modes=(), model=box, plant=box, gain=None, analysis=analysis,
                identification=SimpleNamespace(embedding_gamma=np.zeros(3), mismatch_ratio=np.zeros(3), groups=groups))
     journal = new_journal(run_dir / JOURNAL_FILENAME, procedure, procedure.source_text, seed=1, strategy="mu")
+    if measured:
+        from setmem_hil.model.experiment import Measurement
+        from setmem_hil.model.modal_model import ModalParameters
+
+        w = np.geomspace(0.3, 30.0, 15)
+        G = ModalParameters(truth).frequency_response(w)
+        for omega, g in zip(w, G):
+            journal.add_measurement(Measurement(float(omega), complex(g), 0.01 * abs(g) + 1e-4), iteration=0, role="initial")
     journal.add_iteration(IterationRecord(**iteration_fields(doc, None, 0.0)))
     journal.close()
     return run_dir, box, analysis

@@ -91,7 +91,7 @@ def _nonlinear_extreme(data, x0, lower, upper, p, sign):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("separation", [0.10, 0.03])
+@pytest.mark.parametrize("separation", [0.10, 0.03, 0.01])
 def test_a_close_pair_is_bounded_within_1_5x_of_the_exact_set_and_holds_every_fitting_parameter(separation):
     truth, data, prior = close_pair_case(separation)
     result = identify(data, prior)

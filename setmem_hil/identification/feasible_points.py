@@ -16,8 +16,8 @@ How the witnesses are found (our choices):
   programs on the model linearised at the current point, in a trust region that shrinks when a
   step does not lower the true misfit;
 - the **extremes**: the group search's own points nearest each bound of a box (its relaxation's
-  solutions, which need not fit), pulled back towards the anchor until they fit. Near the set's
-  edge the relaxation is nearly exact, so they fit at or near their full reach.
+  solutions, which need not fit), pulled back towards the anchor until they fit (bisection). Near
+  the set's edge the relaxation is nearly exact, so they fit at or near their full reach.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import scipy.sparse as sp
 
 from setmem_hil.identification.exact_set import model_jacobian
 
-PULL_BACK = (1.0, 0.97, 0.9, 0.75, 0.5)  # fractions of the way from the anchor to a candidate tried
+PULL_BACK_STEPS = 10  # bisection steps along the segment from the anchor to a candidate (to 0.1 %)
 
 
 def _response(x, omega_rad_s) -> np.ndarray:
@@ -96,8 +96,9 @@ def _minimax_step(x, omega, g, E, lo, hi, trust):
 def chebyshev_fit(omega_rad_s, g, E, lo, hi, x0, iterations: int = 15):
     """A local Chebyshev fit inside ``[lo, hi]`` from ``x0`` (module docstring): ``(x, misfit)``.
 
-    Stops early once the misfit is below 0.9 (the point fits with room to spare, a good anchor), or
-    once it fits and a step gains less than 2 %.
+    Stops early once the misfit is below 0.9 (the point fits with room to spare), or once a step
+    gains less than 0.5 %. An anchor well inside the set (not merely fitting) is what lets the
+    segments to the candidates stay in it.
     """
     finite = np.isfinite(np.asarray(E, dtype=float))
     omega = np.asarray(omega_rad_s, dtype=float)[finite]
@@ -116,7 +117,7 @@ def chebyshev_fit(omega_rad_s, g, E, lo, hi, x0, iterations: int = 15):
             break
         f_step = misfit(step, omega, g, E)
         if f_step < f:
-            settled = f_step <= 1.0 and f_step > 0.98 * f
+            settled = f_step > 0.995 * f
             x, f = step, f_step
             if settled:
                 break
@@ -126,12 +127,20 @@ def chebyshev_fit(omega_rad_s, g, E, lo, hi, x0, iterations: int = 15):
     return x, f
 
 
-def pulled_back(candidate, anchor, omega_rad_s, g, E):
-    """The furthest of ``anchor + t (candidate - anchor)``, ``t`` in ``PULL_BACK``, that fits, or ``None``."""
+def pulled_back(candidate, anchor, omega_rad_s, g, E, steps: int = PULL_BACK_STEPS):
+    """The furthest point of the segment from ``anchor`` (which fits) towards ``candidate`` found to
+    fit, by bisection on the fraction of the way, or ``None`` when none but the anchor does. Every
+    point returned was checked (the set need not be convex along the segment: bisection only
+    finds *a* far point that fits)."""
     anchor = np.asarray(anchor, dtype=float).reshape(-1)
     direction = np.asarray(candidate, dtype=float).reshape(-1) - anchor
-    for t in PULL_BACK:
-        x = anchor + t * direction
-        if misfit(x, omega_rad_s, g, E) <= 1.0:
-            return x
-    return None
+    if misfit(anchor + direction, omega_rad_s, g, E) <= 1.0:
+        return anchor + direction
+    inside, outside = 0.0, 1.0
+    for _ in range(steps):
+        t = 0.5 * (inside + outside)
+        if misfit(anchor + t * direction, omega_rad_s, g, E) <= 1.0:
+            inside = t
+        else:
+            outside = t
+    return None if inside == 0.0 else anchor + inside * direction

@@ -23,14 +23,24 @@ second-order cone ``|r_c + J (x - c)| <= E_j + rho_j`` (``rho_j`` the remainders
 group): a convex outer set of the box's feasible set, whose bounds are certified by the conic
 program's dual (:mod:`setmem_hil.identification.certified_cone_program`). A box proved empty by a
 checked Farkas certificate is pruned; the others are contracted (bounds intersected, the
-expansion re-centred) and split where the remainders are large compared with the data's bound.
-The remainder shrinks with the square of the box, so the leaves' bounds approach the linearised
-exact feasible set (:mod:`setmem_hil.identification.exact_set`) as they get small.
+expansion re-centred) and split. The remainder shrinks with the square of the box, so the leaves'
+bounds approach the linearised exact feasible set (:mod:`setmem_hil.identification.exact_set`) as
+they get small.
 
-Why not the convex embedding of eq. (3.26) over the group's denominator product: the pair's
-quartic is affine in its coefficients, but the map from those coefficients back to two close
-poles is ill-conditioned exactly where the modes crowd (a root's sensitivity grows as the inverse
-of the poles' distance), so its boxes would be loose where they are needed.
+Coarse boxes of a pair (our choice, issue 47): where that remainder exceeds the point's bound, the
+pair's constraint multiplied through by both denominators (the embedding of eq. 3.26 over
+``D_1 D_2``) is used instead, exactly: it is bilinear, so each product of a mode-1 parameter with a
+mode-2 parameter is a variable of its own in its McCormick envelope (:func:`lifted_pair`). All the
+points share the products, which is what prunes boxes whose pole ranges cover both resonances.
+Kept as modal parameters plus products, not as the pair's quartic alone: the map from a quartic's
+coefficients back to two close poles is ill-conditioned exactly where the modes crowd (a root's
+sensitivity grows as the inverse of the poles' distance), and the branch-and-bound on the modal
+parameters tightens the envelopes there.
+
+Where to refine (our choice): best-first on how far a box sticks out of the hull of points checked
+to fit (witnesses, :mod:`setmem_hil.identification.feasible_points`); a box within
+``settle_fraction`` of that hull's width on every side is a leaf. The witnesses only steer the
+search; the guarantee is the certified relaxations'.
 
 Result: the hull of the surviving leaves; every parameter of the group that fits every point
 within its bound (and the prior) lies inside it. Leaves whose bounds were not all certified keep
@@ -45,9 +55,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from setmem_hil.identification import feasible_points
 from setmem_hil.identification.certified_cone_program import AffineConeProgram, ProductTerms
 from setmem_hil.identification.embedding import denominator_max, denominator_min
-from setmem_hil.identification import feasible_points as _fp
+from setmem_hil.identification.exact_set import linearised_extremes
 from setmem_hil.model.modal_model import A0, A1, B0, B1
 
 _EPS = np.finfo(float).eps
@@ -72,6 +83,7 @@ class GroupSettings:
     fine_ratio: float = 1.0
     settle_fraction: float = 0.25
     tight_ratio: float = 0.1
+    slab_cuts: bool = True
     max_boxes: int = 400
     max_contractions: int = 8
     contraction_tolerance: float = 0.02
@@ -406,27 +418,55 @@ class _Search:
             self.inner = (lo, hi)
 
     def look_for_witnesses(self, lo, hi, candidates) -> None:
-        """Find the anchor in this box if there is none yet, and keep every candidate (the
-        contraction's points nearest each bound) that, pulled back towards the anchor, fits and
-        widens the hull. (The linearised set's extremes would be better candidates before any
-        contraction, but their linear programs cost as much as the search with a thousand points.)"""
+        """Find the anchor in this box if there is none yet (with the linearised set's extremes
+        around it), and keep every candidate (the contraction's points nearest each bound) that,
+        pulled back towards the anchor, fits and widens the hull."""
         if self.anchor is None:
-            x, f = _fp.chebyshev_fit(self.omega, self.g, self.E, lo, hi, 0.5 * (lo + hi))
-            if f > 1.0:
+            x = self._fit_from(lo, hi, candidates)
+            if x is None:
                 return
             with self._lock:
                 if self.anchor is None:
                     self.anchor = x
-            self._add_witnesses([x])
+            self._add_witnesses([x] + self._linearised_extremes(x))
         inner = self.inner
-        found = []
-        for x in candidates:
-            if inner is not None and np.all(x >= inner[0]) and np.all(x <= inner[1]):
-                continue
-            fitted = _fp.pulled_back(x, self.anchor, self.omega, self.g, self.E)
-            if fitted is not None:
-                found.append(fitted)
+        outside = [x for x in candidates
+                   if inner is None or not (np.all(x >= inner[0]) and np.all(x <= inner[1]))]
+        found = self._pulled_back(outside, self.anchor)
+        if outside and not found:
+            # the segment to the anchor leaves the set (a set in two pieces, or bent): this box's
+            # own fitting point, then its candidates pulled back towards it
+            local = self._fit_from(lo, hi, outside)
+            if local is not None:
+                found = [local] + self._pulled_back(outside, local)
         self._add_witnesses(found)
+
+    def _linearised_extremes(self, anchor) -> list:
+        """Each parameter's extremes of the set linearised at ``anchor`` (a linear program on at most
+        ``search_points`` points: a subset overshoots, never falls short), pulled back until they
+        fit every point."""
+        root_lo, root_hi = self.root
+        idx = _search_subset(self.omega, self.settings.search_points, root_lo, root_hi)
+        extremes = linearised_extremes(self.omega[idx], self.g[idx], self.E[idx], anchor, root_lo, root_hi,
+                                       sides=16, inscribed=False)
+        return self._pulled_back([x for _, _, x in extremes or () if x is not None], anchor)
+
+    def _pulled_back(self, candidates, towards) -> list:
+        return [x for x in (feasible_points.pulled_back(c, towards, self.omega, self.g, self.E) for c in candidates) if x is not None]
+
+    def _fit_from(self, lo, hi, candidates):
+        """A point of the box that fits, by a Chebyshev fit from the box's centre or the candidate
+        that fits best, or ``None``. (From a coarse box's centre the fit often stalls in a local
+        minimum: a pair's modes merged.)"""
+        starts = [0.5 * (lo + hi)]
+        if candidates:
+            starts.append(min(candidates, key=lambda x: feasible_points.misfit(x, self.omega, self.g, self.E)))
+        for x0 in starts:
+            if np.all(x0 >= lo) and np.all(x0 <= hi):
+                x, f = feasible_points.chebyshev_fit(self.omega, self.g, self.E, lo, hi, x0)
+                if f <= 1.0:
+                    return x
+        return None
 
     def settled(self, lo, hi) -> bool:
         """Does the box stick out of the witnesses' hull by at most ``settle_fraction`` of its width?"""
@@ -436,33 +476,56 @@ class _Search:
         tol = self.settings.settle_fraction * (inner[1] - inner[0])
         return bool(np.all(lo >= inner[0] - tol) and np.all(hi <= inner[1] + tol))
 
+    def slab_cut(self, lo, hi) -> tuple[int, float | None]:
+        """Where to split a box that sticks out of the witnesses' hull: at the hull's side plus the
+        settling margin, on the parameter it sticks out furthest along (in hull widths), so that
+        one child lies wholly beyond the hull there (a slab the relaxation may prove empty) and the
+        other is settled on that side. ``(-1, None)`` when there is no such cut (no witnesses yet,
+        or the box already lies wholly beyond on that side: then a plain split)."""
+        inner = self.inner
+        if inner is None or not self.settings.slab_cuts:
+            return -1, None
+        width = inner[1] - inner[0]
+        tol = self.settings.settle_fraction * width
+        scale = np.maximum(width, 1e-12 * np.maximum(np.abs(inner[0]), 1e-300))
+        above = (hi - (inner[1] + tol)) / scale
+        below = ((inner[0] - tol) - lo) / scale
+        k = int(np.argmax(np.maximum(above, below)))
+        if max(above[k], below[k]) <= 0:
+            return -1, None
+        cut = inner[1][k] + tol[k] if above[k] >= below[k] else inner[0][k] - tol[k]
+        if not lo[k] < cut < hi[k]:
+            return -1, None
+        return k, float(cut)
+
     def tight(self, lo, hi) -> bool:
         finite = np.isfinite(self.E)
         return bool(np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.tight_ratio * self.E[finite]))
 
-    def _cones(self, lo, hi):
+    def _cones(self, lo, hi, idx):
         """Each point's cone: the divided form where its remainder is below the point's bound; a pair
         elsewhere in its lifted form (:func:`lifted_pair`), a larger group in its multiplied form
         (all are outer relaxations; the choice only picks the tighter). Returns ``(r_c, J, err, C,
         products)`` with the points whose cone holds over the whole box left out (they bound
         nothing there)."""
-        r_c, J, err, rho = linearised_group(self.omega, self.g, lo, hi)
-        C = self.E + rho
-        divided = rho <= self.E
+        omega, g, E = self.omega[idx], self.g[idx], self.E[idx]
+        r_c, J, err, rho = linearised_group(omega, g, lo, hi)
+        C = E + rho
+        divided = rho <= E
         products = None
         if not divided.all():
             mult = ~divided
             r_c, J, err, C = r_c.copy(), J.copy(), err.copy(), C.copy()
             if np.size(lo) == 8:
-                P_c, J_m, err_m, scale, lifted = lifted_pair(self.omega, self.g, lo, hi)
+                P_c, J_m, err_m, scale, lifted = lifted_pair(omega, g, lo, hi)
                 K = np.where(mult[:, None], lifted.K, 0.0)
                 products = ProductTerms(K, lifted.pairs)
-                C[mult] = scale[mult] * self.E[mult]
+                C[mult] = scale[mult] * E[mult]
             else:
-                P_c, J_m, err_m, rho_m, scale = multiplied_group(self.omega, self.g, lo, hi)
-                C[mult] = scale[mult] * self.E[mult] + rho_m[mult]
+                P_c, J_m, err_m, rho_m, scale = multiplied_group(omega, g, lo, hi)
+                C[mult] = scale[mult] * E[mult] + rho_m[mult]
             r_c[mult], J[mult], err[mult] = P_c[mult], J_m[mult], err_m[mult]
-        C = np.where(np.isfinite(self.E), C, np.inf)
+        C = np.where(np.isfinite(E), C, np.inf)
         h = 0.5 * (np.asarray(hi, dtype=float) - np.asarray(lo, dtype=float))
         reach = np.abs(r_c) + np.abs(J) @ h + err
         if products is not None:
@@ -471,6 +534,19 @@ class _Search:
         if products is not None:
             products = ProductTerms(products.K[active], products.pairs)
         return r_c[active], J[active], err[active], C[active], products, active
+
+    def _points_for(self, lo, hi) -> np.ndarray:
+        """The points a box's program uses: every point once the box is fine (its remainders all
+        within the bound: where the answer's last digits are decided), else at most
+        ``search_points`` of them (:func:`_search_subset`: a subset is a valid relaxation, and a
+        coarse box is decided by its band's points)."""
+        every = np.arange(self.omega.size)
+        if self.omega.size <= self.settings.search_points:
+            return every
+        finite = np.isfinite(self.E)
+        if np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.fine_ratio * self.E[finite]):
+            return every
+        return _search_subset(self.omega, self.settings.search_points, lo, hi)
 
     def contract(self, lo, hi):
         """Certified bounds of the box's feasible set, repeated while it shrinks (by more than the
@@ -482,10 +558,11 @@ class _Search:
         finite = np.isfinite(self.E)
         sol = None
         for _ in range(self.settings.max_contractions):
-            r_c, J, err, C, products, active = self._cones(lo, hi)
+            idx = self._points_for(lo, hi)
+            r_c, J, err, C, products, active = self._cones(lo, hi, idx)
             if not active.any():
                 return lo, hi, False
-            program = AffineConeProgram(r_c, J, err, lo, hi, self.omega[active], products)
+            program = AffineConeProgram(r_c, J, err, lo, hi, self.omega[idx][active], products)
             sol = program.bound_box(C, lo, hi)
             with self._lock:
                 self.n_solves += program.n_solves
@@ -543,6 +620,25 @@ def _priority(search: _Search, lo: np.ndarray, hi: np.ndarray) -> float:
     return float(np.max(np.maximum(inner[0] - lo, hi - inner[1]) / width))
 
 
+def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSettings):
+    """A contracted box's two halves, or ``None`` when it is a leaf: settled against the witnesses,
+    tight, fine before any witness exists, or at the depth limit. The cut is the witnesses' slab
+    (:meth:`_Search.slab_cut`) where the box sticks out of their hull, else the middle of the
+    parameter whose halving blurs the points least."""
+    leaf = search.settled(lo, hi) or (fine and (search.inner is None or search.tight(lo, hi)))
+    if leaf or depth >= settings.max_depth:
+        return None
+    k, cut = search.slab_cut(lo, hi)
+    if k < 0:
+        k = _split_dimension(search.omega, search.E, lo, hi)
+    if k < 0:
+        return None
+    mid = 0.5 * (lo[k] + hi[k]) if cut is None else cut
+    left_hi, right_lo = hi.copy(), lo.copy()
+    left_hi[k], right_lo[k] = mid, mid
+    return (lo, left_hi), (right_lo, hi)
+
+
 def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings: GroupSettings, counts: dict):
     """Best-first search of the box (:func:`_priority`) by ``settings.workers`` threads (the conic
     solver runs outside the GIL); returns the leaves (contracted, not proved empty). Past
@@ -584,20 +680,11 @@ def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings:
             if out is None:
                 counts["pruned"] += 1
             else:
-                c_lo, c_hi, fine, _ = out
-                k = -1
-                # a leaf: settled against the witnesses, or tight, or (no witness yet) fine
-                leaf = search.settled(c_lo, c_hi) or (fine and (search.inner is None or search.tight(c_lo, c_hi)))
-                if not (leaf or depth >= settings.max_depth):
-                    k = _split_dimension(search.omega, search.E, c_lo, c_hi)
-                if k < 0:
-                    leaves.append((c_lo, c_hi))
+                children = _children(search, out[0], out[1], out[2], depth, settings)
+                if children is None:
+                    leaves.append((out[0], out[1]))
                 else:
-                    mid = 0.5 * (c_lo[k] + c_hi[k])
-                    left_hi, right_lo = c_hi.copy(), c_lo.copy()
-                    left_hi[k], right_lo[k] = mid, mid
-                    open_boxes.append((c_lo, left_hi, depth + 1))
-                    open_boxes.append((right_lo, c_hi, depth + 1))
+                    open_boxes.extend((c_lo, c_hi, depth + 1) for c_lo, c_hi in children)
             cond.notify_all()
 
     def work():
@@ -636,8 +723,8 @@ def _hull(leaves):
 def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSettings()) -> GroupResult:
     """Certified bounds of a group of modes' parameters (module docstring).
 
-    The search runs on at most ``settings.search_points`` points (a subset: its set contains the
-    whole data's), then the hull of its leaves is searched again with every point.
+    A box's program uses at most ``settings.search_points`` points while the box is coarse (a
+    subset: its set contains the whole data's) and every point once it is fine.
 
     Parameters
     ----------
@@ -664,18 +751,12 @@ def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSet
     box_lo = np.asarray(lo, dtype=float).reshape(-1).copy()
     box_hi = np.asarray(hi, dtype=float).reshape(-1).copy()
     counts = {"boxes": 0, "pruned": 0, "exhausted": False}
-    n_solves, unverified = 0, []
-    subsets = [_search_subset(omega, settings.search_points, box_lo, box_hi)]
-    if subsets[0].size < omega.size:
-        subsets.append(np.arange(omega.size))
-    for idx in subsets:
-        search = _Search(omega[idx], g[idx], E[idx], settings)
-        leaves = _branch_and_bound(search, box_lo, box_hi, settings, counts)
-        n_solves += search.n_solves
-        unverified.extend(search.unverified)
-        if not leaves:
-            raise ValueError("every box of the group was proved empty")
-        box_lo, box_hi = _hull(leaves)
+    search = _Search(omega, g, E, settings)
+    leaves = _branch_and_bound(search, box_lo, box_hi, settings, counts)
+    n_solves, unverified = search.n_solves, search.unverified
+    if not leaves:
+        raise ValueError("every box of the group was proved empty")
+    box_lo, box_hi = _hull(leaves)
     reason = "; ".join(dict.fromkeys(unverified))
     return GroupResult(box_lo.reshape(m, 4), box_hi.reshape(m, 4), not unverified, reason, counts["boxes"],
                        len(leaves), counts["pruned"], n_solves, counts["exhausted"])

@@ -152,7 +152,7 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     for row in run.rows:
         rig_by_iteration[int(row["iteration"])] = rig_by_iteration.get(int(row["iteration"]), 0.0) + float(row.get("rig_s") or 0.0)
     parts = [_run_section(run, target, rig_by_iteration), *_progress_section(its, target, run, rig_by_iteration, out_dir),
-             *_uncertainty_section(its, run, out_dir), *_intervals_section(its)]
+             *_uncertainty_section(its, run, out_dir), *_intervals_section(its, run)]
     if its and its[-1].outputs:
         parts += _sensors_section(its[-1])
     parts += _records_section(run, its, out_dir)
@@ -257,13 +257,45 @@ def _identified_with(rec: IterationRecord, i: int) -> str:
     return "alone" if group is None else "with modes " + " + ".join(str(m + 1) for m in group)
 
 
-def _intervals_section(its) -> list[str]:
+def _exact_ratio_cells(run, rec: IterationRecord) -> list[str]:
+    """Per mode, the largest of its intervals' widths over the linearised exact feasible set's
+    (``modes[i].exact_ratio`` of identify's RESULT.json, issue 47) and the parameter it is on, for
+    the data the iteration was identified from with their recorded bounds; "-" where it is not
+    computable (several outputs, a fixed parameter only, a linearised set that is empty)."""
+    from setmem_hil.identification.exact_set import exact_ratios
+    from setmem_hil.io.procedure_file import parse_procedure_text
+    from setmem_hil.model.frequency_data import FrequencyData
+
+    n_modes = np.asarray(rec.lower).shape[0]
+    try:
+        prior = parse_procedure_text(run.info["procedure_text"], "stored procedure").prior
+        data = FrequencyData.from_measurements(run.measurements[: rec.n_points])
+        box = prior.initial_bounds()
+        if rec.outputs or not data.omega_rad_s.size or box.lower.shape != np.asarray(rec.lower).shape:
+            return ["-"] * n_modes
+        ratios = exact_ratios(data.omega_rad_s, data.response, data.bound, np.asarray(rec.lower), np.asarray(rec.upper),
+                              box.lower, box.upper)
+    except (ValueError, KeyError):
+        return ["-"] * n_modes
+    cells = []
+    for ratio in ratios:
+        if not ratio:
+            cells.append("-")
+            continue
+        name = max(ratio, key=ratio.get)
+        cells.append(f"{ratio[name]:.2f} ({name})")
+    return cells
+
+
+def _intervals_section(its, run) -> list[str]:
     """Appendix B's tables per iteration: bounds, widths, mu-sensitivities, and the conservatism per mode."""
     parts = ["<h2 id='intervals'>Parameter intervals and mu-sensitivities</h2>",
              "<p>Per iteration, as in the thesis's appendix B: the lower and upper bound of each parameter of "
              "G(s) = sum_i (b1_i s + b0_i) / (s^2 + a1_i s + a0_i) and its mu-sensitivity. Also the "
              "identification's conservatism (embedding gamma, mismatch ratio) per mode, and whether it was identified alone or "
-             "with the closely spaced modes of its group (docs/closely-spaced-modes.md).</p>"]
+             "with the closely spaced modes of its group (docs/closely-spaced-modes.md). For the last iteration, each mode's "
+             "widest interval over the linearised exact feasible set's extent (1: at the data's limit; larger: where the "
+             "method is conservative, thesis 3.6).</p>"]
     for n, rec in enumerate(its, start=1):
         parts.append(_table(["parameter", "lower bound", "upper bound", "width", "mu-sensitivity"], _interval_rows(rec),
                             f"table-intervals-k{rec.k}",
@@ -271,7 +303,12 @@ def _intervals_section(its) -> list[str]:
         cons = [[i + 1, _num(g), _num(m), _identified_with(rec, i)]
                 for i, (g, m) in enumerate(zip(np.atleast_1d(rec.embedding_gamma), np.atleast_1d(rec.mismatch_ratio)))]
         if cons:
-            parts.append(_table(["mode", "embedding gamma", "mismatch ratio", "identified"], cons, f"table-conservatism-k{rec.k}"))
+            header = ["mode", "embedding gamma", "mismatch ratio", "identified"]
+            if n == len(its):
+                header.append("widest interval / exact set")
+                for row, cell in zip(cons, _exact_ratio_cells(run, rec)):
+                    row.append(cell)
+            parts.append(_table(header, cons, f"table-conservatism-k{rec.k}"))
     return parts
 
 
