@@ -27,21 +27,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from setmem_hil.identification.exact_set import model_jacobian
+from setmem_hil.model.modal_model import modal_response
 
 PULL_BACK_STEPS = 10  # bisection steps along the segment from the anchor to a candidate (to 0.1 %)
 
 
-def _response(x, omega_rad_s) -> np.ndarray:
-    s = 1j * np.asarray(omega_rad_s, dtype=float)
-    G = np.zeros(s.size, dtype=complex)
-    for a1, a0, b1, b0 in np.asarray(x, dtype=float).reshape(-1, 4):
-        G += (b1 * s + b0) / ((s + a1) * s + a0)
-    return G
-
-
 def misfit(x, omega_rad_s, g, E) -> float:
     """The largest ``|g_j - G(x; j w_j)| / E_j`` over the points with a finite bound (at most 1: fits)."""
-    G = _response(x, omega_rad_s)
+    G = modal_response(np.asarray(x, dtype=float).reshape(-1, 4), omega_rad_s).sum(axis=0)
     E = np.asarray(E, dtype=float)
     finite = np.isfinite(E)
     if not finite.any():
@@ -49,7 +42,7 @@ def misfit(x, omega_rad_s, g, E) -> float:
     return float(np.max(np.abs(np.asarray(g, dtype=complex)[finite] - G[finite]) / E[finite]))
 
 
-STEP_POINTS = 200  # the worst-fitting points a step's linear program sees (the true misfit judges it)
+STEP_POINTS = 200  # the worst-fitting points a step's conic program sees (the true misfit judges it)
 
 
 def _minimax_step(x, omega, g, E, lo, hi, trust):

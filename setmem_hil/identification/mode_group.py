@@ -477,9 +477,11 @@ class _Search:
         tol = self.settings.settle_fraction * (inner[1] - inner[0])
         return bool(np.all(lo >= inner[0] - tol) and np.all(hi <= inner[1] + tol))
 
-    def tight(self, lo, hi) -> bool:
+    def within(self, lo, hi, ratio: float) -> bool:
+        """Is every point's remainder over the box at most ``ratio`` of its bound? (``fine_ratio``:
+        fine; ``tight_ratio``: tight.)"""
         finite = np.isfinite(self.E)
-        return bool(np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.tight_ratio * self.E[finite]))
+        return bool(np.all(_remainders(self.omega[finite], lo, hi) <= ratio * self.E[finite]))
 
     def _cones(self, lo, hi, idx):
         """Each point's cone: the divided form where its remainder is below the point's bound; a pair
@@ -520,10 +522,7 @@ class _Search:
         ``search_points`` of them (:func:`_search_subset`: a subset is a valid relaxation, and a
         coarse box is decided by its band's points)."""
         every = np.arange(self.omega.size)
-        if self.omega.size <= self.settings.search_points:
-            return every
-        finite = np.isfinite(self.E)
-        if np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.fine_ratio * self.E[finite]):
+        if self.omega.size <= self.settings.search_points or self.within(lo, hi, self.settings.fine_ratio):
             return every
         return _search_subset(self.omega, self.settings.search_points, lo, hi)
 
@@ -534,7 +533,6 @@ class _Search:
         Returns ``(lo, hi, fine, candidates)`` or ``None`` when the box is proved empty;
         ``candidates`` are the last pass's points near each bound (the relaxation's, not checked).
         """
-        finite = np.isfinite(self.E)
         sol = None
         for _ in range(self.settings.max_contractions):
             idx = self._points_for(lo, hi)
@@ -554,10 +552,10 @@ class _Search:
             width = np.maximum(hi - lo, 1e-300)
             shrink = np.max(((hi - lo) - (new_hi - new_lo)) / width)
             lo, hi = new_lo, new_hi
-            fine = bool(np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.fine_ratio * self.E[finite]))
+            fine = self.within(lo, hi, self.settings.fine_ratio)
             if shrink < (self.settings.contraction_tolerance if fine else self.settings.coarse_contraction_tolerance):
                 break
-        fine = bool(np.all(_remainders(self.omega[finite], lo, hi) <= self.settings.fine_ratio * self.E[finite]))
+        fine = self.within(lo, hi, self.settings.fine_ratio)
         candidates = []
         if sol is not None:
             candidates = [x for x in np.vstack([sol.argmin, sol.argmax]) if np.all(np.isfinite(x))]
@@ -605,7 +603,7 @@ def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSe
     parameter whose halving blurs the points least. (Cutting at the witnesses' hull instead, so
     that one child is a slab the relaxation may prove empty in one solve, was tried: more boxes
     and wider answers on the benchmark's 1 % and 3 % pairs.)"""
-    leaf = search.settled(lo, hi) or (fine and (search.inner is None or search.tight(lo, hi)))
+    leaf = search.settled(lo, hi) or (fine and (search.inner is None or search.within(lo, hi, settings.tight_ratio)))
     if leaf or depth >= settings.max_depth:
         return None
     k = _split_dimension(search.omega, search.E, lo, hi)
