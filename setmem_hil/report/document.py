@@ -70,13 +70,19 @@ def figure_iterations(iterations: Sequence[IterationRecord]) -> list[int]:
     return chosen
 
 
-def _mu_target(procedure_text: str) -> float:
+def _stored_procedure(procedure_text: str):
+    """The run's stored procedure, parsed once for the whole report; ``None`` when it does not
+    parse (an old or hand-edited journal: the report still renders, with defaults)."""
     try:
         from setmem_hil.io.procedure_file import parse_procedure_text
 
-        return float(parse_procedure_text(procedure_text, "<journal>").goal.mu_target)
+        return parse_procedure_text(procedure_text, "<journal>")
     except SetmemError:
-        return 1.0
+        return None
+
+
+def _mu_target(procedure) -> float:
+    return 1.0 if procedure is None else float(procedure.goal.mu_target)
 
 
 def _e(x: Any) -> str:
@@ -147,17 +153,18 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     out_dir = jp.parent
     run = read_snapshot(out_dir)
     info, its = run.info, run.iterations
-    target = _mu_target(info["procedure_text"])
+    procedure = _stored_procedure(info["procedure_text"])
+    target = _mu_target(procedure)
     rig_by_iteration: dict[int, float] = {}
     for row in run.rows:
         rig_by_iteration[int(row["iteration"])] = rig_by_iteration.get(int(row["iteration"]), 0.0) + float(row.get("rig_s") or 0.0)
     parts = [_run_section(run, target, rig_by_iteration), *_progress_section(its, target, run, rig_by_iteration, out_dir),
-             *_uncertainty_section(its, run, out_dir), *_intervals_section(its, run)]
+             *_uncertainty_section(its, run, out_dir), *_intervals_section(its, run, procedure)]
     if its and its[-1].outputs:
         parts += _sensors_section(its[-1])
     parts += _records_section(run, its, out_dir)
     title = f"setmem-hil report: {info['procedure_name']}"
-    return write_text_atomic(out_dir / REPORT_FILENAME, _page(title, _description(info["procedure_text"]), "\n".join(parts)))
+    return write_text_atomic(out_dir / REPORT_FILENAME, _page(title, _description(procedure), "\n".join(parts)))
 
 
 def _run_section(run, target: float, rig_by_iteration: dict[int, float]) -> str:
@@ -257,25 +264,25 @@ def _identified_with(rec: IterationRecord, i: int) -> str:
     return "alone" if group is None else "with modes " + " + ".join(str(m + 1) for m in group)
 
 
-def _exact_ratio_cells(run, rec: IterationRecord) -> list[str]:
+def _exact_ratio_cells(run, rec: IterationRecord, procedure) -> list[str]:
     """Per mode, the largest of its intervals' widths over the linearised exact feasible set's
     (``modes[i].exact_ratio`` of identify's RESULT.json, issue 47) and the parameter it is on, for
     the data the iteration was identified from with their recorded bounds; "-" where it is not
     computable (several outputs, a fixed parameter only, a linearised set that is empty)."""
     from setmem_hil.identification.exact_set import exact_ratios
-    from setmem_hil.io.procedure_file import parse_procedure_text
     from setmem_hil.model.frequency_data import FrequencyData
 
     n_modes = np.asarray(rec.lower).shape[0]
+    if procedure is None:
+        return ["-"] * n_modes
     try:
-        prior = parse_procedure_text(run.info["procedure_text"], "stored procedure").prior
         data = FrequencyData.from_measurements(run.measurements[: rec.n_points])
-        box = prior.initial_bounds()
+        box = procedure.prior.initial_bounds()
         if rec.outputs or not data.omega_rad_s.size or box.lower.shape != np.asarray(rec.lower).shape:
             return ["-"] * n_modes
         ratios = exact_ratios(data.omega_rad_s, data.response, data.bound, np.asarray(rec.lower), np.asarray(rec.upper),
                               box.lower, box.upper)
-    except (ValueError, KeyError):
+    except ValueError:
         return ["-"] * n_modes
     cells = []
     for ratio in ratios:
@@ -287,7 +294,7 @@ def _exact_ratio_cells(run, rec: IterationRecord) -> list[str]:
     return cells
 
 
-def _intervals_section(its, run) -> list[str]:
+def _intervals_section(its, run, procedure) -> list[str]:
     """Appendix B's tables per iteration: bounds, widths, mu-sensitivities, and the conservatism per mode."""
     parts = ["<h2 id='intervals'>Parameter intervals and mu-sensitivities</h2>",
              "<p>Per iteration, as in the thesis's appendix B: the lower and upper bound of each parameter of "
@@ -306,7 +313,7 @@ def _intervals_section(its, run) -> list[str]:
             header = ["mode", "embedding gamma", "mismatch ratio", "identified"]
             if n == len(its):
                 header.append("widest interval / exact set")
-                for row, cell in zip(cons, _exact_ratio_cells(run, rec)):
+                for row, cell in zip(cons, _exact_ratio_cells(run, rec, procedure)):
                     row.append(cell)
             parts.append(_table(header, cons, f"table-conservatism-k{rec.k}"))
     return parts
@@ -424,13 +431,8 @@ def _discrepancy_rows(report: dict) -> list[list[str]]:
     return rows
 
 
-def _description(procedure_text: str) -> str:
-    try:
-        from setmem_hil.io.procedure_file import parse_procedure_text
-
-        return parse_procedure_text(procedure_text, "<journal>").description
-    except SetmemError:
-        return ""
+def _description(procedure) -> str:
+    return "" if procedure is None else procedure.description
 
 
 def _certified_text(record) -> str:
