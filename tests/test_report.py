@@ -205,7 +205,7 @@ def test_the_report_says_which_modes_were_identified_together(tmp_path):
 def test_the_report_gives_each_modes_widest_interval_over_the_exact_set(tmp_path):
     """Issue 47, item 6: the last iteration's conservatism table gives, per mode, the widest interval
     over the linearised exact feasible set, held against that set's extent computed here with
-    inscribed 64-gons (the report's circumscribed 16-gons may read up to 2 % low)."""
+    inscribed 64-gons, as the report uses."""
     import importlib.util
 
     from setmem_hil.identification.exact_set import linearised_extent

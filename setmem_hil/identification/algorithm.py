@@ -37,6 +37,7 @@ from setmem_hil.identification.residual_terms import bound_residual, residual_mi
 from setmem_hil.identification.residue_bootstrap import bootstrap_residue_bounds
 
 POLISH_BOXES = 24  # boxes the final all-modes contraction may use (it rarely needs more than one)
+POLISH_POINTS = 400  # points that polish uses in every box (more: the subset in coarse boxes; a far mode's few resonant points decide it)
 
 __all__ = [
     "IdentifySettings",
@@ -63,6 +64,7 @@ class IdentifySettings:
     partition: bool = True
     groups: bool = True  # closely spaced modes identified together where the split cannot narrow (issue 47)
     group_rounds: int = 2
+    group_boxes: int = GroupSettings.max_boxes  # boxes per stage of a group's search
 
 
 @dataclass(frozen=True)
@@ -350,13 +352,15 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
     group_unverified: dict[int, str] = {}
     for _ in range(settings.group_rounds if groups else 0):
         for group in groups:
-            _identify_group_in_place(data, lo, hi, res, list(group), prior, counter, group_unverified)
+            _identify_group_in_place(data, lo, hi, res, list(group), prior, counter, group_unverified,
+                                     GroupSettings(max_boxes=settings.group_boxes))
         iterations += _outer_loop([data], lo, hi, res, prior, settings, counter, optimizers, gammas, plans, last_unverified, ())
     if groups:
         # every mode together, once, from the box reached: a contraction that removes the rest of
         # the split's conservatism (a far mode's box bounded by the pair's mismatch); no deep search
         _identify_group_in_place(data, lo, hi, res, list(range(n)), prior, counter, group_unverified,
-                                 GroupSettings(max_boxes=POLISH_BOXES))
+                                 GroupSettings(max_boxes=POLISH_BOXES, search_points=POLISH_POINTS,
+                                               subset_stage=False))
     for i, reason in group_unverified.items():
         last_unverified[i] = tuple(last_unverified[i]) + (reason,)
 

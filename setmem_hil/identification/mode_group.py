@@ -58,7 +58,6 @@ import numpy as np
 from setmem_hil.identification import feasible_points
 from setmem_hil.identification.certified_cone_program import AffineConeProgram, ProductTerms
 from setmem_hil.identification.embedding import denominator_max, denominator_min
-from setmem_hil.identification.exact_set import linearised_extremes
 from setmem_hil.model.modal_model import A0, A1, B0, B1
 
 _EPS = np.finfo(float).eps
@@ -89,6 +88,7 @@ class GroupSettings:
     coarse_contraction_tolerance: float = 0.25
     max_depth: int = 40
     search_points: int = 160
+    subset_stage: bool = True  # search a subset of the points first (the hull searched again with all)
     workers: int = field(default_factory=lambda: min(2, os.cpu_count() or 1))
 
 
@@ -366,6 +366,116 @@ def lifted_pair(omega_rad_s, g, lo, hi):
     return r_c, J, err, scale, ProductTerms(K[:, used], pairs)
 
 
+def _sub_box(lo, hi, modes):
+    """The box of some of the group's modes (flat ``(4 k,)`` ends)."""
+    cols = np.concatenate([np.arange(4 * i, 4 * i + 4) for i in modes]).astype(int)
+    return np.asarray(lo, dtype=float)[cols], np.asarray(hi, dtype=float)[cols], cols
+
+
+def mixed_form(omega_rad_s, g, lo, hi, multiplied: tuple[int, ...]):
+    """A point's constraint multiplied through by the denominators of one mode or a pair only
+    (those whose own remainder is large there), the group's other modes in their mean-value form
+    (our choice, issue 47: a group of three, a close pair with a far mode):
+
+        |(g - sum_o N_o / D_o) prod_k D_k - sum_k N_k prod_{l != k} D_l| <= E prod_k max_box |D_k|.
+
+    With ``g' = g - sum_o N_o / D_o = r_o + J_o dx_o + R_o`` (:func:`linearised_group` of the
+    others, ``|R_o| <= rho_o``) this is the thesis's embedding (eq. 3.26) of ``g'`` for one mode,
+    exact in that mode's parameters, or :func:`lifted_pair` of ``g'`` for a pair; ``J_o dx_o``
+    multiplies the denominators' product at the centre as a linear term, and what is left is the
+    remainder ``|J_o| h_o max |dP| + rho_o max |P|`` (``P`` the product of the multiplied
+    denominators, ``dP`` its deviation from the centre's). The split of eq. (3.11) bounds the far
+    mode by the pair's whole mismatch; here the pair's parameters stay variables of the program,
+    so at the far mode's points the pair's two residues enter through their (nearly equal)
+    first-order coefficients, as in the data.
+
+    Returns ``(r_c, J, err, scale, rho, products)``: the cone is ``|r_c + J (x - c) + K z| <= scale
+    E + rho`` (``J`` per unit of ``x`` over the whole group; ``products`` the pair's, indices into
+    the group's parameters, or ``None``).
+    """
+    w = np.asarray(omega_rad_s, dtype=float)
+    m = np.size(lo) // 4
+    others = [i for i in range(m) if i not in multiplied]
+    o_lo, o_hi, o_cols = _sub_box(lo, hi, others)
+    r_o, J_o, err_o, rho_o = linearised_group(w, g, o_lo, o_hi)
+    reach_o = np.abs(J_o) @ (0.5 * (o_hi - o_lo))  # largest |J_o dx_o| over the box
+    k_lo, k_hi, k_cols = _sub_box(lo, hi, multiplied)
+    J = np.zeros((w.size, 4 * m), dtype=complex)
+    _, _, c, h, L, H, _ = _box_terms(w, k_lo, k_hi)
+    D_c = [(c[i, A0] - w * w) + 1j * w * c[i, A1] for i in range(len(multiplied))]
+    dD = [np.hypot(h[i, A0], w * h[i, A1]) for i in range(len(multiplied))]
+    D_max = [denominator_max(w, L[i, A0], H[i, A0], H[i, A1]) for i in range(len(multiplied))]
+    products = None
+    if len(multiplied) == 1:
+        r_c = r_o * D_c[0] - (c[0, B0] + 1j * w * c[0, B1])
+        J[:, k_cols[A1]], J[:, k_cols[A0]] = r_o * 1j * w, r_o
+        J[:, k_cols[B1]], J[:, k_cols[B0]] = -1j * w, -1.0
+        P_c, P_dev, scale = D_c[0], dD[0], D_max[0]
+        err = err_o * D_max[0] + 16 * _EPS * (np.abs(r_o) * (np.abs(c[0, A0]) + w * w + w * np.abs(c[0, A1]))
+                                              + np.abs(c[0, B0]) + w * np.abs(c[0, B1]))
+    elif len(multiplied) == 2:
+        r_c, J_k, err, scale, lifted = lifted_pair(w, r_o, k_lo, k_hi)
+        J[:, k_cols] = J_k
+        P_c = D_c[0] * D_c[1]
+        P_dev = np.abs(D_c[0]) * dD[1] + dD[0] * np.abs(D_c[1]) + dD[0] * dD[1]
+        err = err + err_o * scale
+        products = ProductTerms(lifted.K, k_cols[np.asarray(lifted.pairs, dtype=int)].reshape(-1, 2))
+    else:
+        raise ValueError(f"mixed_form: one mode or a pair multiplied, found {len(multiplied)}")
+    J[:, o_cols] = P_c[:, None] * J_o
+    with np.errstate(invalid="ignore"):
+        rho = (reach_o * P_dev + rho_o * scale) * (1.0 + 1e-12)
+    rho = np.where(np.isfinite(rho_o), rho, np.inf)
+    return r_c, J, err, scale, rho, products
+
+
+def _multiplied_modes(omega, E, lo, hi) -> list:
+    """Per point, the modes to multiply through in a group of three or more (:func:`mixed_form`):
+    the mode with the largest remainder when the others' remainders together fit within the
+    point's bound, else the two largest when the rest does, else ``None`` (every denominator:
+    :func:`multiplied_group`)."""
+    m = np.size(lo) // 4
+    per_mode = np.array([_remainders(omega, *_sub_box(lo, hi, [i])[:2]) for i in range(m)])
+    order = np.argsort(-per_mode, axis=0, kind="stable")
+    ranked = np.take_along_axis(per_mode, order, axis=0)
+    # the others' remainders summed from the smallest up (no inf - inf where two can vanish)
+    rest_of_one, rest_of_two = ranked[1:].sum(axis=0), ranked[2:].sum(axis=0)
+    choice = []
+    for j in range(np.size(omega)):
+        first, second = int(order[0, j]), int(order[1, j])
+        if rest_of_one[j] <= E[j]:
+            choice.append((first,))
+        elif rest_of_two[j] <= E[j]:
+            choice.append(tuple(sorted((first, second))))
+        else:
+            choice.append(None)
+    return choice
+
+
+def _mixed_cones(omega, g, E, lo, hi, mult, cones):
+    """Write the cones of the points ``mult`` (in place into ``cones = (r_c, J, err, C)``) in the
+    form :func:`_multiplied_modes` picks; returns the product terms of the pairs used, or
+    ``None``."""
+    r_c, J, err, C = cones
+    choice = _multiplied_modes(omega, E, lo, hi)
+    K_cols, pairs = [], []
+    for modes in dict.fromkeys(choice[j] for j in np.flatnonzero(mult)):
+        rows = mult & np.array([c == modes for c in choice])
+        if modes is None:
+            P_c, J_m, err_m, rho_m, scale = multiplied_group(omega, g, lo, hi)
+            lifted = None
+        else:
+            P_c, J_m, err_m, scale, rho_m, lifted = mixed_form(omega, g, lo, hi, modes)
+        r_c[rows], J[rows], err[rows] = P_c[rows], J_m[rows], err_m[rows]
+        C[rows] = scale[rows] * E[rows] + rho_m[rows]
+        if lifted is not None and lifted.K.shape[1]:
+            K_cols.append(np.where(rows[:, None], lifted.K, 0.0))
+            pairs.append(lifted.pairs)
+    if not K_cols:
+        return None
+    return ProductTerms(np.hstack(K_cols), np.vstack(pairs))
+
+
 def _remainders(omega, lo, hi) -> np.ndarray:
     return linearised_group(omega, np.zeros(np.size(omega), dtype=complex), lo, hi, with_jacobian=False)[3]
 
@@ -376,10 +486,14 @@ def _score(omega, E, lo, hi) -> float:
     return float(np.sum(np.log1p(ratio)))
 
 
-def _split_dimension(omega, E, lo, hi) -> int:
-    """The free parameter whose halving blurs the points least (by the remainders' score)."""
+def _split_dimension(omega, E, lo, hi, modes=None) -> int:
+    """The free parameter (of ``modes``, default all) whose halving blurs the points least (by the
+    remainders' score)."""
     best, best_score = -1, np.inf
-    for k in np.flatnonzero(hi > lo):
+    free = hi > lo
+    if modes is not None:
+        free &= np.isin(np.arange(np.size(lo)) // 4, modes)
+    for k in np.flatnonzero(free):
         mid = 0.5 * (lo[k] + hi[k])
         scores = []
         for a, b in ((lo[k], mid), (mid, hi[k])):
@@ -428,7 +542,7 @@ class _Search:
             with self._lock:
                 if self.anchor is None:
                     self.anchor = x
-            self._add_witnesses([x] + self._linearised_extremes(x))
+            self._add_witnesses([x] + self._farthest(x))
         inner = self.inner
         outside = [x for x in candidates
                    if inner is None or not (np.all(x >= inner[0]) and np.all(x <= inner[1]))]
@@ -441,15 +555,18 @@ class _Search:
                 found = [local] + self._pulled_back(outside, local)
         self._add_witnesses(found)
 
-    def _linearised_extremes(self, anchor) -> list:
-        """Each parameter's extremes of the set linearised at ``anchor`` (a linear program on at most
-        ``search_points`` points: a subset overshoots, never falls short), pulled back until they
-        fit every point."""
+    def _farthest(self, anchor) -> list:
+        """Each free parameter's farthest fitting points from ``anchor`` by a local search
+        (:func:`feasible_points.farthest_fitting`), on the search's subset of points and then
+        pulled back until they fit every point."""
         root_lo, root_hi = self.root
         idx = _search_subset(self.omega, self.settings.search_points, root_lo, root_hi)
-        extremes = linearised_extremes(self.omega[idx], self.g[idx], self.E[idx], anchor, root_lo, root_hi,
-                                       sides=16, inscribed=False)
-        return self._pulled_back([x for _, _, x in extremes or () if x is not None], anchor)
+        out = []
+        for k in np.flatnonzero(root_hi > root_lo):
+            for sign in (-1.0, 1.0):
+                out.append(feasible_points.farthest_fitting(self.omega[idx], self.g[idx], self.E[idx], root_lo,
+                                                            root_hi, anchor, int(k), sign, iterations=6))
+        return self._pulled_back(out, anchor)
 
     def _pulled_back(self, candidates, towards) -> list:
         return [x for x in (feasible_points.pulled_back(c, towards, self.omega, self.g, self.E) for c in candidates) if x is not None]
@@ -502,10 +619,9 @@ class _Search:
                 K = np.where(mult[:, None], lifted.K, 0.0)
                 products = ProductTerms(K, lifted.pairs)
                 C[mult] = scale[mult] * E[mult]
+                r_c[mult], J[mult], err[mult] = P_c[mult], J_m[mult], err_m[mult]
             else:
-                P_c, J_m, err_m, rho_m, scale = multiplied_group(omega, g, lo, hi)
-                C[mult] = scale[mult] * E[mult] + rho_m[mult]
-            r_c[mult], J[mult], err[mult] = P_c[mult], J_m[mult], err_m[mult]
+                products = _mixed_cones(omega, g, E, lo, hi, mult, (r_c, J, err, C))
         C = np.where(np.isfinite(E), C, np.inf)
         h = 0.5 * (np.asarray(hi, dtype=float) - np.asarray(lo, dtype=float))
         reach = np.abs(r_c) + np.abs(J) @ h + err
@@ -578,8 +694,15 @@ def _search_subset(omega: np.ndarray, n_max: int, lo: np.ndarray, hi: np.ndarray
         idx = idx[np.argsort(omega[idx], kind="stable")]
         return idx[np.unique(np.linspace(0, idx.size - 1, n).round().astype(int))]
 
-    inside = spread(np.flatnonzero(band), (2 * n_max) // 3)
-    outside = spread(np.flatnonzero(~band), n_max - inside.size)
+    # each mode's resonance first (within a bandwidth of its a0 range): a lightly damped mode's
+    # few points there decide its box, and an even spread drops half of them
+    peak = np.zeros(omega.size, dtype=bool)
+    for (a1_lo, a0_lo, _, _), (a1_hi, a0_hi, _, _) in zip(box_lo, box_hi):
+        peak |= (omega >= np.sqrt(max(a0_lo, 0.0)) - a1_hi) & (omega <= np.sqrt(max(a0_hi, 0.0)) + a1_hi)
+    peaks = spread(np.flatnonzero(peak), n_max // 2)
+    rest_band = np.flatnonzero(band & ~np.isin(np.arange(omega.size), peaks))
+    inside = np.concatenate([peaks, spread(rest_band, max((2 * n_max) // 3 - peaks.size, 0))])
+    outside = spread(np.flatnonzero(~band & ~np.isin(np.arange(omega.size), peaks)), n_max - inside.size)
     return np.sort(np.concatenate([inside, outside]))
 
 
@@ -597,6 +720,18 @@ def _priority(search: _Search, lo: np.ndarray, hi: np.ndarray) -> float:
     return float(np.max(np.maximum(inner[0] - lo, hi - inner[1]) / width))
 
 
+def _widest_mode(search: _Search, lo: np.ndarray, hi: np.ndarray):
+    """In a group of three or more, the mode whose parameter sticks out furthest beyond the
+    witnesses' hull (the one that widens the answer most; the remainders' score alone splits the
+    pair, whose many resonant points dominate it, and never the far mode: our finding on the 1 %
+    pair with a far mode). ``None`` for a pair or before any witness: every mode."""
+    inner = search.inner
+    if inner is None or np.size(lo) <= 8:
+        return None
+    width = np.maximum(inner[1] - inner[0], 1e-12 * np.maximum(np.abs(inner[0]), 1e-300))
+    return [int(np.argmax(np.maximum(inner[0] - lo, hi - inner[1]) / width)) // 4]
+
+
 def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSettings):
     """A contracted box's two halves, or ``None`` when it is a leaf: settled against the witnesses,
     tight, fine before any witness exists, or at the depth limit. The cut is the middle of the
@@ -606,7 +741,9 @@ def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSe
     leaf = search.settled(lo, hi) or (fine and (search.inner is None or search.within(lo, hi, settings.tight_ratio)))
     if leaf or depth >= settings.max_depth:
         return None
-    k = _split_dimension(search.omega, search.E, lo, hi)
+    k = _split_dimension(search.omega, search.E, lo, hi, _widest_mode(search, lo, hi))
+    if k < 0:
+        k = _split_dimension(search.omega, search.E, lo, hi)
     if k < 0:
         return None
     mid = 0.5 * (lo[k] + hi[k])
@@ -732,7 +869,7 @@ def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSet
     n_solves, unverified, anchor = 0, [], None
     subsets = [_search_subset(omega, settings.search_points, box_lo, box_hi)]
     if subsets[0].size < omega.size:
-        subsets.append(np.arange(omega.size))
+        subsets = subsets + [np.arange(omega.size)] if settings.subset_stage else [np.arange(omega.size)]
     for idx in subsets:
         search = _Search(omega[idx], g[idx], E[idx], settings)
         search.hint = anchor

@@ -269,7 +269,7 @@ def _exact_ratio_cells(run, rec: IterationRecord, procedure) -> list[str]:
     (``modes[i].exact_ratio`` of identify's RESULT.json, issue 47) and the parameter it is on, for
     the data the iteration was identified from with their recorded bounds; "-" where it is not
     computable (several outputs, a fixed parameter only, a linearised set that is empty)."""
-    from setmem_hil.identification.exact_set import exact_ratios
+    from setmem_hil.identification.exact_ratio import exact_ratios
     from setmem_hil.model.frequency_data import FrequencyData
 
     n_modes = np.asarray(rec.lower).shape[0]

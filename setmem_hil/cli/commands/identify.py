@@ -61,10 +61,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _add_exact_ratios(doc: dict, data, prior) -> None:
     """``modes[i].exact_ratio`` (issue 47): each interval over the linearised exact feasible set's
-    extent around the box's centre, so a user sees where the method is conservative (thesis 3.6)."""
+    extent (linearised at a point of the box that fits), so a user sees where the method is
+    conservative (thesis 3.6)."""
     if prior.residuals.enabled or doc.get("rejected_points"):
         return  # the reference models neither residual terms nor rejected points
-    from setmem_hil.identification.exact_set import exact_ratios
+    from setmem_hil.identification.exact_ratio import exact_ratios
     from setmem_hil.io.result_file import parse_result_mapping
 
     model = parse_result_mapping(doc, "result")
@@ -76,7 +77,6 @@ def _add_exact_ratios(doc: dict, data, prior) -> None:
 
 def _run_outputs(args: argparse.Namespace, outputs) -> int:
     """Several outputs with shared poles (issue 25)."""
-    from setmem_hil.errors import InputFormatError
     from setmem_hil.identification.algorithm import identify_outputs
 
     priors, names = load_output_priors(args.prior, len(outputs))
