@@ -261,6 +261,28 @@ def test_candidates_that_remove_a_floor_rank_ahead_of_larger_improvements():
     assert _with_floors_first(np.array([0.9, 0.1]), np.zeros(2)).tolist() == [0.9, 0.1]
 
 
+def test_with_no_score_anywhere_the_next_point_fills_a_floor_modes_band():
+    """Every score zero (a close pair's one-mode predictions see nothing): the choice lies in the
+    floor mode's band (its sqrt(a0) range) and is the candidate there furthest in log-frequency
+    from every measured point, checked by brute force; no floor: the default stands."""
+    from setmem_hil.design.input_design import _filling_floor_bands
+
+    box = _box(0.2, floor_mode=2)
+    candidates = np.geomspace(0.05, 200.0, 400)
+    a0_lo, a0_hi, a1_hi = box.lower[1, A0], box.upper[1, A0], box.upper[1, A1]
+    band_lo, band_hi = np.sqrt(a0_lo), np.sqrt(a0_hi)
+    measured = np.array([0.5, np.sqrt(a0_lo) * 1.02, np.sqrt(box.upper[1, A0]) * 0.99, 40.0])
+    best = _filling_floor_bands(box, candidates, measured, np.array([1]), default=0)
+    assert band_lo <= candidates[best] <= band_hi
+    gaps = [min(abs(np.log(c / m)) for m in measured) for c in candidates if band_lo <= c <= band_hi]
+    assert min(abs(np.log(candidates[best] / m)) for m in measured) == pytest.approx(max(gaps))
+    # no candidate in the sqrt(a0) range: the range widened by a1_hi / 2 on each side
+    near = np.array([0.01, band_lo - 0.4 * a1_hi, 1000.0])
+    assert _filling_floor_bands(box, near, measured, np.array([1]), default=0) == 1
+    # a band with no candidate keeps the default
+    assert _filling_floor_bands(box, np.array([0.01, 1000.0]), measured, np.array([1]), default=1) == 1
+
+
 @pytest.mark.slow
 def test_the_lower_bound_reaches_one_wherever_the_floor_holds():
     """Inside the floor mode's a0 interval mu >= 1 (the floor plant's closed loop is singular

@@ -26,11 +26,15 @@ from setmem_hil.model.experiment import BoundPredictingExperiment, Measurement, 
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.numerics.blas_threads import blas_one_thread
 
-__all__ = ["EXACT_RESOLVE_OUTER_ITERATIONS", "batch_frequencies", "candidate_noise_bound", "dwell_seconds", "identify_settings",
+__all__ = ["EXACT_RESOLVE_GROUP_BOXES", "EXACT_RESOLVE_OUTER_ITERATIONS", "batch_frequencies", "candidate_noise_bound", "dwell_seconds", "identify_settings",
            "next_frequency", "other_outputs"]
 
 EXACT_RESOLVE_OUTER_ITERATIONS = 1
 """Algorithm 3.1 passes of the exact re-solves of the top candidates (speed; see the report)."""
+
+EXACT_RESOLVE_GROUP_BOXES = 24
+"""Boxes per stage of a close group's search in those re-solves (a prediction, five per choice: the
+deep search of 400 took 80 s per re-solve on the two-plane cantilever's first 28 points)."""
 
 
 def candidate_noise_bound(experiment: Any, omega_rad_s: np.ndarray, measured: list[Measurement]) -> np.ndarray:
@@ -54,7 +58,7 @@ def identify_settings(exact_resolve: bool = False):
     from setmem_hil.identification.algorithm import IdentifySettings
 
     if exact_resolve:
-        return IdentifySettings(max_outer_iterations=EXACT_RESOLVE_OUTER_ITERATIONS)
+        return IdentifySettings(max_outer_iterations=EXACT_RESOLVE_OUTER_ITERATIONS, group_boxes=EXACT_RESOLVE_GROUP_BOXES)
     return IdentifySettings()
 
 
