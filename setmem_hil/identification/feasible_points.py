@@ -110,6 +110,14 @@ def _minimax_step(x, omega, g, E, lo, hi, trust, toward=None, margin: float = 1.
     return step
 
 
+def _bounded_points(omega_rad_s, g, E, lo, hi):
+    """The points with a finite bound (the others constrain nothing) and the box as flat arrays."""
+    finite = np.isfinite(np.asarray(E, dtype=float))
+    return (np.asarray(omega_rad_s, dtype=float)[finite], np.asarray(g, dtype=complex)[finite],
+            np.asarray(E, dtype=float)[finite], np.asarray(lo, dtype=float).reshape(-1),
+            np.asarray(hi, dtype=float).reshape(-1))
+
+
 def chebyshev_fit(omega_rad_s, g, E, lo, hi, x0, iterations: int = 15):
     """A local Chebyshev fit inside ``[lo, hi]`` from ``x0`` (module docstring): ``(x, misfit)``.
 
@@ -117,12 +125,7 @@ def chebyshev_fit(omega_rad_s, g, E, lo, hi, x0, iterations: int = 15):
     gains less than 0.5 %. An anchor well inside the set (not merely fitting) is what lets the
     segments to the candidates stay in it.
     """
-    finite = np.isfinite(np.asarray(E, dtype=float))
-    omega = np.asarray(omega_rad_s, dtype=float)[finite]
-    g = np.asarray(g, dtype=complex)[finite]
-    E = np.asarray(E, dtype=float)[finite]
-    lo = np.asarray(lo, dtype=float).reshape(-1)
-    hi = np.asarray(hi, dtype=float).reshape(-1)
+    omega, g, E, lo, hi = _bounded_points(omega_rad_s, g, E, lo, hi)
     x = np.clip(np.asarray(x0, dtype=float).reshape(-1), lo, hi)
     f = misfit(x, omega, g, E)
     trust = 4.0
@@ -177,12 +180,7 @@ def farthest_fitting(omega_rad_s, g, E, lo, hi, start, k: int, sign: float, iter
     at five times the noise, where they miss by up to 2.5 bounds). A local search: the extent
     found is at most the true one.
     """
-    finite = np.isfinite(np.asarray(E, dtype=float))
-    omega = np.asarray(omega_rad_s, dtype=float)[finite]
-    g = np.asarray(g, dtype=complex)[finite]
-    E = np.asarray(E, dtype=float)[finite]
-    lo = np.asarray(lo, dtype=float).reshape(-1)
-    hi = np.asarray(hi, dtype=float).reshape(-1)
+    omega, g, E, lo, hi = _bounded_points(omega_rad_s, g, E, lo, hi)
     x = np.asarray(start, dtype=float).reshape(-1).copy()
     if misfit(x, omega, g, E) > 1.0:
         raise ValueError("farthest_fitting: the start does not fit")
