@@ -700,9 +700,10 @@ def _search_subset(omega: np.ndarray, n_max: int, lo: np.ndarray, hi: np.ndarray
     for (a1_lo, a0_lo, _, _), (a1_hi, a0_hi, _, _) in zip(box_lo, box_hi):
         peak |= (omega >= np.sqrt(max(a0_lo, 0.0)) - a1_hi) & (omega <= np.sqrt(max(a0_hi, 0.0)) + a1_hi)
     peaks = spread(np.flatnonzero(peak), n_max // 2)
-    rest_band = np.flatnonzero(band & ~np.isin(np.arange(omega.size), peaks))
-    inside = np.concatenate([peaks, spread(rest_band, max((2 * n_max) // 3 - peaks.size, 0))])
-    outside = spread(np.flatnonzero(~band & ~np.isin(np.arange(omega.size), peaks)), n_max - inside.size)
+    left = np.ones(omega.size, dtype=bool)
+    left[peaks] = False
+    inside = np.concatenate([peaks, spread(np.flatnonzero(band & left), max((2 * n_max) // 3 - peaks.size, 0))])
+    outside = spread(np.flatnonzero(~band & left), n_max - inside.size)
     return np.sort(np.concatenate([inside, outside]))
 
 
@@ -716,8 +717,14 @@ def _priority(search: _Search, lo: np.ndarray, hi: np.ndarray) -> float:
         root_lo, root_hi = search.root
         width = np.where(root_hi > root_lo, root_hi - root_lo, 1.0)
         return float(np.max((hi - lo) / width))
+    return float(np.max(_protrusion(inner, lo, hi)))
+
+
+def _protrusion(inner, lo, hi) -> np.ndarray:
+    """How far each parameter of the box sticks out beyond the witnesses' hull ``inner``, in units
+    of the hull's width."""
     width = np.maximum(inner[1] - inner[0], 1e-12 * np.maximum(np.abs(inner[0]), 1e-300))
-    return float(np.max(np.maximum(inner[0] - lo, hi - inner[1]) / width))
+    return np.maximum(inner[0] - lo, hi - inner[1]) / width
 
 
 def _widest_mode(search: _Search, lo: np.ndarray, hi: np.ndarray):
@@ -728,8 +735,7 @@ def _widest_mode(search: _Search, lo: np.ndarray, hi: np.ndarray):
     inner = search.inner
     if inner is None or np.size(lo) <= 8:
         return None
-    width = np.maximum(inner[1] - inner[0], 1e-12 * np.maximum(np.abs(inner[0]), 1e-300))
-    return [int(np.argmax(np.maximum(inner[0] - lo, hi - inner[1]) / width)) // 4]
+    return [int(np.argmax(_protrusion(inner, lo, hi))) // 4]
 
 
 def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSettings):
