@@ -193,6 +193,23 @@ def test_pause_confirms_the_output_off_and_is_reported_with_its_end():
     assert "before measurement 2" in paused
 
 
+class PausedThenAborted:
+    """Pause held, then Resume and Abort pressed together: the checkpoint wakes with the abort set."""
+
+    def checkpoint(self, make_safe=None):
+        make_safe()
+        raise CampaignAborted("operator pressed Resume then Abort")
+
+
+def test_a_pause_ended_by_abort_still_journals_its_end():
+    rig, (seen, sub) = CountingRig(), recorder()
+    with pytest.raises(CampaignAborted):
+        campaign_engine(rig, [sub], control=PausedThenAborted()).run(toy_plan([1.0, 2.0], [4.0]))
+    notes = [(i["kind"], i["message"]) for e, i in seen if e == NOTE]
+    assert [k for k, _ in notes[:2]] == ["paused", "unpaused"] and "ended by abort after" in notes[1][1]
+    assert rig.confirmed_off >= 1
+
+
 def test_abort_stops_before_the_next_dwell_and_keeps_what_was_measured(tmp_path):
     journal = _journal(tmp_path)
     rig = CountingRig()

@@ -207,7 +207,14 @@ class RunEngine:
             where = f" before {request.before}" if request.before else ""
             self.emit(NOTE, kind="paused", message=f"paused{where}: {self.safe_state}", replayed=False)
 
-        self.control.checkpoint(safe_and_reported)  # may wait (paused) or raise (abort)
+        # The pause's end is journaled however it ends: a Resume followed at once by Abort wakes the
+        # checkpoint with the abort already set, and the pause still held until then.
+        try:
+            self.control.checkpoint(safe_and_reported)  # may wait (paused) or raise (abort)
+        except RunAborted:
+            if held_since:
+                self.emit(NOTE, kind="unpaused", message=f"ended by abort after {time.monotonic() - held_since[0]:.1f} s paused", replayed=False)
+            raise
         if held_since:
             self.emit(NOTE, kind="unpaused", message=f"went on after {time.monotonic() - held_since[0]:.1f} s paused", replayed=False)
 
