@@ -59,6 +59,7 @@ from setmem_hil.identification import feasible_points
 from setmem_hil.identification.certified_cone_program import AffineConeProgram, ProductTerms
 from setmem_hil.identification.embedding import denominator_max, denominator_min
 from setmem_hil.model.modal_model import A0, A1, B0, B1
+from setmem_hil.numerics.in_order_pool import run_in_order
 
 _EPS = np.finfo(float).eps
 UNUSABLE_RATIO = 50.0  # a point whose remainder exceeds this many bounds counts as unusable when choosing a split
@@ -506,6 +507,17 @@ def _split_dimension(omega, E, lo, hi, modes=None) -> int:
     return best
 
 
+def _widened(inner, points):
+    """The hull ``inner`` (``(lo, hi)`` or ``None``) widened to take in ``points``."""
+    if not points:
+        return inner
+    stack = np.array(points)
+    lo, hi = stack.min(axis=0), stack.max(axis=0)
+    if inner is not None:
+        lo, hi = np.minimum(inner[0], lo), np.maximum(inner[1], hi)
+    return lo, hi
+
+
 class _Search:
     """The branch-and-bound's state: counters and the certified contraction of one box."""
 
@@ -521,39 +533,37 @@ class _Search:
         self.hint: np.ndarray | None = None  # where to start looking for the anchor (an earlier stage's)
 
     # -- witnesses: where refining can no longer narrow the answer -----------------------------
-    def _add_witnesses(self, points) -> None:
-        if not points:
-            return
-        stack = np.array(points)
-        with self._lock:
-            lo, hi = stack.min(axis=0), stack.max(axis=0)
-            if self.inner is not None:
-                lo, hi = np.minimum(self.inner[0], lo), np.maximum(self.inner[1], hi)
-            self.inner = (lo, hi)
-
-    def look_for_witnesses(self, lo, hi, candidates) -> None:
-        """Find the anchor in this box if there is none yet (with the linearised set's extremes
-        around it), and keep every candidate (the contraction's points nearest each bound) that,
-        pulled back towards the anchor, fits and widens the hull."""
-        if self.anchor is None:
+    def witnesses_in(self, lo, hi, candidates, anchor, inner):
+        """Points of this box that fit and widen the witnesses' hull ``inner`` as it stood when the
+        box was taken: the anchor first if there is none (a Chebyshev fit, with the farthest
+        fitting points around it), then every candidate (the contraction's points nearest each
+        bound) that, pulled back towards the anchor, fits. Returns ``(new_anchor or None,
+        points)``; reads nothing that other boxes change (the search adds them in order,
+        :meth:`add_witnesses`), so the answer does not depend on the threads' timing."""
+        new_anchor, found = None, []
+        if anchor is None:
             x = self._fit_from(lo, hi, candidates)
             if x is None:
-                return
-            with self._lock:
-                if self.anchor is None:
-                    self.anchor = x
-            self._add_witnesses([x] + self._farthest(x))
-        inner = self.inner
+                return None, []
+            new_anchor = anchor = x
+            found = [x] + self._farthest(x)
+            inner = _widened(inner, found)
         outside = [x for x in candidates
                    if inner is None or not (np.all(x >= inner[0]) and np.all(x <= inner[1]))]
-        found = self._pulled_back(outside, self.anchor)
-        if outside and not found:
+        pulled = self._pulled_back(outside, anchor)
+        if outside and not pulled:
             # the segment to the anchor leaves the set (a set in two pieces, or bent): this box's
             # own fitting point, then its candidates pulled back towards it
             local = self._fit_from(lo, hi, outside)
             if local is not None:
-                found = [local] + self._pulled_back(outside, local)
-        self._add_witnesses(found)
+                pulled = [local] + self._pulled_back(outside, local)
+        return new_anchor, found + pulled
+
+    def add_witnesses(self, anchor, points) -> None:
+        """Keep a box's witnesses (:meth:`witnesses_in`); the first anchor found stays the anchor."""
+        if anchor is not None and self.anchor is None:
+            self.anchor = anchor
+        self.inner = _widened(self.inner, points)
 
     def _farthest(self, anchor) -> list:
         """Each free parameter's farthest fitting points from ``anchor`` by a local search
@@ -654,7 +664,7 @@ class _Search:
             idx = self._points_for(lo, hi)
             r_c, J, err, C, products, active = self._cones(lo, hi, idx)
             if not active.any():
-                return lo, hi, False
+                return lo, hi, False, []
             program = AffineConeProgram(r_c, J, err, lo, hi, self.omega[idx][active], products)
             sol = program.bound_box(C, lo, hi)
             with self._lock:
@@ -758,80 +768,58 @@ def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSe
     return (lo, left_hi), (right_lo, hi)
 
 
+LOOKAHEAD = 2  # boxes in flight: a setting of the search, not the machine's core count (in_order_pool)
+
+
 def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings: GroupSettings, counts: dict):
     """Best-first search of the box (:func:`_priority`) by ``settings.workers`` threads (the conic
-    solver runs outside the GIL); returns the leaves (contracted, not proved empty). Past
-    ``max_boxes`` every open box becomes a leaf as it stands: the hull is still guaranteed, only
-    wider."""
+    solver runs outside the GIL), the boxes' results applied in the order they were taken
+    (:func:`setmem_hil.numerics.in_order_pool.run_in_order`: the same answer from the same data,
+    whatever the threads' timing or their number). Returns the leaves (contracted, not proved
+    empty). Past ``max_boxes`` every open box becomes a leaf as it stands: the hull is still
+    guaranteed, only wider."""
     open_boxes = [(lo, hi, 0)]
     search.root = (lo, hi)
     leaves: list[tuple[np.ndarray, np.ndarray]] = []
-    cond = threading.Condition()
-    state = {"active": 0, "error": None, "boxes": 0}
+    taken = [0]
 
     def take():
-        with cond:
-            while True:
-                if state["error"] is not None:
-                    return None
-                if open_boxes and state["boxes"] >= settings.max_boxes:
-                    counts["exhausted"] = True
-                    leaves.extend((b_lo, b_hi) for b_lo, b_hi, _ in open_boxes)
-                    open_boxes.clear()
-                while open_boxes:
-                    k = int(np.argmax([_priority(search, b_lo, b_hi) for b_lo, b_hi, _ in open_boxes]))
-                    b_lo, b_hi, depth = open_boxes.pop(k)
-                    if depth > 0 and search.settled(b_lo, b_hi):
-                        leaves.append((b_lo, b_hi))  # the witnesses grew since it was split: nothing to gain
-                        continue
-                    state["active"] += 1
-                    state["boxes"] += 1
-                    counts["boxes"] += 1
-                    return b_lo, b_hi, depth
-                if state["active"] == 0:
-                    cond.notify_all()
-                    return None
-                cond.wait()
+        if open_boxes and taken[0] >= settings.max_boxes:
+            counts["exhausted"] = True
+            leaves.extend((b_lo, b_hi) for b_lo, b_hi, _ in open_boxes)
+            open_boxes.clear()
+        while open_boxes:
+            k = int(np.argmax([_priority(search, b_lo, b_hi) for b_lo, b_hi, _ in open_boxes]))
+            b_lo, b_hi, depth = open_boxes.pop(k)
+            if depth > 0 and search.settled(b_lo, b_hi):
+                leaves.append((b_lo, b_hi))  # the witnesses grew since it was split: nothing to gain
+                continue
+            taken[0] += 1
+            counts["boxes"] += 1
+            return b_lo, b_hi, depth, search.anchor, search.inner  # the witnesses as they stand now
+        return None
 
-    def settle(depth, out):
-        with cond:
-            state["active"] -= 1
-            if out is None:
-                counts["pruned"] += 1
-            else:
-                children = _children(search, out[0], out[1], out[2], depth, settings)
-                if children is None:
-                    leaves.append((out[0], out[1]))
-                else:
-                    open_boxes.extend((c_lo, c_hi, depth + 1) for c_lo, c_hi in children)
-            cond.notify_all()
+    def compute(box):
+        b_lo, b_hi, depth, anchor, inner = box
+        out = search.contract(b_lo, b_hi)
+        found = (None, [])
+        if out is not None and (out[2] or depth == 0):
+            found = search.witnesses_in(out[0], out[1], out[3], anchor, inner)
+        return out, found
 
-    def work():
-        while True:
-            item = take()
-            if item is None:
-                return
-            b_lo, b_hi, depth = item
-            try:
-                out = search.contract(b_lo, b_hi)
-                if out is not None and (out[2] or depth == 0):
-                    search.look_for_witnesses(out[0], out[1], out[3])
-            except BaseException as exc:  # noqa: BLE001 - handed to the caller below
-                with cond:
-                    state["error"] = exc
-                    state["active"] -= 1
-                    cond.notify_all()
-                return
-            settle(depth, out)
+    def apply(box, result):
+        out, (anchor, points) = result
+        search.add_witnesses(anchor, points)
+        if out is None:
+            counts["pruned"] += 1
+            return
+        children = _children(search, out[0], out[1], out[2], box[2], settings)
+        if children is None:
+            leaves.append((out[0], out[1]))
+        else:
+            open_boxes.extend((c_lo, c_hi, box[2] + 1) for c_lo, c_hi in children)
 
-    threads = [threading.Thread(target=work, daemon=True) for _ in range(max(1, settings.workers) - 1)]
-    for t in threads:
-        t.start()
-    work()
-    for t in threads:
-        t.join()
-    if state["error"] is not None:
-        raise state["error"]
+    run_in_order(take, compute, apply, LOOKAHEAD, settings.workers)
     return leaves
 
 
@@ -886,6 +874,6 @@ def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSet
             raise ValueError("every box of the group was proved empty")
         box_lo, box_hi = _hull(leaves)
         anchor = search.anchor  # fits the subset: where the search with every point starts looking
-    reason = "; ".join(dict.fromkeys(unverified))
+    reason = "; ".join(sorted(set(unverified)))  # sorted: the threads add them in any order
     return GroupResult(box_lo.reshape(m, 4), box_hi.reshape(m, 4), not unverified, reason, counts["boxes"],
                        len(leaves), counts["pruned"], n_solves, counts["exhausted"])
