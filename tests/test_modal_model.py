@@ -34,3 +34,15 @@ def test_state_space_of_intervals_midpoint_matches_response():
     w = np.array([0.3, 1.0, 3.0])
     direct = np.array([(C @ np.linalg.solve(1j * wi * np.eye(2) - A, B))[0, 0] for wi in w])
     assert np.allclose(direct, mid.frequency_response(w))
+
+
+def test_resonance_band_is_the_natural_frequency_range_widened_by_the_half_power_bandwidth():
+    from setmem_hil.model.modal_model import resonance_band
+
+    # omega_n in [9, 11] rad/s, zeta up to 0.02 at 11 rad/s: half-power bandwidth 2 zeta omega_n = 0.44
+    lower = np.array([[0.0, 81.0, 0.0, -1.0]])
+    upper = np.array([[2 * 0.02 * 11.0, 121.0, 0.0, 1.0]])
+    lo, hi = resonance_band(lower, upper, bandwidths=0.5)
+    assert np.allclose(lo, 9.0 - 0.22) and np.allclose(hi, 11.0 + 0.22)
+    lo0, hi0 = resonance_band(lower, upper, bandwidths=0.0)
+    assert np.allclose([lo0[0], hi0[0]], [9.0, 11.0])

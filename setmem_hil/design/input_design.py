@@ -44,7 +44,7 @@ from setmem_hil.errors import InconsistentDataError, SolverError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.identification.algorithm import IdentifySettings, identify, identify_outputs
 from setmem_hil.design.input_effects import InputEffects, estimate_input_effects
-from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel
+from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel, resonance_band
 from setmem_hil.model.mu_floor import floor_mask
 from setmem_hil.io.procedure import InputDesignSettings
 
@@ -302,13 +302,9 @@ def _filling_floor_bands(model: IntervalModel, omega: np.ndarray, measured: np.n
     (its optimizers belong to the split), so every score is zero and the ranking would fall to the
     lowest candidate, far from any mode (the two-plane cantilever asked for 0.1 rad/s again and
     again). Filling the floor modes' bands is what lets the group search tell the pair apart."""
-    in_band = np.zeros(omega.size, dtype=bool)
-    for widen in (0.0, 0.5):
-        for i in floors:
-            a1_hi, a0_lo, a0_hi = model.upper[i, 0], model.lower[i, 1], model.upper[i, 1]
-            lo = np.sqrt(max(a0_lo, 0.0)) - widen * a1_hi
-            hi = np.sqrt(max(a0_hi, 0.0)) + widen * a1_hi
-            in_band |= (omega >= lo) & (omega <= hi)
+    for bandwidths in (0.0, 0.5):
+        lo, hi = resonance_band(model.lower[floors], model.upper[floors], bandwidths)
+        in_band = np.any((omega[:, None] >= lo) & (omega[:, None] <= hi), axis=1)
         if in_band.any():
             break
     if not in_band.any():

@@ -58,7 +58,7 @@ import numpy as np
 from setmem_hil.identification import feasible_points
 from setmem_hil.identification.certified_cone_program import AffineConeProgram, ProductTerms
 from setmem_hil.identification.embedding import denominator_max, denominator_min
-from setmem_hil.model.modal_model import A0, A1, B0, B1
+from setmem_hil.model.modal_model import A0, A1, B0, B1, resonance_band
 from setmem_hil.numerics.in_order_pool import run_in_order
 
 _EPS = np.finfo(float).eps
@@ -219,20 +219,28 @@ def linearised_group(omega_rad_s, g, lo, hi, with_jacobian: bool = True):
         dN = np.hypot(h[i, B0], w * h[i, B1])
         dD = np.hypot(h[i, A0], w * h[i, A1])
         d_min = denominator_min(w, L[i, A0], H[i, A0], L[i, A1])
-        with np.errstate(divide="ignore", invalid="ignore"):
+        # A centre pole a hair from a measured line overflows these (inf: the point bounds nothing)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             mean_value = (dN * abs_D + np.abs(N_c) * dD) * dD / (d_min * abs_D * abs_D)
             disc = (np.abs(N_c) + dN) * dD / (d_min * abs_D)
-        use_disc = disc < mean_value
-        term = np.where(use_disc, disc, mean_value)
-        term = np.where(dD == 0, 0.0, np.where(d_min > 0, term, np.inf))
-        rho += term * (1.0 + 1e-12)  # outward: the bound's own rounding
-        if with_jacobian:
-            # residual r = g - f: minus the derivative of N / D (no pole term where the disc is used)
-            pole = np.where(use_disc, 0.0, 1.0)
-            J[:, 4 * i + A1] = pole * N_c * jw / (D_c * D_c)
-            J[:, 4 * i + A0] = pole * N_c / (D_c * D_c)
-            J[:, 4 * i + B1] = -jw / D_c
-            J[:, 4 * i + B0] = -1.0 / D_c
+            use_disc = disc < mean_value
+            term = np.where(use_disc, disc, mean_value)
+            term = np.where(dD == 0, 0.0, np.where(d_min > 0, term, np.inf))
+            rho += term * (1.0 + 1e-12)  # outward: the bound's own rounding
+            if with_jacobian:
+                # residual r = g - f: minus the derivative of N / D (no pole term where the disc is used)
+                pole_term = N_c / (D_c * D_c)
+                J[:, 4 * i + A1] = np.where(use_disc, 0.0, pole_term * jw)
+                J[:, 4 * i + A0] = np.where(use_disc, 0.0, pole_term)
+                J[:, 4 * i + B1] = -jw / D_c
+                J[:, 4 * i + B0] = -1.0 / D_c
+    # A point whose expansion is not finite is left to bound nothing (rho = inf): a NaN or inf in a
+    # cone's row would reach the conic program (0 x inf where the disc form drops the pole term).
+    broken = ~np.isfinite(r_c) | np.isnan(rho)
+    if with_jacobian:
+        broken |= ~np.all(np.isfinite(J), axis=1)
+        J[broken] = 0.0
+    r_c[broken], rho[broken], err[broken] = 0.0, np.inf, 0.0
     return r_c, J, err, rho
 
 
@@ -706,9 +714,8 @@ def _search_subset(omega: np.ndarray, n_max: int, lo: np.ndarray, hi: np.ndarray
 
     # each mode's resonance first (within a bandwidth of its a0 range): a lightly damped mode's
     # few points there decide its box, and an even spread drops half of them
-    peak = np.zeros(omega.size, dtype=bool)
-    for (a1_lo, a0_lo, _, _), (a1_hi, a0_hi, _, _) in zip(box_lo, box_hi):
-        peak |= (omega >= np.sqrt(max(a0_lo, 0.0)) - a1_hi) & (omega <= np.sqrt(max(a0_hi, 0.0)) + a1_hi)
+    band_lo, band_hi = resonance_band(box_lo, box_hi, bandwidths=1.0)
+    peak = np.any((omega[:, None] >= band_lo) & (omega[:, None] <= band_hi), axis=1)
     peaks = spread(np.flatnonzero(peak), n_max // 2)
     left = np.ones(omega.size, dtype=bool)
     left[peaks] = False

@@ -39,6 +39,16 @@ def modal_response(params: np.ndarray, omega_rad_s) -> np.ndarray:
     return num / den
 
 
+def resonance_band(lower, upper, bandwidths: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per mode of the box ``[lower, upper]`` (shape ``(n_modes, 4)``), the frequencies where it can
+    resonate: its ``sqrt(a0)`` range widened on each side by ``bandwidths`` of its largest
+    half-power bandwidth ``a1_max`` (``a1 = 2 zeta omega_n``, eq. 2.3). Returns ``(lo, hi)`` in
+    rad/s, each shape ``(n_modes,)``; ``lo`` may be negative (nothing below 0 exists)."""
+    lo_p, hi_p = _as_param_array(lower, "lower"), _as_param_array(upper, "upper")
+    widen = bandwidths * hi_p[:, A1]
+    return np.sqrt(np.maximum(lo_p[:, A0], 0.0)) - widen, np.sqrt(np.maximum(hi_p[:, A0], 0.0)) + widen
+
+
 def residual_response(lower_residual: float, upper_residual: float, omega_rad_s) -> np.ndarray:
     """Receptance of the residual terms: ``-r_l / omega^2 + r_u`` (``r_l / s^2 + r_u`` at ``s = j omega``)."""
     w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
