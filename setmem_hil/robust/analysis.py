@@ -226,6 +226,8 @@ def analyze_robust_performance(
         raise ValueError(f"design: expected one of {', '.join(DESIGN_METHODS)}, found {design!r}")
     robust = None if controller is not None or design != "robust" else (warm_start, tuning)
     if T == 1.0 and M == 1.0:
+        if robust is not None:
+            model, weights, robust = _settled(model, weights, robust)
         return _analyze_normalised(model, weights, omega_rad_s, controller, gain, robust, certificate_rtol)
     if controller is not None and not hasattr(controller, "A"):
         import control
@@ -233,9 +235,13 @@ def analyze_robust_performance(
         controller = control.ss(controller)
     if robust is not None and robust[0] is not None:
         robust = ((_time_scaled_controller(robust[0][0], 1.0 / T, M), robust[0][1]), tuning)
+    model_n = model.time_scaled(1.0 / T).magnitude_scaled(1.0 / M)
+    weights_n = weights.time_scaled(1.0 / T).magnitude_scaled(1.0 / M)
+    if robust is not None:
+        model_n, weights_n, robust = _settled(model_n, weights_n, robust)
     result = _analyze_normalised(
-        model.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
-        weights.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
+        model_n,
+        weights_n,
         None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float) / T,
         None if controller is None else _time_scaled_controller(controller, 1.0 / T, M),
         gain,  # a gain on the whole plant: the same in any time or magnitude unit
@@ -258,6 +264,30 @@ def analyze_robust_performance(
         mu_peak_grid=result.mu_peak_grid,
         design=result.design,
     )
+
+
+def _settled(model: IntervalModel, weights: Weights, robust):
+    """The robust design's inputs in normalised units cut to a fixed count of significant digits
+    (:mod:`setmem_hil.numerics.settled_digits`): the box outwards (a box holding the given one, so
+    the mu-bar found still bounds it), the weights and the warm start's matrices to the nearest.
+    The design is a nonsmooth descent whose path a change of 1e-13 in the box moved by 1e-3 of
+    mu-bar; the same structure at another frequency scale arrives here with rounding differences
+    only, and must make the same design (issue 47: 1 rad/s and 50 Hz within 1e-3)."""
+    import control
+
+    from setmem_hil.numerics.settled_digits import cut_nearest, cut_outwards
+
+    lower, upper = cut_outwards(model.lower, model.upper)
+    cut = {name: tuple(float(c) for c in cut_nearest(getattr(weights, name)))
+           for name in ("w1_num", "w1_den", "w2_num", "w2_den")}
+    if weights.w2_extra_pole_rad_s:
+        cut["w2_extra_pole_rad_s"] = float(cut_nearest(weights.w2_extra_pole_rad_s))
+    warm_start, tuning = robust
+    if warm_start is not None:
+        K = warm_start[0] if hasattr(warm_start[0], "A") else control.ss(warm_start[0])
+        K = control.ss(*(cut_nearest(np.asarray(m, dtype=float)) for m in (K.A, K.B, K.C, K.D)))
+        warm_start = (K, warm_start[1])
+    return IntervalModel(lower, upper), replace(weights, **cut), (warm_start, tuning)
 
 
 def _time_scaled_controller(K, factor: float, gain: float = 1.0):
