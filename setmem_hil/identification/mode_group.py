@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import os
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -579,11 +580,17 @@ class _Search:
         pulled back until they fit every point."""
         root_lo, root_hi = self.root
         idx = _search_subset(self.omega, self.settings.search_points, root_lo, root_hi)
-        out = []
-        for k in np.flatnonzero(root_hi > root_lo):
-            for sign in (-1.0, 1.0):
-                out.append(feasible_points.farthest_fitting(self.omega[idx], self.g[idx], self.E[idx], root_lo,
-                                                            root_hi, anchor, int(k), sign, iterations=6))
+        directions = [(int(k), sign) for k in np.flatnonzero(root_hi > root_lo) for sign in (-1.0, 1.0)]
+
+        def farthest(direction):
+            return feasible_points.farthest_fitting(self.omega[idx], self.g[idx], self.E[idx], root_lo, root_hi,
+                                                    anchor, direction[0], direction[1], iterations=6)
+
+        # The searches are independent, and the first box's (which finds the anchor) runs while
+        # nothing else can: on the 1,200 lines they were a third of the group's time. pool.map
+        # returns them in order: the answer does not depend on the threads.
+        with ThreadPoolExecutor(max_workers=max(1, self.settings.workers)) as pool:
+            out = list(pool.map(farthest, directions))
         return self._pulled_back(out, anchor)
 
     def _pulled_back(self, candidates, towards) -> list:
