@@ -175,3 +175,36 @@ def test_channel_match_round_trips_and_belongs_to_an_oscilloscope():
     assert text != lockins
     with pytest.raises(ProcedureError, match=r"key 'channel_match'.*only an oscilloscope"):
         parse_procedure_text(text, "lockins.toml")
+
+
+def _hand_written_match(tmp_path, scope_idn: str, hours_old: float = 0.0, **changes) -> Path:
+    """A match file written from the documented contract (docs/procedures.md), not by the code
+    under test: the fast tier's check of what a run does with it."""
+    utc = datetime.datetime.now(datetime.timezone.utc) - datetime.timedelta(hours=hours_old)
+    doc = {"kind": "setmem-hil channel match", "version": 1, "scope": scope_idn, "frequency_hz": 1000.0,
+           "utc": utc.isoformat(), "reference": {"channel": 1, "scale_v": 0.01},
+           "gains": [{"channel": c, "scale_v": s, "gain": 1.0, "bound": 1e-3} for c in (1, 2, 3, 4)
+                     for s in (1e-3, 2e-3, 5e-3, 1e-2, 2e-2, 5e-2, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)]}
+    doc.update(changes)
+    path = tmp_path / MATCH_NAME
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_a_hand_written_match_of_another_scope_is_exit_4_and_a_stale_or_malformed_one_exit_2(tmp_path, capsys):
+    """The contract of the slow tier's two tests above, on match files written by hand: another
+    unit's serial is exit 4 naming it; older than 24 h, or a `gains` that is no list, exit 2."""
+    path = _write(tmp_path)
+    _hand_written_match(tmp_path, "RIGOL TECHNOLOGIES,DS1104Z,DS1ZA123400077,00.04.04.SP4")
+    code = main(["run", str(path), "--out", str(tmp_path / "run"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 4
+    assert len(err) == 1 and "channel match" in err[0] and "DS1ZA123400077" in err[0] and "calibrate-channels" in err[0], err
+    _hand_written_match(tmp_path, "RIGOL TECHNOLOGIES,DS1104Z,DS1ZA123456789,00.04.04.SP4", hours_old=30)
+    assert main(["run", "--check", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "30 h ago" in err[0], err
+    _hand_written_match(tmp_path, "RIGOL TECHNOLOGIES,DS1104Z,DS1ZA123456789,00.04.04.SP4", gains=3)
+    code = main(["run", str(path), "--out", str(tmp_path / "run2"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and MATCH_NAME in err[0], err

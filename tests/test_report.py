@@ -63,8 +63,7 @@ def _journal(tmp_path, n_iterations=5, discrepancy=True):
     return run
 
 
-@pytest.mark.slow
-def test_report_holds_every_figure_and_table(tmp_path):
+def test_report_holds_every_figure_and_table(tmp_path):  # a contract: in the default tier (issue 46)
     run = _journal(tmp_path)
     path = write_report(run)
     assert path == run / "report.html"
