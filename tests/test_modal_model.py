@@ -46,3 +46,6 @@ def test_resonance_band_is_the_natural_frequency_range_widened_by_the_half_power
     assert np.allclose(lo, 9.0 - 0.22) and np.allclose(hi, 11.0 + 0.22)
     lo0, hi0 = resonance_band(lower, upper, bandwidths=0.0)
     assert np.allclose([lo0[0], hi0[0]], [9.0, 11.0])
+    from setmem_hil.model.modal_model import near_resonance
+
+    assert near_resonance([8.7, 8.8, 10.0, 11.2, 11.3], lower, upper, 0.5).tolist() == [False, True, True, True, False]

@@ -44,7 +44,7 @@ from setmem_hil.errors import InconsistentDataError, SolverError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.identification.algorithm import IdentifySettings, identify, identify_outputs
 from setmem_hil.design.input_effects import InputEffects, estimate_input_effects
-from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel, resonance_band
+from setmem_hil.model.modal_model import PARAM_NAMES, IntervalModel, near_resonance
 from setmem_hil.model.mu_floor import floor_mask
 from setmem_hil.io.procedure import InputDesignSettings
 
@@ -303,8 +303,7 @@ def _filling_floor_bands(model: IntervalModel, omega: np.ndarray, measured: np.n
     lowest candidate, far from any mode (the two-plane cantilever asked for 0.1 rad/s again and
     again). Filling the floor modes' bands is what lets the group search tell the pair apart."""
     for bandwidths in (0.0, 0.5):
-        lo, hi = resonance_band(model.lower[floors], model.upper[floors], bandwidths)
-        in_band = np.any((omega[:, None] >= lo) & (omega[:, None] <= hi), axis=1)
+        in_band = near_resonance(omega, model.lower[floors], model.upper[floors], bandwidths)
         if in_band.any():
             break
     if not in_band.any():

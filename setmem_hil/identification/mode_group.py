@@ -59,7 +59,7 @@ import numpy as np
 from setmem_hil.identification import feasible_points
 from setmem_hil.identification.certified_cone_program import AffineConeProgram, ProductTerms
 from setmem_hil.identification.embedding import denominator_max, denominator_min
-from setmem_hil.model.modal_model import A0, A1, B0, B1, resonance_band
+from setmem_hil.model.modal_model import A0, A1, B0, B1, near_resonance
 from setmem_hil.numerics.in_order_pool import run_in_order
 
 _EPS = np.finfo(float).eps
@@ -721,8 +721,7 @@ def _search_subset(omega: np.ndarray, n_max: int, lo: np.ndarray, hi: np.ndarray
 
     # each mode's resonance first (within a bandwidth of its a0 range): a lightly damped mode's
     # few points there decide its box, and an even spread drops half of them
-    band_lo, band_hi = resonance_band(box_lo, box_hi, bandwidths=1.0)
-    peak = np.any((omega[:, None] >= band_lo) & (omega[:, None] <= band_hi), axis=1)
+    peak = near_resonance(omega, box_lo, box_hi, bandwidths=1.0)
     peaks = spread(np.flatnonzero(peak), n_max // 2)
     left = np.ones(omega.size, dtype=bool)
     left[peaks] = False

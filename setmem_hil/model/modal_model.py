@@ -49,6 +49,13 @@ def resonance_band(lower, upper, bandwidths: float = 1.0) -> tuple[np.ndarray, n
     return np.sqrt(np.maximum(lo_p[:, A0], 0.0)) - widen, np.sqrt(np.maximum(hi_p[:, A0], 0.0)) + widen
 
 
+def near_resonance(omega_rad_s, lower, upper, bandwidths: float = 1.0) -> np.ndarray:
+    """Which of the frequencies ``omega_rad_s`` lie in some mode's :func:`resonance_band`."""
+    lo, hi = resonance_band(lower, upper, bandwidths)
+    w = np.asarray(omega_rad_s, dtype=float)[:, None]
+    return np.any((w >= lo) & (w <= hi), axis=1)
+
+
 def residual_response(lower_residual: float, upper_residual: float, omega_rad_s) -> np.ndarray:
     """Receptance of the residual terms: ``-r_l / omega^2 + r_u`` (``r_l / s^2 + r_u`` at ``s = j omega``)."""
     w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))

@@ -226,8 +226,6 @@ def analyze_robust_performance(
         raise ValueError(f"design: expected one of {', '.join(DESIGN_METHODS)}, found {design!r}")
     robust = None if controller is not None or design != "robust" else (warm_start, tuning)
     if T == 1.0 and M == 1.0:
-        if robust is not None:
-            model, weights, robust = _settled(model, weights, robust)
         return _analyze_normalised(model, weights, omega_rad_s, controller, gain, robust, certificate_rtol)
     if controller is not None and not hasattr(controller, "A"):
         import control
@@ -235,13 +233,9 @@ def analyze_robust_performance(
         controller = control.ss(controller)
     if robust is not None and robust[0] is not None:
         robust = ((_time_scaled_controller(robust[0][0], 1.0 / T, M), robust[0][1]), tuning)
-    model_n = model.time_scaled(1.0 / T).magnitude_scaled(1.0 / M)
-    weights_n = weights.time_scaled(1.0 / T).magnitude_scaled(1.0 / M)
-    if robust is not None:
-        model_n, weights_n, robust = _settled(model_n, weights_n, robust)
     result = _analyze_normalised(
-        model_n,
-        weights_n,
+        model.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
+        weights.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
         None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float) / T,
         None if controller is None else _time_scaled_controller(controller, 1.0 / T, M),
         gain,  # a gain on the whole plant: the same in any time or magnitude unit
@@ -284,7 +278,7 @@ def _settled(model: IntervalModel, weights: Weights, robust):
         cut["w2_extra_pole_rad_s"] = float(cut_nearest(weights.w2_extra_pole_rad_s))
     warm_start, tuning = robust
     if warm_start is not None:
-        K = warm_start[0] if hasattr(warm_start[0], "A") else control.ss(warm_start[0])
+        K = warm_start[0]  # a state space (the design reads its A)
         K = control.ss(*(cut_nearest(np.asarray(m, dtype=float)) for m in (K.A, K.B, K.C, K.D)))
         warm_start = (K, warm_start[1])
     return IntervalModel(lower, upper), replace(weights, **cut), (warm_start, tuning)
@@ -312,6 +306,8 @@ def _analyze_normalised(model: IntervalModel, weights: Weights, omega_rad_s, con
                         certificate_rtol: float = CERTIFICATE_RTOL) -> RobustAnalysis:
     """:func:`analyze_robust_performance` of a problem already in normalised time; ``robust``:
     ``(warm_start, tuning)`` for the robust design, None otherwise."""
+    if robust is not None:
+        model, weights, robust = _settled(model, weights, robust)
     plant = augmented_plant(uncertain_plant(model, gain), weights, design_w2=True)
     if controller is not None and not hasattr(controller, "A"):
         import control
