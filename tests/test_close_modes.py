@@ -196,3 +196,67 @@ def test_a_centre_pole_on_a_measured_line_gives_no_nan_to_the_conic_program():
         r_c, J, err, rho = linearised_group(omega, np.zeros(3, dtype=complex), lo, hi)
     assert np.all(np.isfinite(J)) and not np.any(np.isnan(rho)) and np.all(np.isfinite(r_c))
     assert np.isfinite(rho[[0, 2]]).all() and rho[1] > 1e100  # the other lines still bound
+
+
+
+def _pair_with_a_flaky_solver(monkeypatch, parameter: int, when, max_boxes: int = 24):
+    """The 1 % pair's group search (100 lines) with the conic solver failing, in the boxes
+    ``when(lo, hi, truth)`` picks, to certify the upper bound of ``parameter``: the box's own bound
+    kept and flagged, as a nearly empty box's ``AlmostPrimalInfeasible`` does on some machines and
+    not on others (the slow tier's far-mode test at d820639). Returns the truth, the root box's
+    upper bounds, the result and the number of injected failures."""
+    from dataclasses import replace
+
+    from setmem_hil.identification.certified_cone_program import AffineConeProgram
+    from setmem_hil.identification.mode_group import GroupSettings, identify_group
+    from setmem_hil.model.modal_model import ModalParameters
+
+    truth, data, prior = close_pair_case(0.01, n=100)
+    x_true = truth.values[:2].reshape(-1)
+    real, injected = AffineConeProgram.bound_box, [0]
+
+    def flaky(self, C, box_lo, box_hi):
+        sol = real(self, C, box_lo, box_hi)
+        if not sol.feasible or not self.free[parameter] or not when(box_lo, box_hi, x_true):
+            return sol
+        injected[0] += 1
+        upper = sol.upper.copy()
+        upper[parameter] = box_hi[parameter]
+        return replace(sol, upper=upper, unverified=sol.unverified + (f"upper bound of parameter {parameter}: injected",),
+                       kept=sol.kept + ((parameter, -1),))
+
+    monkeypatch.setattr(AffineConeProgram, "bound_box", flaky)
+    far = ModalParameters(truth.values[2:])
+    g = data.response - far.frequency_response(data.omega_rad_s)
+    box = prior.initial_bounds()
+    result = identify_group(data.omega_rad_s, g, data.bound, box.lower[:2], box.upper[:2], GroupSettings(max_boxes=max_boxes))
+    return x_true, box.upper[:2].reshape(-1), result, injected[0]
+
+
+A0_OF_MODE_1 = 1  # index of mode 1's a0 in the group's (a1, a0, b1, b0) x 2
+
+
+def test_an_uncertified_bound_inside_the_answer_leaves_the_answer_verified(monkeypatch):
+    """A box whose upper bound of mode 1's a0 stays uncertified but lies below the true a0 cannot
+    hold the answer's bound (the answer holds the truth): the answer stays verified and holds the
+    truth. (Every flag once made the whole group unverified.)"""
+    p = A0_OF_MODE_1
+    truth, _, result, injected = _pair_with_a_flaky_solver(monkeypatch, p, lambda lo, hi, x: hi[p] < x[p])
+    assert injected > 0
+    assert result.verified, result.unverified_reason
+    lo, hi = result.lower.reshape(-1), result.upper.reshape(-1)
+    assert np.all(lo <= truth) and np.all(truth <= hi)
+
+
+def test_an_uncertified_bound_the_answer_rests_on_is_reported(monkeypatch):
+    """The same failure in every box of a search cut short after its first box (its halves become
+    leaves as they stand): the answer's upper bound of mode 1's a0 is the searched box's own, and the
+    result says so (unverified, naming the bound) while still holding the truth. (With the search
+    run further, the boxes above the truth are proved empty and the answer's bound is a cut: exact.)"""
+    p = A0_OF_MODE_1
+    truth, root_hi, result, injected = _pair_with_a_flaky_solver(monkeypatch, p, lambda lo, hi, x: True, max_boxes=1)
+    assert injected > 0 and result.exhausted
+    assert not result.verified and "upper bound of parameter 1: injected" in result.unverified_reason
+    assert result.upper.reshape(-1)[p] == root_hi[p]
+    lo, hi = result.lower.reshape(-1), result.upper.reshape(-1)
+    assert np.all(lo <= truth) and np.all(truth <= hi)

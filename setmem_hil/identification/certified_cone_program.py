@@ -123,6 +123,7 @@ class BoxSolution:
     n_solves: int
     certificate: np.ndarray | None = None  # per-point dual norms when infeasible
     unverified: tuple[str, ...] = field(default_factory=tuple)
+    kept: tuple[tuple[int, int], ...] = ()  # the unverified bounds as (parameter, +1 lower / -1 upper)
 
 
 def _tight_settings(base=None):
@@ -351,6 +352,7 @@ class AffineConeProgram:
         argmin = np.full((self.n_params, self.n_params), np.nan)
         argmax = np.full((self.n_params, self.n_params), np.nan)
         unverified: list[str] = []
+        kept: list[tuple[int, int]] = []
         solves_before = self.n_solves
         self.last_certificates = {}
         free_idx = np.flatnonzero(self.free)
@@ -366,6 +368,7 @@ class AffineConeProgram:
                                        self._certificate(res))
                 if not np.isfinite(bound):
                     unverified.append(f"{'lower' if sign > 0 else 'upper'} bound of parameter {p}: solver status {status}, box bound kept")
+                    kept.append((int(p), int(sign)))
                     continue
                 x_at = None
                 if y_at is not None:
@@ -384,7 +387,7 @@ class AffineConeProgram:
                     if x_at is not None:
                         argmax[p] = x_at
         return BoxSolution(True, lower, upper, argmin, argmax, self.n_solves - solves_before,
-                           unverified=tuple(unverified))
+                           unverified=tuple(unverified), kept=tuple(kept))
 
     def is_feasible(self, C, box_lo, box_hi) -> bool:
         """Is any parameter vector in the box consistent with every point (False only when proved)?"""

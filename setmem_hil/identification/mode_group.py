@@ -43,8 +43,13 @@ to fit (witnesses, :mod:`setmem_hil.identification.feasible_points`); a box with
 search; the guarantee is the certified relaxations'.
 
 Result: the hull of the surviving leaves; every parameter of the group that fits every point
-within its bound (and the prior) lies inside it. Leaves whose bounds were not all certified keep
-their box's own bound and are reported unverified.
+within its bound (and the prior) lies inside it. A bound the solver could not certify keeps its
+box's own bound (still an outer bound, only perhaps loose) and is flagged on that box; children
+inherit the flags of the bounds they inherit. The answer is reported unverified only where a
+flagged bound is the hull's own bound (our choice, stop 54: a flag on a box inside the hull
+changes nothing reported, and whether a nearly empty box's solve ends ``PrimalInfeasible`` or
+``AlmostPrimalInfeasible`` differs between machines). A flagged bound that sticks out of the
+witnesses' hull is split further rather than kept as a leaf.
 """
 
 from __future__ import annotations
@@ -534,7 +539,6 @@ class _Search:
         self.omega, self.g, self.E = omega, g, E
         self.settings = settings
         self.n_solves = 0
-        self.unverified: list[str] = []
         self._lock = threading.Lock()
         self.root: tuple[np.ndarray, np.ndarray] | None = None  # the searched box (set by the search)
         self.anchor: np.ndarray | None = None  # a point that fits (a Chebyshev fit), once found
@@ -619,6 +623,16 @@ class _Search:
         tol = self.settings.settle_fraction * (inner[1] - inner[0])
         return bool(np.all(lo >= inner[0] - tol) and np.all(hi <= inner[1] + tol))
 
+    def flag_outside(self, lo, hi, flags: dict) -> bool:
+        """Does a flagged (uncertified) bound of the box stick out of the witnesses' hull? Only such
+        a bound can become the answer's (the answer holds every witness)."""
+        if not flags:
+            return False
+        inner = self.inner
+        if inner is None:
+            return True
+        return any(lo[p] < inner[0][p] if sign > 0 else hi[p] > inner[1][p] for p, sign in flags)
+
     def within(self, lo, hi, ratio: float) -> bool:
         """Is every point's remainder over the box at most ``ratio`` of its bound? (``fine_ratio``:
         fine; ``tight_ratio``: tight.)"""
@@ -671,23 +685,24 @@ class _Search:
         """Certified bounds of the box's feasible set, repeated while it shrinks (by more than the
         coarse tolerance while its remainders are large, the fine one after).
 
-        Returns ``(lo, hi, fine, candidates)`` or ``None`` when the box is proved empty;
-        ``candidates`` are the last pass's points near each bound (the relaxation's, not checked).
+        Returns ``(lo, hi, fine, candidates, verdicts)`` or ``None`` when the box is proved empty;
+        ``candidates`` are the last pass's points near each bound (the relaxation's, not checked);
+        ``verdicts`` maps ``(parameter, +1 lower / -1 upper)`` to the reason a bound was kept
+        uncertified, or to ``None`` where a later pass certified it (:func:`_merged_flags`).
         """
-        sol = None
+        sol, verdicts = None, {}
         for _ in range(self.settings.max_contractions):
             idx = self._points_for(lo, hi)
             r_c, J, err, C, products, active = self._cones(lo, hi, idx)
             if not active.any():
-                return lo, hi, False, []
+                return lo, hi, False, [], verdicts
             program = AffineConeProgram(r_c, J, err, lo, hi, self.omega[idx][active], products)
             sol = program.bound_box(C, lo, hi)
             with self._lock:
                 self.n_solves += program.n_solves
-                if sol.unverified:
-                    self.unverified.extend(sol.unverified)
             if not sol.feasible:
                 return None
+            verdicts.update(_verdicts(program.free, sol))
             new_lo, new_hi = np.maximum(lo, sol.lower), np.minimum(hi, sol.upper)
             new_hi = np.maximum(new_lo, new_hi)
             width = np.maximum(hi - lo, 1e-300)
@@ -700,7 +715,25 @@ class _Search:
         candidates = []
         if sol is not None:
             candidates = [x for x in np.vstack([sol.argmin, sol.argmax]) if np.all(np.isfinite(x))]
-        return lo, hi, fine, candidates
+        return lo, hi, fine, candidates, verdicts
+
+
+def _verdicts(free: np.ndarray, sol) -> dict:
+    """One pass's verdict on each free bound: the reason it was kept uncertified, else ``None``."""
+    reasons = dict(zip(sol.kept, sol.unverified))
+    return {(int(p), sign): reasons.get((int(p), sign)) for p in np.flatnonzero(free) for sign in (1, -1)}
+
+
+def _merged_flags(inherited: dict, verdicts: dict) -> dict:
+    """A box's uncertified bounds: those it inherited, less the ones its contraction certified, plus
+    the ones its contraction could not."""
+    flags = dict(inherited)
+    for key, reason in verdicts.items():
+        if reason is None:
+            flags.pop(key, None)
+        else:
+            flags[key] = reason
+    return flags
 
 
 def _search_subset(omega: np.ndarray, n_max: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -761,14 +794,15 @@ def _widest_mode(search: _Search, lo: np.ndarray, hi: np.ndarray):
     return [int(np.argmax(_protrusion(inner, lo, hi))) // 4]
 
 
-def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSettings):
+def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSettings, flags: dict):
     """A contracted box's two halves, or ``None`` when it is a leaf: settled against the witnesses,
-    tight, fine before any witness exists, or at the depth limit. The cut is the middle of the
+    tight, fine before any witness exists, or at the depth limit; never while a flagged
+    (uncertified) bound sticks out of the witnesses' hull, short of the limit. The cut is the middle of the
     parameter whose halving blurs the points least. (Cutting at the witnesses' hull instead, so
     that one child is a slab the relaxation may prove empty in one solve, was tried: more boxes
     and wider answers on the benchmark's 1 % and 3 % pairs.)"""
     leaf = search.settled(lo, hi) or (fine and (search.inner is None or search.within(lo, hi, settings.tight_ratio)))
-    if leaf or depth >= settings.max_depth:
+    if (leaf and not search.flag_outside(lo, hi, flags)) or depth >= settings.max_depth:
         return None
     k = _split_dimension(search.omega, search.E, lo, hi, _widest_mode(search, lo, hi))
     if k < 0:
@@ -778,42 +812,44 @@ def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSe
     mid = 0.5 * (lo[k] + hi[k])
     left_hi, right_lo = hi.copy(), lo.copy()
     left_hi[k], right_lo[k] = mid, mid
-    return (lo, left_hi), (right_lo, hi)
+    return (lo, left_hi), (right_lo, hi), k
 
 
 LOOKAHEAD = 2  # boxes in flight: a setting of the search, not the machine's core count (in_order_pool)
 
 
-def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings: GroupSettings, counts: dict):
+def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings: GroupSettings, counts: dict,
+                      root_flags: dict):
     """Best-first search of the box (:func:`_priority`) by ``settings.workers`` threads (the conic
     solver runs outside the GIL), the boxes' results applied in the order they were taken
     (:func:`setmem_hil.numerics.in_order_pool.run_in_order`: the same answer from the same data,
     whatever the threads' timing or their number). Returns the leaves (contracted, not proved
     empty). Past ``max_boxes`` every open box becomes a leaf as it stands: the hull is still
-    guaranteed, only wider."""
-    open_boxes = [(lo, hi, 0)]
+    guaranteed, only wider. A leaf is ``(lo, hi, flags)``: ``flags`` maps its uncertified bounds
+    ``(parameter, +1 lower / -1 upper)`` to the reason; the root's are ``root_flags``."""
+    open_boxes = [(lo, hi, 0, dict(root_flags))]
     search.root = (lo, hi)
-    leaves: list[tuple[np.ndarray, np.ndarray]] = []
+    leaves: list[tuple[np.ndarray, np.ndarray, dict]] = []
     taken = [0]
 
     def take():
         if open_boxes and taken[0] >= settings.max_boxes:
             counts["exhausted"] = True
-            leaves.extend((b_lo, b_hi) for b_lo, b_hi, _ in open_boxes)
+            leaves.extend((b_lo, b_hi, flags) for b_lo, b_hi, _, flags in open_boxes)
             open_boxes.clear()
         while open_boxes:
-            k = int(np.argmax([_priority(search, b_lo, b_hi) for b_lo, b_hi, _ in open_boxes]))
-            b_lo, b_hi, depth = open_boxes.pop(k)
-            if depth > 0 and search.settled(b_lo, b_hi):
-                leaves.append((b_lo, b_hi))  # the witnesses grew since it was split: nothing to gain
+            k = int(np.argmax([_priority(search, b[0], b[1]) for b in open_boxes]))
+            b_lo, b_hi, depth, flags = open_boxes.pop(k)
+            if depth > 0 and search.settled(b_lo, b_hi) and not search.flag_outside(b_lo, b_hi, flags):
+                leaves.append((b_lo, b_hi, flags))  # the witnesses grew since it was split: nothing to gain
                 continue
             taken[0] += 1
             counts["boxes"] += 1
-            return b_lo, b_hi, depth, search.anchor, search.inner  # the witnesses as they stand now
+            return b_lo, b_hi, depth, flags, search.anchor, search.inner  # the witnesses as they stand now
         return None
 
     def compute(box):
-        b_lo, b_hi, depth, anchor, inner = box
+        b_lo, b_hi, depth, _, anchor, inner = box
         out = search.contract(b_lo, b_hi)
         found = (None, [])
         if out is not None and (out[2] or depth == 0):
@@ -826,18 +862,31 @@ def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings:
         if out is None:
             counts["pruned"] += 1
             return
-        children = _children(search, out[0], out[1], out[2], box[2], settings)
+        depth, flags = box[2], _merged_flags(box[3], out[4])
+        children = _children(search, out[0], out[1], out[2], depth, settings, flags)
         if children is None:
-            leaves.append((out[0], out[1]))
-        else:
-            open_boxes.extend((c_lo, c_hi, box[2] + 1) for c_lo, c_hi in children)
+            leaves.append((out[0], out[1], flags))
+            return
+        left, right, k = children
+        # the cut is exact: the left half's upper bound of k and the right half's lower one are certified
+        open_boxes.append((*left, depth + 1, {key: r for key, r in flags.items() if key != (k, -1)}))
+        open_boxes.append((*right, depth + 1, {key: r for key, r in flags.items() if key != (k, 1)}))
 
     run_in_order(take, compute, apply, LOOKAHEAD, settings.workers)
     return leaves
 
 
 def _hull(leaves):
-    return np.min([l for l, _ in leaves], axis=0), np.max([h for _, h in leaves], axis=0)
+    """The leaves' hull and its uncertified bounds: a flag counts where its leaf's bound is the
+    hull's own."""
+    lo = np.min([l for l, _, _ in leaves], axis=0)
+    hi = np.max([h for _, h, _ in leaves], axis=0)
+    flags = {}
+    for l, h, leaf_flags in leaves:
+        for (p, sign), reason in leaf_flags.items():
+            if (l[p] <= lo[p]) if sign > 0 else (h[p] >= hi[p]):
+                flags[(p, sign)] = reason
+    return lo, hi, flags
 
 
 def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSettings()) -> GroupResult:
@@ -873,20 +922,19 @@ def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSet
     box_lo = np.asarray(lo, dtype=float).reshape(-1).copy()
     box_hi = np.asarray(hi, dtype=float).reshape(-1).copy()
     counts = {"boxes": 0, "pruned": 0, "exhausted": False}
-    n_solves, unverified, anchor = 0, [], None
+    n_solves, flags, anchor = 0, {}, None
     subsets = [_search_subset(omega, settings.search_points, box_lo, box_hi)]
     if subsets[0].size < omega.size:
         subsets = subsets + [np.arange(omega.size)] if settings.subset_stage else [np.arange(omega.size)]
     for idx in subsets:
         search = _Search(omega[idx], g[idx], E[idx], settings)
         search.hint = anchor
-        leaves = _branch_and_bound(search, box_lo, box_hi, settings, counts)
+        leaves = _branch_and_bound(search, box_lo, box_hi, settings, counts, flags)
         n_solves += search.n_solves
-        unverified.extend(search.unverified)
         if not leaves:
             raise ValueError("every box of the group was proved empty")
-        box_lo, box_hi = _hull(leaves)
+        box_lo, box_hi, flags = _hull(leaves)  # the next stage's root: its flags carry over
         anchor = search.anchor  # fits the subset: where the search with every point starts looking
-    reason = "; ".join(sorted(set(unverified)))  # sorted: the threads add them in any order
-    return GroupResult(box_lo.reshape(m, 4), box_hi.reshape(m, 4), not unverified, reason, counts["boxes"],
+    reason = "; ".join(sorted(set(flags.values())))
+    return GroupResult(box_lo.reshape(m, 4), box_hi.reshape(m, 4), not flags, reason, counts["boxes"],
                        len(leaves), counts["pruned"], n_solves, counts["exhausted"])
