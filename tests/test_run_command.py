@@ -255,6 +255,34 @@ def test_device_counters_are_journaled(tmp_path, cheap, monkeypatch):
     assert len(events) == 2 and "(total 2)" in events[1]["message"]
 
 
+def test_the_retries_before_a_device_fault_are_journaled_before_the_fault(tmp_path, cheap, monkeypatch):
+    """A dwell that retries twice and then fails: its retries are journaled (named with the dwell's
+    frequency) before the fault, and the measurements before it are all kept."""
+    import setmem_hil.cli.commands.run as run_cmd
+
+    real_open = run_cmd.open_backend
+
+    class RetryingThenFailing(H.InterruptingExperiment):
+        def __init__(self, inner):
+            super().__init__(inner, 3, error=DeviceError)
+            self.counters = {"retries": 0}
+
+        def measure(self, omega_rad_s):
+            if self.calls + 1 == 3:
+                self.counters["retries"] += 2
+            return super().measure(omega_rad_s)
+
+    monkeypatch.setattr(run_cmd, "open_backend", lambda p, s: RetryingThenFailing(real_open(p, s)))
+    assert main(["run", str(cheap), "--out", str(tmp_path / "r"), "--quiet"]) == 4
+    j = Journal.open(tmp_path / "r")
+    kinds = [e["kind"] for e in j.events()]
+    retries = [e["message"] for e in j.events() if e["kind"] == "retries"]
+    assert len(j.measurements()) == 2
+    j.close()
+    assert retries == [retries[0]] and "2 x retries (total 2) during the dwell at" in retries[0] and "(measurement 3)" in retries[0]
+    assert kinds.index("retries") < kinds.index("device-fault")
+
+
 def test_discrepancy_check_each_iteration_is_journaled_once_per_iteration(tmp_path, cheap, monkeypatch):
     import setmem_hil.cli.commands.run as run_cmd
 

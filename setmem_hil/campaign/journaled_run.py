@@ -62,7 +62,7 @@ def run_journaled_campaign(procedure: Procedure, experiment: Any, journal: Journ
     (the loop's numerics are imported here, after the run's journal exists)."""
     from setmem_hil.campaign.runner import run_campaign
 
-    subscribers = [*observers, *standard_observers(procedure, experiment, journal)]
+    subscribers = [*observers, *standard_observers(procedure, journal)]
     return run_campaign(procedure, experiment, journal, seed=seed, strategy=strategy, progress=broadcast(subscribers),
                         continue_stored=continue_stored, control=control)
 

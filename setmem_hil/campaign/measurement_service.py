@@ -13,21 +13,29 @@ requests (:mod:`setmem_hil.campaign.messages`):
 * **raw records**: what each new dwell was computed from
   (:class:`~setmem_hil.model.experiment.RawRecordingExperiment`) goes to the subscribers as a
   ``raw-record`` document *before* its measurements' ``measured`` documents, so a store of raw
-  records is written before the journal commits the point.
+  records is written before the journal commits the point;
+* **the rig's own counts**: after each new dwell (also one that failed), every fault/retry counter
+  of the experiment (:class:`~setmem_hil.model.experiment.CountingExperiment`) that rose is a
+  ``note`` document of the counter's name (the journal's event of that kind), so the journal is
+  written from documents alone (issue 46; a subscriber once read the counters and wrote the journal
+  itself).
 
 Documents: ``measure`` (index, total, omega_rad_s, replayed[, record_omegas]), ``raw-record``
-(seqs, record), ``measured`` (measurement, seq, iteration, role, replayed).
+(seqs, record), ``measured`` (measurement, seq, iteration, role, replayed), ``note`` (kind: a
+counter's name, message).
 """
 
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from typing import Any, Protocol
 
 from setmem_hil.campaign.engine import RunEngine
-from setmem_hil.campaign.messages import Continuation, InformModel, Measure, StoredData
+from setmem_hil.campaign.messages import NOTE, Continuation, InformModel, Measure, StoredData
 from setmem_hil.errors import CampaignReplayError, DeviceError
 from setmem_hil.model.experiment import (
+    CountingExperiment,
     Measurement,
     ModelAwareExperiment,
     MultisineExperiment,
@@ -73,6 +81,7 @@ class MeasurementService:
         self._synced = False  # the experiment's n_measured set after a replay
         self.continuation = self._continuation(history) if continue_stored and history is not None else None
         self.replayed_before = len(self.stored)
+        self._counts = dict(experiment.counters) if isinstance(experiment, CountingExperiment) else {}
 
     @property
     def replayed(self) -> int:
@@ -113,7 +122,8 @@ class MeasurementService:
             self.experiment.n_measured = start  # the record's noise is seeded with its first line's index
         self._synced, self.count = True, start + len(lines)
         engine.emit("measure", index=start + 1, total=self.total, omega_rad_s=lines[0], replayed=False, record_omegas=tuple(lines))
-        record = self.experiment.measure_multisine(lines)
+        with self._counted(engine, f"the multisine record of {len(lines)} lines from {lines[0]:.6g} rad/s"):
+            record = self.experiment.measure_multisine(lines)
         self._commit(engine, record, start, request, first_new=len(stored))
         return stored + list(record[len(stored):])
 
@@ -127,9 +137,25 @@ class MeasurementService:
         index = self.count
         self.count += 1
         engine.emit("measure", index=index + 1, total=self.total, omega_rad_s=float(omega_rad_s), replayed=False)
-        m = self.experiment.measure(float(omega_rad_s))
+        with self._counted(engine, f"the dwell at {float(omega_rad_s):.6g} rad/s (measurement {index + 1})"):
+            m = self.experiment.measure(float(omega_rad_s))
         self._commit(engine, [m], index, request)
         return m
+
+    @contextmanager
+    def _counted(self, engine: RunEngine, what: str):
+        """Around one dwell: each counter that rose during it, as a ``note`` document (also when the
+        dwell raised: the retries before a fault are part of its story)."""
+        try:
+            yield
+        finally:
+            if isinstance(self.experiment, CountingExperiment):
+                counts = dict(self.experiment.counters)
+                for key, value in counts.items():
+                    rise = int(value) - int(self._counts.get(key, 0))
+                    if rise > 0:
+                        engine.emit(NOTE, kind=str(key), message=f"{rise} x {key} (total {value}) during {what}", replayed=False)
+                self._counts = counts
 
     def _replayed(self, engine: RunEngine, omega_rad_s: float) -> Measurement:
         index = self.count

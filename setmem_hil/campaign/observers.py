@@ -2,16 +2,19 @@
 
 :func:`setmem_hil.campaign.runner.run_campaign` calls every subscriber as
 ``subscriber(event, **info)`` with the events documented there (``"measure"``,
-``"iteration"``, ``"chosen"``, ``"finished"``). The journal itself is written by the runner
-(every measurement before the next dwell: that is a durability rule, not an option); these
-subscribers add what every campaign of a procedure gets, whoever starts it (``run``, ``demo``,
-``campaign`` and the sweep task all go through :func:`standard_observers`):
+``"iteration"``, ``"chosen"``, ``"finished"``). The journal itself is written by the runner's
+stores (:mod:`setmem_hil.campaign.persistence`: every measurement before the next dwell, a
+durability rule, not an option); the subscribers here add what every campaign of a procedure
+gets, whoever starts it (``run``, ``demo``, ``campaign`` and the sweep task all go through
+:func:`standard_observers`):
 
-* :class:`CounterLogger`: the experiment's fault/retry counters, journaled as events;
 * :class:`DiscrepancyChecker`: ``[discrepancy] check_each_iteration = true``, the discrepancy
-  check of every new iteration (from its documents), stored in the journal.
+  check of every new iteration, computed from its documents alone and stored in the journal (a
+  derived product with a store of its own, as the raw records have theirs).
 
-Terminal progress and the live view are further subscribers their callers add.
+The experiment's fault/retry counters are ``note`` documents of the measurement service
+(:mod:`setmem_hil.campaign.measurement_service`). Terminal progress and the live view are
+further subscribers their callers add.
 """
 
 from __future__ import annotations
@@ -22,29 +25,10 @@ from setmem_hil.campaign.messages import ITERATION_RECORD
 from setmem_hil.errors import SetmemError
 from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure import Procedure
-from setmem_hil.model.experiment import CountingExperiment
 
 Observer = Callable[..., None]
 
-__all__ = ["Observer", "CounterLogger", "DiscrepancyChecker", "broadcast", "standard_observers"]
-
-
-class CounterLogger:
-    """Logs increases of the experiment's fault/retry counters to the journal as events."""
-
-    def __init__(self, experiment: Any, journal: Journal):
-        self.experiment, self.journal = experiment, journal
-        self.seen = dict(experiment.counters) if isinstance(experiment, CountingExperiment) else {}
-
-    def __call__(self, event: str, **info: Any) -> None:
-        if not isinstance(self.experiment, CountingExperiment):
-            return
-        counters = dict(self.experiment.counters)
-        for key, value in counters.items():
-            delta = int(value) - int(self.seen.get(key, 0))
-            if delta > 0:
-                self.journal.add_event(str(key), f"{delta} x {key} (total {value}) before event {event!r}")
-        self.seen = counters
+__all__ = ["Observer", "DiscrepancyChecker", "broadcast", "standard_observers"]
 
 
 class DiscrepancyChecker:
@@ -86,9 +70,6 @@ def broadcast(observers: Sequence[Observer]) -> Observer:
     return call
 
 
-def standard_observers(procedure: Procedure, experiment: Any, journal: Journal) -> list[Observer]:
+def standard_observers(procedure: Procedure, journal: Journal) -> list[Observer]:
     """The subscribers every journaled campaign of ``procedure`` gets (see the module docstring)."""
-    observers: list[Observer] = [CounterLogger(experiment, journal)]
-    if procedure.discrepancy_check:
-        observers.append(DiscrepancyChecker(procedure, journal))
-    return observers
+    return [DiscrepancyChecker(procedure, journal)] if procedure.discrepancy_check else []
