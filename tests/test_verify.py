@@ -69,9 +69,22 @@ def run_verify(run_dir: Path, procedure: Path, out: Path, capsys) -> tuple[int, 
 FEW = "frequencies_rad_s = [0.9, 4.0, 6.27, 17.5]\nperiods = 12"
 
 
-def test_the_loop_as_modelled_is_verified_in_three_certified_steps(small_run, tmp_path, capsys):
+def test_the_loop_as_modelled_is_verified_in_three_certified_steps(small_run, tmp_path, capsys, monkeypatch):
+    from setmem_hil.robust import implemented_loop
+    from setmem_hil.verify import plan as vp
+
+    performance, real = [], implemented_loop.implemented_mu_bar
+
+    def counted(*args, **kwargs):
+        performance.append(kwargs.get("performance", True))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(implemented_loop, "implemented_mu_bar", counted)
+    monkeypatch.setattr(vp, "implemented_mu_bar", counted)
     code, doc, err = run_verify(small_run, target_file(tmp_path, verify=FEW), tmp_path / "out", capsys)
     assert code == 0, err
+    # the full gain certified once, before anything moves (it was computed twice); each lower step for stability
+    assert performance == [True, False, False]
     assert doc["verified"] and [s["gain"] for s in doc["steps"]] == [0.25, 0.5, 1.0]
     assert doc["target"]["identity"].startswith("SETMEM-HIL,reference-target") and doc["target"]["fs_hz"] == 1000.0
     assert len(doc["target"]["checksum_read_back"]) == 8

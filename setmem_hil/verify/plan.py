@@ -65,6 +65,7 @@ class VerifySetup:
     injection_amplitude: float
     settle_s: float
     periods: int
+    full_gain_mu_bar: float = math.nan  # the full gain's implemented mu-bar when the caller certified it already
 
 
 @dataclass(frozen=True)
@@ -129,6 +130,8 @@ def verification_plan(setup: VerifySetup, result: VerifyResult | None = None):
 def _certify_step(setup: VerifySetup, gain: float) -> float:
     """The step's certified value: robust stability below the full gain, robust performance at it."""
     full = gain >= 1.0
+    if gain == 1.0 and setup.full_gain_mu_bar < 1.0:  # certified by the command before anything moved: the same loop
+        return float(setup.full_gain_mu_bar)
     loop = implemented_mu_bar(setup.model, setup.weights, _scaled(setup.controller, gain), setup.fs_hz, setup.delay_samples,
                               setup.prewarp_rad_s, setup.calibration_gain, performance=full)
     if not loop.mu_bar < 1.0:

@@ -115,7 +115,7 @@ def implemented_guarantee(run_dir: str, record, K, fs_hz: float, delay_samples: 
     model, gain = kept_box(record)
     weights = stored_procedure(run_dir).weights
     loop = implemented_mu_bar(model, weights, K, fs_hz, delay_samples, float(record.mu_peak_omega), gain)
-    if loop.mu_bar >= 1.0:
+    if not loop.mu_bar < 1.0:  # a NaN is no guarantee either
         needed = required_sample_rate(model, weights, K, delay_samples, float(record.mu_peak_omega), fs_hz, gain=gain)
         cost = "an unstable sampled loop" if not loop.nominally_stable else f"mu-bar {loop.mu_bar:.4g} at {loop.mu_bar_omega_rad_s:.4g} rad/s"
         rate = f"at least {needed:.4g} Hz would be needed" if needed else f"no rate up to {64 * fs_hz:g} Hz is enough"

@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     target_procedure = load_target_procedure(args.procedure)
     t, v = target_procedure.target, target_procedure.verify
     record, K = kept_controller(args.run_dir, args.iteration, command="setmem-hil verify")
-    implemented_guarantee(args.run_dir, record, K, t.fs_hz, t.delay_samples, command="setmem-hil verify")  # exit 2 before anything moves
+    guarantee = implemented_guarantee(args.run_dir, record, K, t.fs_hz, t.delay_samples, command="setmem-hil verify")  # exit 2 before anything moves
     model, calibration = kept_box(record)
     procedure = stored_procedure(args.run_dir)  # the structure (an emulated target's) and the weights
     weights = procedure.weights
@@ -67,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
     frequencies = v.frequencies_rad_s or vp.chosen_frequencies(model, weights, K, t.fs_hz, t.delay_samples, prewarp, calibration)
     setup = vp.VerifySetup(model, calibration, weights, K, sos, sos_gain, prewarp, t.fs_hz, t.delay_samples, v.gains,
                            tuple(frequencies), v.injection_amplitude,
-                           v.settle_s if v.settle_s is not None else vp.settle_time_s(model, K, v.gains[0]), v.periods)
+                           v.settle_s if v.settle_s is not None else vp.settle_time_s(model, K, v.gains[0]), v.periods,
+                           full_gain_mu_bar=guarantee["implemented_mu_bar"] or math.nan)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     from setmem_hil.verify.session import run_verification
