@@ -323,3 +323,24 @@ def test_frequencies_in_hz_are_the_same_procedure_as_in_rad_s():
     assert p.safety.omega_max_rad_s == pytest.approx(ref.safety.omega_max_rad_s, rel=1e-15)
     with pytest.raises(InputFormatError, match="not both"):
         parse_procedure_text(text.replace("omega_min = 0.884", "omega_min = 0.884\nomega_min_hz = 0.14", 1), SRC)
+
+
+@pytest.mark.parametrize("change, where, message", [
+    (("fs_hz = 1000.0", 'fs_hz = "fast"'), "[target]", "fs_hz: expected a number, found a string 'fast'"),
+    (("delay_samples = 1", "delay_samples = -1"), "[target]", "delay_samples -1 must be >= 0"),
+    (("fs_hz = 1000.0", "fs_hz = 0"), "[target]", "fs_hz 0 must be > 0"),
+    (("[target.emulation]\n", "[target.emulation]\ndac_gian = 1.3\n"), "[target.emulation]", "unknown key 'dac_gian'; did you mean 'dac_gain'?"),
+    (("periods = 20", "periods = 2.5"), "[verify]", "periods: expected an integer, found a number 2.5"),
+    (("kind = \"emulated\"", ""), "[target]", "missing key 'kind' (the target)"),
+])
+def test_a_verification_procedure_is_checked_by_the_procedures_own_reader(change, where, message):
+    """TARGET.toml and the campaign's procedure are read by one checked-table reader
+    (setmem_hil.io.toml_table): a bad value is named the same way in both, with its table."""
+    from setmem_hil.errors import ProcedureError
+    from setmem_hil.io.target_file import parse_target_text
+
+    text = (REPO / "procedures" / "closed_loop_emulated.toml").read_text()
+    assert change[0] in text
+    with pytest.raises(ProcedureError) as err:
+        parse_target_text(text.replace(change[0], change[1], 1), "t.toml")
+    assert message in str(err.value) and where in str(err.value) and "t.toml" in str(err.value), str(err.value)

@@ -32,9 +32,8 @@ Example
 from __future__ import annotations
 
 import difflib
-import math
 import os
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -64,6 +63,9 @@ from setmem_hil.io.procedure import (
     SimulationSettings,
 )
 from setmem_hil.io.procedure_writer import format_procedure  # noqa: F401  (re-exported: load and write side by side)
+from setmem_hil.io.toml_table import REQUIRED, CheckedTable, KeySpec
+from setmem_hil.io.toml_table import describe_value as _fmt
+from setmem_hil.io.toml_table import type_name as _type_name
 from setmem_hil.io.fault_kinds import CAN_FAULT_KINDS, FAULT_KINDS, MODBUS_FAULT_KINDS, TRANSPORT_FAULT_KINDS
 from setmem_hil.model.weights import THESIS_WEIGHTS, Weights
 
@@ -73,31 +75,9 @@ __all__ = ["load_procedure", "parse_procedure_text", "format_procedure", "parse_
 SEED_MAX = 2**63 - 1
 
 
-@dataclass(frozen=True)
-class KeySpec:
-    """One key of the procedure format.
-
-    ``kind``: ``number`` (finite float), ``integer``, ``bool``, ``string``, ``choice`` (one of
-    ``choices``), ``numbers`` (non-empty list of finite floats), ``strings``, ``table``
-    (sub-table with its own keys), ``free-table`` (passed through unchecked), ``tables``
-    (array of tables). Bounds ``gt``/``ge``/``le`` apply to numbers and integers.
-    """
-
-    table: str
-    key: str
-    kind: str
-    unit: str
-    default: Any
-    meaning: str
-    choices: tuple = ()
-    gt: float | None = None
-    ge: float | None = None
-    le: float | None = None
-
-
 _S, _SIM, _G, _ID = SafetyLimits(), SimulationSettings(), Goal(), InputDesignSettings()
 _W = THESIS_WEIGHTS
-_REQUIRED = "required"
+_REQUIRED = REQUIRED
 
 SCHEMA: tuple[KeySpec, ...] = (
     # top level
@@ -239,106 +219,11 @@ SEVERAL_SENSOR_KINDS = ("sim", "time-domain")
 """Backends whose simulated beam reads ``[backend.simulation] sensors`` (issue 25)."""
 
 
-def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:g}"
-    text = repr(v) if isinstance(v, str) else str(v)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _type_name(v: Any) -> str:
-    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "an array", dict: "a table"}.get(type(v), type(v).__name__)
-
-
-class _Table:
-    """A parsed TOML table plus where it is, for messages."""
+class _Table(CheckedTable):
+    """A table of the procedure format (:data:`SCHEMA`), with where it is, for messages."""
 
     def __init__(self, source: str, name: str, mapping: Any, location: str | None = None):
-        self.source, self.name = source, name
-        self.location = location or (f"[{name}]" if name else "top level")
-        if not isinstance(mapping, Mapping):
-            raise self.error(f"expected a table, found {_type_name(mapping)} {_fmt(mapping)}")
-        self.mapping = mapping
-        allowed = _BY_TABLE.get(name, {})
-        for key in mapping:
-            if key not in allowed:
-                close = difflib.get_close_matches(str(key), list(allowed), n=1)
-                hint = f"; did you mean {close[0]!r}?" if close else ""
-                raise self.error(f"unknown key {key!r}{hint} (allowed: {', '.join(allowed)})")
-
-    def error(self, problem: str) -> ProcedureError:
-        return ProcedureError(self.source, self.location, problem)
-
-    def has(self, key: str) -> bool:
-        return key in self.mapping
-
-    def sub(self, key: str) -> "_Table":
-        return _Table(self.source, f"{self.name}.{key}" if self.name else key, self.mapping.get(key, {}))
-
-    def get(self, key: str, default: Any = None) -> Any:
-        spec = _BY_TABLE[self.name][key]
-        if key not in self.mapping:
-            if default is None and spec.default == _REQUIRED:
-                raise self.error(f"missing key {key!r} ({spec.meaning})")
-            return default
-        v = self.mapping[key]
-        kind = spec.kind
-        if kind == "number":
-            return self._bounded(spec, self._number(key, v))
-        if kind == "integer":
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise self.error(f"{key}: expected an integer, found {_type_name(v)} {_fmt(v)}")
-            return int(self._bounded(spec, v))
-        if kind == "bool":
-            if not isinstance(v, bool):
-                raise self.error(f"{key}: expected true or false, found {_type_name(v)} {_fmt(v)}")
-            return v
-        if kind in ("string", "choice"):
-            if not isinstance(v, str):
-                raise self.error(f"{key}: expected a string, found {_type_name(v)} {_fmt(v)}")
-            if kind == "choice" and v not in spec.choices:
-                raise self.error(f"{key} {v!r} is not one of {', '.join(repr(c) for c in spec.choices)}")
-            return v
-        if kind == "numbers":
-            if not isinstance(v, list) or not v:
-                raise self.error(f"{key}: expected a non-empty array of numbers, found {_type_name(v)} {_fmt(v)}")
-            return tuple(self._bounded(spec, self._number(f"{key}[{i}]", x), f"{key}[{i}]") for i, x in enumerate(v))
-        if kind == "output":  # an output by index from 1 or by name
-            if isinstance(v, str) and v:
-                return v
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise self.error(f"{key}: expected an index from 1 or a name, found {_type_name(v)} {_fmt(v)}")
-            return int(self._bounded(spec, v))
-        if kind == "names":  # one name, or an array of distinct names
-            names = [v] if isinstance(v, str) else v
-            if not isinstance(names, list) or not names or not all(isinstance(x, str) and x for x in names):
-                raise self.error(f"{key}: expected a name or a non-empty array of names, found {_type_name(v)} {_fmt(v)}")
-            if len(set(names)) != len(names):
-                raise self.error(f"{key}: each name once, found {_fmt(v)}")
-            return tuple(names)
-        if kind == "strings":
-            if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
-                raise self.error(f"{key}: expected an array of strings, found {_type_name(v)} {_fmt(v)}")
-            return tuple(v)
-        raise AssertionError(f"schema kind {kind!r} read through get()")  # pragma: no cover (programming error)
-
-    def _number(self, key: str, v: Any) -> float:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise self.error(f"{key}: expected a number, found {_type_name(v)} {_fmt(v)}")
-        x = float(v)
-        if not math.isfinite(x):
-            raise self.error(f"{key}: expected a finite number, found {_fmt(v)}")
-        return x
-
-    def _bounded(self, spec: KeySpec, x: float, label: str | None = None) -> float:
-        label = label or spec.key
-        if spec.gt is not None and not x > spec.gt:
-            raise self.error(f"{label} {_fmt(x)} must be > {_fmt(spec.gt)}")
-        if spec.ge is not None and not x >= spec.ge:
-            raise self.error(f"{label} {_fmt(x)} must be >= {_fmt(spec.ge)}")
-        if spec.le is not None and not x <= spec.le:
-            raise self.error(f"{label} {_fmt(x)} must be <= {_fmt(spec.le)}")
-        return x
+        super().__init__(source, name, mapping, _BY_TABLE, location)
 
 
 def _truth_modes(top: _Table, s: "_Table", kind: str, sim: SimulationSettings) -> tuple[str, tuple]:

@@ -9,8 +9,6 @@ a value outside its range with the range.
 
 from __future__ import annotations
 
-import difflib
-import math
 import os
 import tomllib
 from dataclasses import dataclass, field
@@ -18,9 +16,10 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from setmem_hil.errors import ProcedureError
+from setmem_hil.io.toml_table import REQUIRED, CheckedTable, KeySpec
 
 __all__ = ["is_verification_procedure", "TargetSettings", "TargetEmulationSettings", "VerifySettings", "VerifyProcedure", "load_target_procedure",
-           "parse_target_text", "TARGET_KINDS"]
+           "parse_target_text", "SCHEMA", "TARGET_KINDS"]
 
 TARGET_KINDS = ("emulated", "serial")
 
@@ -69,74 +68,39 @@ class VerifyProcedure:
     source_text: str = ""
 
 
-REQUIRED = "required"
-# table -> key -> (kind, default (REQUIRED: must be given), lower bound (exclusive), upper bound (inclusive))
-_KEYS: dict[str, dict[str, tuple]] = {
-    "": {"name": ("string", "closed-loop"), "description": ("string", ""), "target": ("table", REQUIRED), "verify": ("table", {})},
-    "target": {"kind": ("choice", REQUIRED), "fs_hz": ("number", REQUIRED, 0.0), "delay_samples": ("integer", 1, -1, 64),
-               "drive_limit": ("number", REQUIRED, 0.0), "port": ("string", ""), "baudrate": ("integer", 115200, 0),
-               "watchdog_s": ("number", 0.5, -1e-300), "emulation": ("table", {})},
-    "target.emulation": {"extra_delay_samples": ("integer", 0, -1, 64), "dac_gain": ("number", 1.0, 0.0),
-                         "antialias_corner_hz": ("number", None, 0.0), "drop_link_after_lines": ("integer", None, 0),
-                         "undamped": ("bool", False), "noise_rms": ("number", 1e-5, -1e-300)},
-    "verify": {"gains": ("numbers", (0.25, 0.5, 1.0), 0.0, 2.0), "injection_amplitude": ("number", 0.05, 0.0),
-               "periods": ("integer", 20, 2), "settle_s": ("number", None, 0.0), "frequencies_rad_s": ("numbers", (), 0.0),
-               "response_limit": ("number", None, 0.0)},
-}
+def _key(table: str, key: str, kind: str, unit: str, default: Any, meaning: str, **bounds) -> KeySpec:
+    return KeySpec(table, key, kind, unit, default, meaning, **bounds)
 
 
-class _Table:
-    def __init__(self, source: str, name: str, mapping: Any):
-        self.source, self.name = source, name
-        if not isinstance(mapping, Mapping):
-            raise self.error(f"expected a table, found {mapping!r}")
-        self.mapping = mapping
-        for key in mapping:
-            if key not in _KEYS[name]:
-                close = difflib.get_close_matches(str(key), list(_KEYS[name]), n=1)
-                hint = f"; did you mean {close[0]!r}?" if close else ""
-                raise self.error(f"unknown key {key!r}{hint} (allowed: {', '.join(_KEYS[name])})")
-
-    def error(self, problem: str) -> ProcedureError:
-        return ProcedureError(self.source, f"[{self.name}]" if self.name else "top level", problem)
-
-    def get(self, key: str) -> Any:
-        kind, default, *bounds = _KEYS[self.name][key]
-        if key not in self.mapping:
-            if default is REQUIRED:
-                raise self.error(f"missing key {key!r}")
-            return default
-        v = self.mapping[key]
-        if kind == "table":
-            return v
-        if kind in ("string", "choice"):
-            if not isinstance(v, str):
-                raise self.error(f"{key}: expected a string, found {v!r}")
-            if kind == "choice" and v not in TARGET_KINDS:
-                raise self.error(f"{key} {v!r} is not one of {', '.join(repr(k) for k in TARGET_KINDS)}")
-            return v
-        if kind == "bool":
-            if not isinstance(v, bool):
-                raise self.error(f"{key}: expected true or false, found {v!r}")
-            return v
-        if kind == "numbers":
-            if not isinstance(v, list) or not v:
-                raise self.error(f"{key}: expected a non-empty array of numbers, found {v!r}")
-            return tuple(self._number(f"{key}[{i}]", x, bounds) for i, x in enumerate(v))
-        if kind == "integer":
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise self.error(f"{key}: expected an integer, found {v!r}")
-            return int(self._number(key, v, bounds))
-        return self._number(key, v, bounds)
-
-    def _number(self, key: str, v: Any, bounds) -> float:
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
-            raise self.error(f"{key}: expected a finite number, found {v!r}")
-        if bounds and not float(v) > bounds[0]:
-            raise self.error(f"{key} {v!r} must be > {max(bounds[0], 0):g}" if bounds[0] >= 0 else f"{key} {v!r} must be >= 0")
-        if len(bounds) > 1 and not float(v) <= bounds[1]:
-            raise self.error(f"{key} {v!r} must be <= {bounds[1]:g}")
-        return float(v)
+SCHEMA: tuple[KeySpec, ...] = (
+    _key("", "name", "string", "", "closed-loop", "the verification's name"),
+    _key("", "description", "string", "", "", "free text"),
+    _key("", "target", "table", "", REQUIRED, "what runs the compensator"),
+    _key("", "verify", "table", "", {}, "how the loop is engaged and measured"),
+    _key("target", "kind", "choice", "", REQUIRED, "the target", choices=TARGET_KINDS),
+    _key("target", "fs_hz", "number", "Hz", REQUIRED, "the target's sample rate", gt=0.0),
+    _key("target", "delay_samples", "integer", "samples", 1, "computation delay: u[k] written at tick k + delay", ge=0, le=64),
+    _key("target", "drive_limit", "number", "drive units", REQUIRED, "the largest |drive| before the target trips", gt=0.0),
+    _key("target", "port", "string", "", "", "serial port (kind = \"serial\")"),
+    _key("target", "baudrate", "integer", "bit/s", 115200, "serial line rate", gt=0),
+    _key("target", "watchdog_s", "number", "s", 0.5, "bypass when the host is silent this long", ge=0.0),
+    _key("target", "emulation", "table", "", {}, "the emulated rig's hidden effects (kind = \"emulated\")"),
+    _key("target.emulation", "extra_delay_samples", "integer", "samples", 0, "delay the model does not know", ge=0, le=64),
+    _key("target.emulation", "dac_gain", "number", "", 1.0, "drive gain the model does not know", gt=0.0),
+    _key("target.emulation", "antialias_corner_hz", "number", "Hz", None, "first-order lag the model does not know", gt=0.0),
+    _key("target.emulation", "drop_link_after_lines", "integer", "lines", None, "the link dies after this many lines", gt=0),
+    _key("target.emulation", "undamped", "bool", "", False, "every mode's damping removed"),
+    _key("target.emulation", "noise_rms", "number", "", 1e-5, "sensor noise", ge=0.0),
+    _key("verify", "gains", "numbers", "", (0.25, 0.5, 1.0), "gain steps, ascending", gt=0.0, le=2.0),
+    _key("verify", "injection_amplitude", "number", "drive units", 0.05, "the injected sine's amplitude", gt=0.0),
+    _key("verify", "periods", "integer", "periods", 20, "periods recorded per point", gt=2),
+    _key("verify", "settle_s", "number", "s", None, "wait before recording (default: the predicted loop's slowest pole)", gt=0.0),
+    _key("verify", "frequencies_rad_s", "numbers", "rad/s", (), "points (default: chosen from the prediction)", gt=0.0),
+    _key("verify", "response_limit", "number", "", None, "bypass when |y| exceeds it", gt=0.0),
+)
+_BY_TABLE: dict[str, dict[str, KeySpec]] = {}
+for _spec in SCHEMA:
+    _BY_TABLE.setdefault(_spec.table, {})[_spec.key] = _spec
 
 
 def is_verification_procedure(text: str) -> bool:
@@ -153,32 +117,29 @@ def parse_target_text(text: str, source: str = "<target>") -> VerifyProcedure:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ProcedureError(source, "", f"not valid TOML: {exc}") from None
-    top = _Table(source, "", doc)
+    top = CheckedTable(source, "", doc, _BY_TABLE)
     if "target" not in doc:
         raise top.error("missing table [target] (kind, fs_hz, delay_samples, drive_limit)")
-    if "verify" not in doc:
-        doc = {**doc, "verify": {}}
-    t = _Table(source, "target", top.get("target"))
-    e = _Table(source, "target.emulation", t.get("emulation"))
-    v = _Table(source, "verify", top.get("verify"))
-    kind = t.get("kind")
-    if kind == "serial" and not t.get("port"):
+    t, v = top.sub("target"), top.sub("verify")
+    e = t.sub("emulation")
+    kind = t.value("kind")
+    if kind == "serial" and not t.value("port"):
         raise t.error("kind = \"serial\" needs port (e.g. \"/dev/ttyACM0\")")
     if kind == "serial" and e.mapping:
         raise t.error("[target.emulation] is for kind = \"emulated\" only")
     emulation = TargetEmulationSettings(
-        extra_delay_samples=e.get("extra_delay_samples"), dac_gain=e.get("dac_gain"), antialias_corner_hz=e.get("antialias_corner_hz"),
-        drop_link_after_lines=e.get("drop_link_after_lines"), undamped=e.get("undamped"), noise_rms=e.get("noise_rms"))
-    target = TargetSettings(kind=kind, fs_hz=t.get("fs_hz"), delay_samples=t.get("delay_samples"), drive_limit=t.get("drive_limit"),
-                            port=t.get("port"), baudrate=t.get("baudrate"), watchdog_s=t.get("watchdog_s"), emulation=emulation)
-    gains = v.get("gains")
+        extra_delay_samples=e.value("extra_delay_samples"), dac_gain=e.value("dac_gain"), antialias_corner_hz=e.value("antialias_corner_hz"),
+        drop_link_after_lines=e.value("drop_link_after_lines"), undamped=e.value("undamped"), noise_rms=e.value("noise_rms"))
+    target = TargetSettings(kind=kind, fs_hz=t.value("fs_hz"), delay_samples=t.value("delay_samples"), drive_limit=t.value("drive_limit"),
+                            port=t.value("port"), baudrate=t.value("baudrate"), watchdog_s=t.value("watchdog_s"), emulation=emulation)
+    gains = v.value("gains")
     if list(gains) != sorted(gains):
         raise v.error(f"gains {list(gains)} must ascend (each step engaged after the one before)")
-    verify = VerifySettings(gains=gains, injection_amplitude=v.get("injection_amplitude"), periods=v.get("periods"),
-                            settle_s=v.get("settle_s"), frequencies_rad_s=v.get("frequencies_rad_s"), response_limit=v.get("response_limit"))
+    verify = VerifySettings(gains=gains, injection_amplitude=v.value("injection_amplitude"), periods=v.value("periods"),
+                            settle_s=v.value("settle_s"), frequencies_rad_s=v.value("frequencies_rad_s"), response_limit=v.value("response_limit"))
     if verify.injection_amplitude >= target.drive_limit:
         raise v.error(f"injection_amplitude {verify.injection_amplitude:g} must be below [target] drive_limit {target.drive_limit:g}")
-    return VerifyProcedure(top.get("name"), target, verify, text)
+    return VerifyProcedure(top.value("name"), target, verify, text)
 
 
 def load_target_procedure(path: str | os.PathLike) -> VerifyProcedure:
