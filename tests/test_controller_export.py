@@ -89,7 +89,11 @@ def test_json_contract_and_the_continuous_form_is_the_analysed_compensator(run_d
     rtol = ROBUST_CERTIFICATE_RTOL if record.design == "robust" else CERTIFICATE_RTOL  # as the campaign certified it
     again = analyze_robust_performance(IntervalModel(record.lower, record.upper), weights,
                                        controller=control.ss(K.A, K.B, K.C, K.D), certificate_rtol=rtol)
-    assert again.mu_peak == pytest.approx(exported["mu_peak"], rel=1e-6)
+    # Both are certified upper bounds of the same peak, each within its certificate's tolerance of
+    # it: they agree to that tolerance, not to the last digit (the campaign certified the robust
+    # design inside its tuning, on that tuning's refined grid; re-analysed from the exported form,
+    # 0.86134 against the claimed 0.86175 in the stop-54 environment, and equal at stop 53's).
+    assert again.mu_peak == pytest.approx(exported["mu_peak"], rel=rtol)
     if record.safeguard == "new-design" and record.design == "h2":  # and it is the H2 design of the stored intervals
         designed = analyze_robust_performance(IntervalModel(record.lower, record.upper), weights).controller
         w = np.geomspace(0.05, 500, 300)
