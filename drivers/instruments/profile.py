@@ -35,6 +35,7 @@ from typing import Any, Mapping
 
 from setmem_hil.drivers.instruments.scpi_commands import fill_fields, template_fields
 from setmem_hil.errors import ProcedureError
+from setmem_hil.io.toml_table import unknown_key
 from setmem_hil.model.prior import parse_toml_text
 
 __all__ = [
@@ -363,11 +364,9 @@ class _Reader:
         if not isinstance(mapping, Mapping):
             raise self.error(f"expected a table, found {mapping!r}")
         self.mapping = mapping
-        for key in mapping:
-            if key not in allowed:
-                close = difflib.get_close_matches(str(key), sorted(allowed), n=1)
-                hint = f"; did you mean {close[0]!r}?" if close else ""
-                raise self.error(f"unknown key {key!r}{hint} (allowed: {', '.join(sorted(allowed))})")
+        problem = unknown_key(mapping, sorted(allowed))
+        if problem:
+            raise self.error(problem)
 
     def error(self, problem: str) -> ProcedureError:
         return ProcedureError(self.source, self.location, problem)

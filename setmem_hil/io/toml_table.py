@@ -14,7 +14,7 @@ from typing import Any, Mapping
 
 from setmem_hil.errors import ProcedureError
 
-__all__ = ["REQUIRED", "CheckedTable", "KeySpec", "describe_value", "type_name"]
+__all__ = ["REQUIRED", "CheckedTable", "KeySpec", "describe_value", "type_name", "unknown_key"]
 
 REQUIRED = "required"  # a KeySpec's default when the key must be given
 
@@ -49,6 +49,17 @@ def describe_value(v: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
+def unknown_key(mapping: Mapping, allowed: list[str]) -> str | None:
+    """The first key of ``mapping`` not in ``allowed``, as a message naming the closest allowed
+    one and listing them in the order given; ``None`` when every key is known."""
+    for key in mapping:
+        if key not in allowed:
+            close = difflib.get_close_matches(str(key), allowed, n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            return f"unknown key {key!r}{hint} (allowed: {', '.join(allowed)})"
+    return None
+
+
 def type_name(v: Any) -> str:
     """'a number', 'a string', ...: what a value is, for messages."""
     return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "an array", dict: "a table"}.get(type(v), type(v).__name__)
@@ -66,12 +77,9 @@ class CheckedTable:
         if not isinstance(mapping, Mapping):
             raise self.error(f"expected a table, found {type_name(mapping)} {describe_value(mapping)}")
         self.mapping = mapping
-        allowed = schema.get(name, {})
-        for key in mapping:
-            if key not in allowed:
-                close = difflib.get_close_matches(str(key), list(allowed), n=1)
-                hint = f"; did you mean {close[0]!r}?" if close else ""
-                raise self.error(f"unknown key {key!r}{hint} (allowed: {', '.join(allowed)})")
+        problem = unknown_key(mapping, list(schema.get(name, {})))
+        if problem:
+            raise self.error(problem)
 
     def error(self, problem: str) -> ProcedureError:
         return ProcedureError(self.source, self.location, problem)
