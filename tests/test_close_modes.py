@@ -260,3 +260,34 @@ def test_an_uncertified_bound_the_answer_rests_on_is_reported(monkeypatch):
     assert result.upper.reshape(-1)[p] == root_hi[p]
     lo, hi = result.lower.reshape(-1), result.upper.reshape(-1)
     assert np.all(lo <= truth) and np.all(truth <= hi)
+
+
+def test_a_flag_from_an_early_group_round_is_cleared_by_a_later_certified_search(monkeypatch):
+    """A group search left unverified in the first round, certified in every later one: the
+    answer is verified (each search starts from a box that holds the data's set, so the last
+    certified search's bounds are certified); the same failure injected into the last search
+    (the all-modes polish) is reported."""
+    from dataclasses import replace
+
+    from setmem_hil.identification import algorithm
+
+    truth, data, prior = close_pair_case(0.03, n=120)
+    real = algorithm.identify_group
+
+    def run_with_failure_at(which):
+        calls = []
+
+        def flaky(*args, **kwargs):
+            found = real(*args, **kwargs)
+            calls.append(found)
+            return replace(found, verified=False, unverified_reason="injected") if which(len(calls)) else found
+
+        monkeypatch.setattr(algorithm, "identify_group", flaky)
+        return identify(data, prior), len(calls)
+
+    result, n_calls = run_with_failure_at(lambda k: k == 1)
+    assert n_calls >= 3 and result.groups  # a round per group, then the polish
+    assert result.verified.all(), result.unverified_reason
+    assert result.model.contains(truth).all()
+    last, n_calls = run_with_failure_at(lambda k: k == n_calls)
+    assert not last.verified.all() and any("injected" in r for r in last.unverified_reason)

@@ -417,7 +417,11 @@ def _identify_group_in_place(data: FrequencyData, lo: np.ndarray, hi: np.ndarray
     lo[group] = np.maximum(lo[group], found.lower)
     hi[group] = np.maximum(lo[group], np.minimum(hi[group], found.upper))
     for k in group:
-        if not found.verified:
+        if found.verified:
+            # every bound of this search is certified on a box that holds the data's set (an
+            # earlier round's uncertified bound was kept as an outer bound), so its flag is spent
+            unverified.pop(k, None)
+        else:
             unverified[k] = f"group {[j + 1 for j in group]}: {found.unverified_reason}"
 
 
