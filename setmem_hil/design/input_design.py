@@ -27,10 +27,12 @@ second: the candidates that bound a floor's mode rank ahead of every one that do
 **Fallback (section 5.4.2).** When every estimate is zero (the nominal point would cut no
 bound at any candidate), candidates are ranked by how close they come to cutting one: the
 sensitivity-weighted sum over parameters of the larger of the two sides' ``|r(x_b)| / C``.
-While floors remain and no candidate is predicted to remove one or to improve mu-bar by more than
-``NEGLIGIBLE_IMPROVEMENT`` (a close pair identified together: the one-mode predictions see
-nothing), the candidate in a floor mode's band furthest from every measured point is taken (our
-choice, issue 47).
+While floors remain and no candidate is predicted to remove one, the candidate in a floor
+mode's band furthest from every measured point is taken (our choice, issue 47): at once for the
+floor modes identified in a group (the one-mode predictions cannot see a jointly identified pair,
+so what they promise elsewhere is no reason to leave the floor: the two-plane cantilever, whose
+loop otherwise kept measuring beside its first pair while the floors held on the others); for the
+others when nothing promises to improve mu-bar by more than ``NEGLIGIBLE_IMPROVEMENT``.
 """
 
 from __future__ import annotations
@@ -274,8 +276,12 @@ def choose_input(
     else:
         best = top[0] if top.size else int(top_indices(ranking, 1)[0])
     promised = max(float(np.nanmax(estimate, initial=0.0)), float(np.nanmax(resolved, initial=0.0)))
-    if floors.size and not np.any(removed > 0) and not np.any(removed_exactly > 0) and promised < NEGLIGIBLE_IMPROVEMENT:
-        best = _filling_floor_bands(model, omega, data.omega_rad_s, floors, default=best)
+    blind = _grouped(floors, getattr(result, "groups", ()))
+    if floors.size and not np.any(removed > 0) and not np.any(removed_exactly > 0):
+        if blind.size:
+            best = _filling_floor_bands(model, omega, data.omega_rad_s, blind, default=best)
+        elif promised < NEGLIGIBLE_IMPROVEMENT:
+            best = _filling_floor_bands(model, omega, data.omega_rad_s, floors, default=best)
     return InputChoice(
         next_omega_rad_s=float(omega[best]),
         candidate_omega_rad_s=omega,
@@ -289,6 +295,15 @@ def choose_input(
 NEGLIGIBLE_IMPROVEMENT = 1e-4
 """A predicted mu-bar improvement below this is no reason to pick a candidate while a floor holds
 (the two-plane cantilever's best was 8e-6, at 0.1 rad/s, against mu-bar 2.1)."""
+
+
+def _grouped(floors: np.ndarray, groups) -> np.ndarray:
+    """The floor modes (0-based) that were identified in a group of several modes: chapter 4's
+    one-mode predictions cannot see what a measurement does to them (their optimizers are the
+    split's), so no promised improvement elsewhere is a reason to leave them holding the floor
+    (while any floor holds, mu-bar stays >= 1 whatever else narrows)."""
+    jointly = {k for group in groups if len(group) > 1 for k in group}
+    return np.array([k for k in floors if int(k) in jointly], dtype=int)
 
 
 def _filling_floor_bands(model: IntervalModel, omega: np.ndarray, measured: np.ndarray, floors: np.ndarray,
