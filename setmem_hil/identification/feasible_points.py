@@ -166,7 +166,35 @@ def pulled_back(candidate, anchor, omega_rad_s, g, E, steps: int = PULL_BACK_STE
     return None if inside == 0.0 else anchor + inside * direction
 
 
-def farthest_fitting(omega_rad_s, g, E, lo, hi, start, k: int, sign: float, iterations: int = 40):
+RESTORATION_STEPS = 4  # Chebyshev steps bringing a step that does not fit back onto the set
+
+
+def _restored(step, k: int, omega, g, E, lo, hi):
+    """``step`` brought back to fit with its coordinate ``k`` held: a Chebyshev fit over every other
+    free parameter from ``step`` (at most ``RESTORATION_STEPS`` conic programs), or ``None`` when it
+    does not reach a misfit of 1. On a curved set a step to the linearised boundary leaves the set by
+    a second-order amount; a correction across the boundary keeps the whole gain, where the segment
+    back to the last point (bisection) keeps only a fraction of it: without it, the search along a
+    close pair's residues stalled at a tenth of the set's extent (1 % pair at five times the noise)."""
+    held_lo, held_hi = lo.copy(), hi.copy()
+    held_lo[k] = held_hi[k] = step[k]
+    x, trust = step.copy(), 1.0
+    for _ in range(RESTORATION_STEPS):
+        trial = _minimax_step(x, omega, g, E, held_lo, held_hi, trust)
+        if trial is None:
+            return None
+        f = misfit(trial, omega, g, E)
+        if f <= 1.0:
+            return trial
+        if f < misfit(x, omega, g, E):
+            x = trial
+        else:
+            trust *= 0.25
+    return None
+
+
+def farthest_fitting(omega_rad_s, g, E, lo, hi, start, k: int, sign: float, iterations: int = 40,
+                     restore: bool = False):
     """A point that fits, as far as a local search goes in the direction ``sign`` of parameter
     ``k``, from ``start`` (which fits): sequential conic programs on the model linearised at the
     current point (:func:`_minimax_step` with ``toward``), each step checked on the model itself
@@ -179,6 +207,15 @@ def farthest_fitting(omega_rad_s, g, E, lo, hi, start, k: int, sign: float, iter
     set's extremes need not fit where the set is large against the model's curvature: a 1 % pair
     at five times the noise, where they miss by up to 2.5 bounds). A local search: the extent
     found is at most the true one.
+
+    ``restore``: a step that does not fit is first brought back onto the set across the boundary
+    (:func:`_restored`), and pulled back along the segment only when that fails. It reaches much
+    further on a curved set (a 1 % pair at five times the noise: the lower mode's b1 from 0.10 to
+    0.55 of the linearised set's extent, b0 from 0.11 to 0.84) for about four times the conic
+    programs. The group search's witnesses do without it: measured on that pair (stop 55), its
+    farther witnesses left the answer no narrower (worst ratios 1.60 / 1.76 / 1.98 with it,
+    1.64 / 1.66 / 1.83 without) and took 17 % longer; :func:`fitting_extent`, the benchmark's
+    inner reference, uses it.
     """
     omega, g, E, lo, hi = _bounded_points(omega_rad_s, g, E, lo, hi)
     x = np.asarray(start, dtype=float).reshape(-1).copy()
@@ -192,7 +229,9 @@ def farthest_fitting(omega_rad_s, g, E, lo, hi, start, k: int, sign: float, iter
         if step is None:
             break
         whole = misfit(step, omega, g, E) <= 1.0
-        new = step if whole else pulled_back(step, x, omega, g, E)
+        new = step if whole else (_restored(step, k, omega, g, E, lo, hi) if restore else None)
+        if new is None:
+            new = pulled_back(step, x, omega, g, E)
         gain = 0.0 if new is None else sign * (new[k] - x[k])
         if gain > 0:
             x = new
@@ -214,6 +253,6 @@ def fitting_extent(omega_rad_s, g, E, lo, hi, start):
     start = np.asarray(start, dtype=float).reshape(-1)
     lower, upper = start.copy(), start.copy()
     for k in np.flatnonzero(hi > lo):
-        lower[k] = farthest_fitting(omega_rad_s, g, E, lo, hi, start, int(k), -1.0)[k]
-        upper[k] = farthest_fitting(omega_rad_s, g, E, lo, hi, start, int(k), 1.0)[k]
+        lower[k] = farthest_fitting(omega_rad_s, g, E, lo, hi, start, int(k), -1.0, restore=True)[k]
+        upper[k] = farthest_fitting(omega_rad_s, g, E, lo, hi, start, int(k), 1.0, restore=True)[k]
     return lower.reshape(shape), upper.reshape(shape)
