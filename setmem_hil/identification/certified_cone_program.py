@@ -31,7 +31,8 @@ outward allowance for floating-point rounding. This bound is valid whatever the 
 and accuracy; its distance below the primal objective *is* the tolerance actually reached
 (primal and dual residuals and gap), so no fixed padding is used. Likewise a box is declared
 empty only when ``z`` satisfies ``b^T z < min_{y in box} (A^T z)^T y`` after the same projection
-and rounding allowance (a checked Farkas certificate).
+and rounding allowance (a checked Farkas certificate), or when a certified bound lies beyond the
+box (the same weak duality with the objective's term: no point of the box reaches it).
 
 Products of two parameters (issue 47, the lifted form of a close pair). A residual may also be
 affine in auxiliary variables ``z_k`` that stand for the product ``y_p y_q`` of two normalised
@@ -378,6 +379,12 @@ class AffineConeProgram:
                 yb = bound if sign > 0 else -bound
                 value = self.centre[p] + self.half[p] * yb
                 slack = 4 * _EPS * (abs(self.centre[p]) + abs(self.half[p] * yb))
+                if (value - slack > box_hi[p]) if sign > 0 else (value + slack < box_lo[p]):
+                    # a certified bound beyond the box: weak duality says no point of the box
+                    # fits (the Farkas test is this with q = 0). Kept as a bound it made the box
+                    # lie outside itself (a group search's boxes reached 1e143, stop 55).
+                    return BoxSolution(False, lower, upper, argmin, argmax, self.n_solves - solves_before,
+                                       self._certificate(res))
                 if sign > 0:
                     lower[p] = max(box_lo[p], value - slack)
                     if x_at is not None:
