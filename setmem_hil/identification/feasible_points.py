@@ -178,7 +178,7 @@ def _restored(step, k: int, omega, g, E, lo, hi):
     close pair's residues stalled at a tenth of the set's extent (1 % pair at five times the noise)."""
     held_lo, held_hi = lo.copy(), hi.copy()
     held_lo[k] = held_hi[k] = step[k]
-    x, trust = step.copy(), 1.0
+    x, f_x, trust = step.copy(), misfit(step, omega, g, E), 1.0
     for _ in range(RESTORATION_STEPS):
         trial = _minimax_step(x, omega, g, E, held_lo, held_hi, trust)
         if trial is None:
@@ -186,8 +186,8 @@ def _restored(step, k: int, omega, g, E, lo, hi):
         f = misfit(trial, omega, g, E)
         if f <= 1.0:
             return trial
-        if f < misfit(x, omega, g, E):
-            x = trial
+        if f < f_x:
+            x, f_x = trial, f
         else:
             trust *= 0.25
     return None
