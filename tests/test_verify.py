@@ -92,7 +92,8 @@ def test_the_loop_as_modelled_is_verified_in_three_certified_steps(small_run, tm
     assert len(points) == 12 and all(p["inside"] for p in points)
     assert doc["performance"]["measured"] < doc["performance"]["claimed"] < 1.0
     assert doc["first_outside"] is None and (tmp_path / "out" / "verify.png").stat().st_size > 10_000
-    assert len(list((tmp_path / "out" / "records").glob("*.npz"))) == 12
+    assert len(list((tmp_path / "out" / "records").glob("0*.npz"))) == 12
+    assert (tmp_path / "out" / "records" / "baseline.npz").exists() and 0 < doc["baseline_response_rms"] < 1e-4
     events = [json.loads(line)["event"] for line in (tmp_path / "out" / "journal.jsonl").read_text().splitlines()]
     assert events[0] == "start" and events[-1] == "stop" and events.count("point") == 12
 
@@ -140,15 +141,38 @@ def test_the_demos_compensator_is_verified_on_the_shipped_emulated_target(tmp_pa
 
 
 def test_a_structure_without_damping_is_stopped_with_the_target_bypassed(small_run, tmp_path, capsys):
-    """The damping removed from every mode: with this compensator the loop grows slowly (time
-    constant about 500 s at gain 0.25, computed from the closed loop's eigenvalues), so the
-    structure, no longer in the box, falls outside the prediction at the first point, before it
-    grows: the verification stops there (exit 3) and engages nothing higher."""
+    """The damping removed from every mode: with this compensator the closed loop's poles near
+    17.5 and 34.4 rad/s lie right of the axis (growth time constant about 500 s at gain 0.25,
+    from the closed loop's eigenvalues) and the others barely left of it, so the response never
+    reaches a limit within a dwell; it rings instead. The free part of the response, larger than
+    the injected one and far above the rig at rest, stops the loop (exit 4), the target bypassed
+    as the firmware reads back, the step's points kept, nothing higher engaged."""
     code, doc, err = run_verify(small_run, target_file(tmp_path, emulation="undamped = true", verify=FEW), tmp_path / "out", capsys)
-    assert code in (3, 4), err
-    assert len(doc["steps"]) <= 1 and not doc["verified"]
+    assert code == 4, err
+    assert "did not settle" in err and "target bypassed and generator off (read back)" in err
+    assert len(doc["steps"]) == 1 and doc["steps"][0]["gain"] == 0.25 and doc["steps"][0]["points"] and not doc["verified"]
+    assert 0 < doc["baseline_response_rms"] < 1e-4  # the emulated sensor's noise (1e-5 rms) with the loop at rest
     events = [json.loads(line) for line in (tmp_path / "out" / "journal.jsonl").read_text().splitlines()]
     assert events[-1]["event"] == "stop"
+    assert len(list((tmp_path / "out" / "records").glob("0*.npz"))) == len(doc["steps"][0]["points"])
+
+
+def test_the_rule_for_a_loop_that_does_not_settle_needs_both_a_large_free_part_and_a_quiet_rig():
+    """A record synthesised here: a forced sine plus a free oscillation at another frequency."""
+    from setmem_hil.estimation.closed_loop_point import closed_loop_point
+    from setmem_hil.verify.plan import LoopNotSettled, _check_settled
+
+    t = np.arange(20_000) / 1000.0
+    r = 0.05 * np.sin(4.0 * t)
+    u = 1.1 * r
+    ringing = closed_loop_point(t, r, u, 0.01 * np.sin(4.0 * t + 0.3) + 0.05 * np.sin(17.54 * t), 4.0)
+    assert abs(ringing.forced_response_amplitude - 0.01) < 1e-3 and abs(ringing.free_response_omega_rad_s - 17.54) < 0.2
+    assert abs(ringing.free_response_rms - 0.05 / np.sqrt(2)) < 2e-3
+    with pytest.raises(LoopNotSettled, match="rings near 17.5"):
+        _check_settled(ringing, 0.25, 100.0, baseline_rms=1e-5)
+    _check_settled(ringing, 0.25, 100.0, baseline_rms=0.01)  # a rig that moves this much at rest: not the loop's doing
+    settled = closed_loop_point(t, r, u, 0.01 * np.sin(4.0 * t + 0.3) + 1e-5 * np.random.default_rng(1).standard_normal(t.size), 4.0)
+    _check_settled(settled, 0.25, 100.0, baseline_rms=1e-5)
 
 
 def test_ctrl_c_mid_point_bypasses_the_target_and_keeps_the_records(small_run, tmp_path, capsys, monkeypatch):

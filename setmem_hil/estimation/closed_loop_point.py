@@ -8,6 +8,12 @@ The bounds are confidence radii of the ratios' covariances at the dwells' confid
 propagation as :func:`~setmem_hil.estimation.sine_fit.phasor_ratio`; the drive's noise is the
 response's fed back, so the two channels of ``G`` are not independent: the radius treats them as
 if they were, a choice stated here because it is not exact).
+
+The response's **free part** (what the sine at the injection's frequency does not explain: the
+sensor's noise, the rig's disturbance, and a transient that has not decayed) is kept beside the
+ratios: its rms, the frequency of its largest spectral line, and the forced part's amplitude. A
+loop that settled as the box predicts leaves little free part; a loop that rings or grows leaves
+a free part larger than the forced one (:mod:`setmem_hil.verify.plan` stops there).
 """
 
 from __future__ import annotations
@@ -18,7 +24,7 @@ import numpy as np
 
 from setmem_hil.estimation.sine_fit import confidence_radius, fit_sine, phasor_ratio
 
-__all__ = ["ClosedLoopPoint", "closed_loop_point", "CONFIDENCE"]
+__all__ = ["ClosedLoopPoint", "closed_loop_point", "free_part_peak_omega", "CONFIDENCE"]
 
 CONFIDENCE = 0.9995
 """The dwells' confidence (``DwellSettings.confidence``)."""
@@ -34,6 +40,21 @@ class ClosedLoopPoint:
     injection_amplitude: float
     peak_drive: float
     peak_response: float
+    forced_response_amplitude: float = float("nan")  # |Y|: the response's part at the injection's frequency
+    free_response_rms: float = float("nan")  # rms of the rest (the fit's residual)
+    free_response_omega_rad_s: float = float("nan")  # the rest's largest spectral line
+
+
+def free_part_peak_omega(t_s: np.ndarray, residual: np.ndarray) -> float:
+    """The frequency (rad/s) of the largest line of ``residual``'s spectrum (Hann window, zero
+    padding to 4x): where a transient that has not decayed rings."""
+    n = residual.size
+    if n < 8:
+        return float("nan")
+    dt = float(t_s[1] - t_s[0])
+    spectrum = np.abs(np.fft.rfft((residual - residual.mean()) * np.hanning(n), 4 * n))
+    spectrum[0] = 0.0
+    return float(2 * np.pi * np.fft.rfftfreq(4 * n, dt)[int(np.argmax(spectrum))])
 
 
 def closed_loop_point(t_s: np.ndarray, r: np.ndarray, u: np.ndarray, y: np.ndarray, omega_rad_s: float,
@@ -43,5 +64,8 @@ def closed_loop_point(t_s: np.ndarray, r: np.ndarray, u: np.ndarray, y: np.ndarr
     fr, fu, fy = (fit_sine(t_s, v, omega_rad_s, t_ref_s=t0) for v in (r, u, y))
     S, cov_s = phasor_ratio(fu, fr)
     G, cov_g = phasor_ratio(fy, fu)
+    t = np.asarray(t_s, float)
+    residual = np.asarray(y, float) - fy.offset - np.real(fy.phasor * np.exp(1j * omega_rad_s * (t - t0)))
     return ClosedLoopPoint(float(omega_rad_s), S, confidence_radius(cov_s, confidence), G, confidence_radius(cov_g, confidence),
-                           float(abs(fr.phasor)), float(np.max(np.abs(u))), float(np.max(np.abs(y))))
+                           float(abs(fr.phasor)), float(np.max(np.abs(u))), float(np.max(np.abs(y))),
+                           float(abs(fy.phasor)), float(np.sqrt(np.mean(residual ** 2))), free_part_peak_omega(t, residual))

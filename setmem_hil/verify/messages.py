@@ -43,6 +43,7 @@ class InjectAndRecord:
     amplitude: float
     settle_s: float
     record_s: float
+    label: str = ""  # a record that is not a point ("baseline"): kept under this name, not numbered
 
 
 @dataclass(frozen=True)

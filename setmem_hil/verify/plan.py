@@ -17,6 +17,19 @@ ascending:
 4. stops engaging higher gains after a step with a point outside the prediction (the model is
    falsified: a careful engineer does not push a loop whose model just failed further).
 
+Before the first gain, with the target bypassed and the generator off, it records the rig at
+rest (:data:`BASELINE_PERIODS` periods of the lowest modelled mode, at least
+:data:`BASELINE_MIN_S`): the response's rms there is the rig's own noise and disturbance.
+
+**A loop that does not settle is stopped** (:class:`LoopNotSettled`, exit 4 as a trip). After
+the settling time (ten time constants of the box's nominal closed loop), a loop that behaves as
+any plant of the box has left only noise besides the injection's sine. When the free part of the
+response is larger than the forced part *and* :data:`NOT_SETTLED_FACTOR` times the rig at rest,
+the loop rings where nothing predicted it: unstable, or so nearly that its growth is slower than
+a dwell (the beam without damping grows with a time constant of minutes, never reaching a limit
+in a dwell). Both conditions, so that a rig whose disturbance exceeds a small injection at an
+anti-resonance does not trip. This rule is ours: the thesis stops before closing the loop.
+
 However it ends (an error thrown in, an abort), its ``finally`` turns the generator off and
 bypasses the target (confirmed). The frequencies, when the procedure gives none, come from the
 prediction (:func:`chosen_frequencies`): the predicted peak of ``|W2 S|``, each modelled mode,
@@ -32,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from setmem_hil.campaign.engine import Checkpoint, Emit
+from setmem_hil.errors import DeviceError
 from setmem_hil.estimation.closed_loop_point import ClosedLoopPoint, closed_loop_point
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.weights import Weights
@@ -43,8 +57,17 @@ from setmem_hil.verify.messages import Bypass, Engage, IdentifyTarget, InjectAnd
 __all__ = ["VerifySetup", "VerifiedPoint", "VerifyResult", "NotEngaged", "verification_plan", "chosen_frequencies", "settle_time_s"]
 
 
+BASELINE_PERIODS = 2.0
+BASELINE_MIN_S = 2.0
+NOT_SETTLED_FACTOR = 10.0
+
+
 class NotEngaged(Exception):
     """A gain step whose implemented mu-bar is not below 1: never engaged."""
+
+
+class LoopNotSettled(DeviceError):
+    """The loop rang after the settling time (see the module docstring): bypassed, exit 4."""
 
 
 @dataclass(frozen=True)
@@ -92,6 +115,7 @@ class VerifyResult:
     steps: list[dict] = field(default_factory=list)
     implemented_mu_bar: float = math.nan
     points: list[VerifiedPoint] = field(default_factory=list)
+    baseline_rms: float = math.nan  # the response's rms with the target bypassed and the generator off
 
     @property
     def first_outside(self) -> VerifiedPoint | None:
@@ -108,23 +132,41 @@ def verification_plan(setup: VerifySetup, result: VerifyResult | None = None):
     result.checksum = yield LoadCompensator(setup.sos, setup.sos_gain)
     yield Emit("loaded", {"checksum": f"{result.checksum:08X}", "sections": int(len(setup.sos))})
     try:
+        result.baseline_rms = yield from _rig_at_rest(setup)
         for gain in setup.gains:
             certified = _certify_step(setup, gain)
             if gain >= 1.0:
                 result.implemented_mu_bar = certified
             yield Checkpoint(f"engaging at gain {gain:g}")
             yield Engage(gain)
-            yield Emit("engaged", {"gain": gain, "implemented_mu_bar": certified, "certified": "performance" if gain >= 1.0 else "stability"})
-            points = yield from _measure_step(setup, gain)
-            result.points += points
-            result.steps.append({"gain": gain, "implemented_mu_bar": certified, "certified": "performance" if gain >= 1.0 else "stability",
-                                 "points": [p.to_document() for p in points]})
+            kind = "performance" if gain >= 1.0 else "stability"
+            yield Emit("engaged", {"gain": gain, "implemented_mu_bar": certified, "certified": kind})
+            points: list[VerifiedPoint] = []
+            try:
+                yield from _measure_step(setup, gain, points, result.baseline_rms)
+            finally:  # a step cut short by a fault keeps what it measured
+                result.points += points
+                result.steps.append({"gain": gain, "implemented_mu_bar": certified, "certified": kind,
+                                     "points": [p.to_document() for p in points]})
             yield Emit("step", {"gain": gain, "points": len(points), "outside": sum(not p.inside for p in points)})
             if any(not p.inside for p in points):
                 break
     finally:
         yield Bypass("the verification ended")
     return result
+
+
+def _rig_at_rest(setup: VerifySetup):
+    """The response's rms with the target bypassed and the generator off (the record is kept)."""
+    modes = np.sqrt(np.maximum(0.5 * (setup.model.lower[:, 1] + setup.model.upper[:, 1]), 0.0))
+    lowest = float(np.min(modes[modes > 0])) if np.any(modes > 0) else 2 * math.pi
+    duration = max(BASELINE_MIN_S, BASELINE_PERIODS * 2 * math.pi / lowest)
+    yield Checkpoint("recording the rig at rest")
+    record = yield InjectAndRecord(lowest, 0.0, 0.0, duration, label="baseline")
+    y = np.asarray(record.y, float)
+    rms = float(np.sqrt(np.mean((y - y.mean()) ** 2)))
+    yield Emit("baseline", {"response_rms": rms, "duration_s": duration})
+    return rms
 
 
 def _certify_step(setup: VerifySetup, gain: float) -> float:
@@ -146,8 +188,7 @@ def _scaled(K, gain: float):
     return control.ss(K.A, K.B, np.asarray(K.C) * gain, np.asarray(K.D) * gain)
 
 
-def _measure_step(setup: VerifySetup, gain: float):
-    points = []
+def _measure_step(setup: VerifySetup, gain: float, points: list, baseline_rms: float):
     for w in setup.frequencies_rad_s:
         yield Checkpoint(f"gain {gain:g}, {w:.4g} rad/s")
         record_s = setup.periods * 2 * math.pi / w
@@ -160,7 +201,20 @@ def _measure_step(setup: VerifySetup, gain: float):
         verified = VerifiedPoint(gain, point, prediction, prediction.holds(point.S, point.S_bound), float(performance))
         yield Emit("point", verified.to_document() | {"gain": gain})
         points.append(verified)
-    return points
+        _check_settled(point, gain, setup.settle_s, baseline_rms)
+
+
+def _check_settled(point: ClosedLoopPoint, gain: float, settle_s: float, baseline_rms: float) -> None:
+    """:class:`LoopNotSettled` when the free part of the response exceeds both the forced part and
+    :data:`NOT_SETTLED_FACTOR` times the rig at rest (see the module docstring)."""
+    free, forced_rms = point.free_response_rms, point.forced_response_amplitude / math.sqrt(2.0)
+    rest = baseline_rms if math.isfinite(baseline_rms) else 0.0
+    if free > forced_rms and free > NOT_SETTLED_FACTOR * rest:
+        raise LoopNotSettled(
+            f"the loop did not settle at gain {gain:g}: at {point.omega_rad_s:.4g} rad/s, after the settling time of {settle_s:.4g} s, "
+            f"the response rings near {point.free_response_omega_rad_s:.4g} rad/s ({free:.3g} rms, more than the injected "
+            f"response's {forced_rms:.3g} and {free / rest if rest > 0 else math.inf:.3g}x the rig at rest): "
+            "the loop is unstable or nearly so; bypassed")
 
 
 def chosen_frequencies(model: IntervalModel, weights: Weights, controller, fs_hz: float, delay_samples: int, prewarp_rad_s: float,

@@ -55,7 +55,8 @@ def _jsonable(value: Any) -> Any:
 
 
 class RecordWriter:
-    """Each point's record (``t_s``, ``r``, ``u``, ``y``) as ``records/<seq>.npz``."""
+    """Each point's record (``t_s``, ``r``, ``u``, ``y``) as ``records/<seq>.npz``; the rig at rest
+    (target bypassed, generator off) as ``records/baseline.npz``."""
 
     def __init__(self, folder: Path):
         self.folder = folder
@@ -65,10 +66,11 @@ class RecordWriter:
         if event != "loop-record":
             return
         record = info["record"]
-        tmp = self.folder / f".{info['seq']:04d}.npz"
+        name = info.get("file_name") or f"{info['seq']:04d}"
+        tmp = self.folder / f".{name}.npz"
         with open(tmp, "wb") as f:
             np.savez(f, t_s=record.t_s, r=record.r, u=record.u, y=record.y, omega_rad_s=info["omega_rad_s"])
-        os.replace(tmp, self.folder / f"{info['seq']:04d}.npz")
+        os.replace(tmp, self.folder / f"{name}.npz")
 
 
 def _progress(quiet: bool):

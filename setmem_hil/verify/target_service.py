@@ -77,8 +77,10 @@ class TargetService:
             record = self._run_watched(int(round(request.record_s * rate)), chunk, request, keep=True)
         finally:
             self.rig.set_generator(0.0, 0.0)
-        self.records += 1
-        engine.emit("loop-record", seq=self.records, omega_rad_s=request.omega_rad_s, record=record)
+        if not request.label:
+            self.records += 1
+        engine.emit("loop-record", seq=self.records, file_name=request.label or f"{self.records:04d}", omega_rad_s=request.omega_rad_s,
+                    record=record)
         return record
 
     def _run_watched(self, n: int, chunk: int, request: InjectAndRecord, keep: bool = False):

@@ -11,10 +11,10 @@ their ``points[]``, ``performance``, ``first_outside``, ``discrepancy``, ``figur
 to ``RUN_DIR/verify.json``, which the run's report shows), ``DIR/verify.png`` (the
 predicted band of ``|S|`` and the measured points), ``DIR/journal.jsonl`` (every document, one
 JSON line each, flushed as written) and ``DIR/records/`` (each point's injection, drive and
-response, ``.npz``).
+response, ``<seq>.npz``; the rig at rest before engaging, ``baseline.npz``).
 
 Exit codes: 0 every point inside its prediction; 3 a point outside (named); 4 a target or
-instrument fault, or a loop that grew (the target bypassed and the generator off, confirmed);
+instrument fault, or a loop that grew or did not settle (the target bypassed and the generator off, confirmed);
 2 bad input, or a loop whose implemented mu-bar is >= 1 (never engaged; the sample rate needed
 is named); 130 interrupted (bypassed, confirmed).
 """
@@ -113,6 +113,7 @@ def _document(result, setup, target_procedure, record) -> dict:
                    "checksum_read_back": None if result.checksum is None else f"{result.checksum:08X}"},
         "implemented_mu_bar": None if not math.isfinite(result.implemented_mu_bar) else result.implemented_mu_bar,
         "continuous_mu_bar": float(record.mu_peak),
+        "baseline_response_rms": None if not math.isfinite(result.baseline_rms) else result.baseline_rms,
         "steps": result.steps,
         "performance": {"measured": measured, "claimed": None if not math.isfinite(result.implemented_mu_bar) else result.implemented_mu_bar},
         "first_outside": None if first is None else first.to_document() | {"gain": first.gain},
