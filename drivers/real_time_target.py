@@ -28,9 +28,11 @@ from typing import Protocol, Sequence
 
 import numpy as np
 
+from setmem_hil.estimation.analyser_sums import AnalyserSums
 from setmem_hil.errors import DeviceDisconnectedError, DeviceIdentityError, DeviceRejectedError, DeviceTimeoutError
 
-__all__ = ["LineChannel", "SerialLineChannel", "RealTimeTarget", "TargetIdentity", "TargetState", "compensator_checksum",
+__all__ = ["LineChannel", "SerialLineChannel", "RealTimeTarget", "TargetIdentity", "TargetState", "AnalyserProgress",
+           "compensator_checksum",
            "IDENTITY_PREFIX"]
 
 IDENTITY_PREFIX = "SETMEM-HIL,reference-target,"
@@ -87,6 +89,39 @@ class TargetState:
 
     def __str__(self) -> str:
         return {BYPASS: BYPASS, ENGAGED: f"ENGAGED {self.gain:g}", TRIPPED: f"TRIPPED {self.reason}"}[self.mode]
+
+
+@dataclass(frozen=True)
+class AnalyserProgress:
+    """``ANALYSIS?``: ``IDLE``, ``SETTLING left``, ``SUMMING done count`` or ``DONE first_n count``,
+    each (but IDLE) with the peak drive and sensor since ``ANALYSE``."""
+
+    state: str
+    done: int = 0  # samples summed (SUMMING), or settle samples left (SETTLING)
+    count: int = 0
+    first_n: int = 0
+    peak_drive: float = 0.0
+    peak_response: float = 0.0
+
+    @classmethod
+    def parse(cls, reply: str, where: str) -> "AnalyserProgress":
+        fields = reply.split()
+        sizes = {"IDLE": 1, "SETTLING": 4, "SUMMING": 5, "DONE": 5}
+        try:
+            if not fields or sizes.get(fields[0]) != len(fields):
+                raise ValueError(reply)
+            state, numbers = fields[0], fields[1:]
+            if state == "IDLE":
+                return cls("IDLE")
+            peaks = float(numbers[-2]), float(numbers[-1])
+            if state == "SETTLING":
+                return cls(state, done=int(numbers[0]), peak_drive=peaks[0], peak_response=peaks[1])
+            if state == "SUMMING":
+                return cls(state, done=int(numbers[0]), count=int(numbers[1]), peak_drive=peaks[0], peak_response=peaks[1])
+            return cls(state, done=int(numbers[1]), count=int(numbers[1]), first_n=int(numbers[0]), peak_drive=peaks[0],
+                       peak_response=peaks[1])
+        except ValueError:
+            raise DeviceIdentityError(f"{where}: ANALYSIS? answered {reply[:60]!r}, not the protocol's") from None
 
 
 def compensator_checksum(sos: np.ndarray, gain: float) -> int:
@@ -170,6 +205,29 @@ class RealTimeTarget:
 
     def set_watchdog(self, seconds: float) -> None:
         self._ok(f"WATCHDOG {float(seconds)!r}")
+
+    # -- the target's own analyser (ANALYSE, ANALYSIS?, SUMS?) -------------------------------------
+    def analyse(self, settle_samples: int, count: int) -> None:
+        """Start the analyser on the current injection: wait ``settle_samples``, sum ``count``."""
+        self._ok(f"ANALYSE {int(settle_samples)} {int(count)}")
+
+    def analysis(self) -> AnalyserProgress:
+        return AnalyserProgress.parse(self.ask("ANALYSIS?"), self.where)
+
+    def sums(self, omega_rad_s: float, fs_hz: float, progress: AnalyserProgress) -> AnalyserSums:
+        """The finished analysis's sums (``progress``: its ``DONE`` reply)."""
+        rows = {}
+        for name, size in (("R", 4), ("U", 4), ("Y", 4), ("REF", 5)):
+            reply = self.ask(f"SUMS? {name}")
+            try:
+                values = tuple(float(v) for v in reply.split())
+            except ValueError:
+                values = ()
+            if len(values) != size or not all(math.isfinite(v) for v in values):
+                raise DeviceIdentityError(f"{self.where}: SUMS? {name} answered {reply[:60]!r}, not {size} numbers")
+            rows[name] = values
+        return AnalyserSums(float(omega_rad_s), float(fs_hz), progress.first_n, progress.count, rows["R"], rows["U"], rows["Y"],
+                            rows["REF"], progress.peak_drive, progress.peak_response)
 
     def ping(self) -> None:
         self._ok("PING")

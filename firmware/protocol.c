@@ -136,6 +136,7 @@ static size_t settings(setmem_target *t, const char *command, const char *args, 
         t->inject_amplitude = v[0];
         t->inject_omega_rad_s = v[1];
         t->inject_n = 0;
+        t->analyser.state = SETMEM_ANALYSER_IDLE; /* sums of another injection mean nothing */
         return say(reply, cap, "OK");
     }
     if (strcmp(command, "WATCHDOG") == 0) {
@@ -146,6 +147,64 @@ static size_t settings(setmem_target *t, const char *command, const char *args, 
     }
     n = snprintf(reply, cap, "ERR unknown command %.40s", command);
     return fitted(n, cap);
+}
+
+static int whole(double v)
+{
+    return v >= 0.0 && v <= 9.0e15 && v == (double)(uint64_t)v;
+}
+
+static size_t analyse(setmem_target *t, const char *args, char *reply, size_t cap)
+{
+    double v[2];
+    if (t->state == SETMEM_TRIPPED)
+        return say(reply, cap, "ERR tripped: BYPASS to clear the trip first");
+    if (!numbers(args, v, 2) || !whole(v[0]) || !whole(v[1]) || v[1] < 1.0)
+        return say(reply, cap, "ERR ANALYSE needs whole numbers of samples: settle >= 0 and count >= 1");
+    if (!(t->inject_omega_rad_s > 0.0))
+        return say(reply, cap, "ERR ANALYSE needs an injection frequency: INJECT first (amplitude 0 for the rig at rest)");
+    setmem_target_analyse(t, (uint64_t)v[0], (uint64_t)v[1]);
+    return say(reply, cap, "OK");
+}
+
+static size_t analysis(const setmem_target *t, char *reply, size_t cap)
+{
+    const setmem_analyser *a = &t->analyser;
+    int n;
+    switch (a->state) {
+    case SETMEM_ANALYSER_SETTLING:
+        n = snprintf(reply, cap, "SETTLING %llu %.17g %.17g", (unsigned long long)a->settle_left, a->peak_drive, a->peak_sensor);
+        break;
+    case SETMEM_ANALYSER_SUMMING:
+        n = snprintf(reply, cap, "SUMMING %llu %llu %.17g %.17g", (unsigned long long)a->done, (unsigned long long)a->count,
+                     a->peak_drive, a->peak_sensor);
+        break;
+    case SETMEM_ANALYSER_DONE:
+        n = snprintf(reply, cap, "DONE %llu %llu %.17g %.17g", (unsigned long long)a->first_n, (unsigned long long)a->count,
+                     a->peak_drive, a->peak_sensor);
+        break;
+    default:
+        n = snprintf(reply, cap, "IDLE");
+    }
+    return fitted(n, cap);
+}
+
+static size_t sums(const setmem_target *t, const char *args, char *reply, size_t cap)
+{
+    const char *names = "RUY";
+    const double *v;
+    while (isspace((unsigned char)*args))
+        ++args;
+    if (t->analyser.state != SETMEM_ANALYSER_DONE)
+        return say(reply, cap, "ERR no analysis done: ANALYSE, then wait for ANALYSIS? DONE");
+    if (strncmp(args, "REF", 3) == 0) {
+        v = t->analyser.reference;
+        return fitted(snprintf(reply, cap, "%.17g %.17g %.17g %.17g %.17g", v[0], v[1], v[2], v[3], v[4]), cap);
+    }
+    if (args[0] == '\0' || args[1] != '\0' || strchr(names, toupper((unsigned char)args[0])) == 0)
+        return say(reply, cap, "ERR SUMS? needs R, U, Y or REF");
+    v = t->analyser.signal[strchr(names, toupper((unsigned char)args[0])) - names];
+    return fitted(snprintf(reply, cap, "%.17g %.17g %.17g %.17g", v[0], v[1], v[2], v[3]), cap);
 }
 
 size_t setmem_protocol_handle(setmem_target *t, const char *line, char *reply, size_t cap)
@@ -187,5 +246,11 @@ size_t setmem_protocol_handle(setmem_target *t, const char *line, char *reply, s
     }
     if (strcmp(command, "ENGAGE") == 0)
         return engage(t, line, reply, cap);
+    if (strcmp(command, "ANALYSE") == 0)
+        return analyse(t, line, reply, cap);
+    if (strcmp(command, "ANALYSIS?") == 0)
+        return analysis(t, reply, cap);
+    if (strcmp(command, "SUMS?") == 0)
+        return sums(t, line, reply, cap);
     return settings(t, command, line, reply, cap);
 }

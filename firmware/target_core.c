@@ -47,6 +47,53 @@ void setmem_target_feed(setmem_target *t)
     t->ticks_since_host = 0;
 }
 
+void setmem_target_analyse(setmem_target *t, uint64_t settle, uint64_t count)
+{
+    memset(&t->analyser, 0, sizeof t->analyser);
+    t->analyser.settle_left = settle;
+    t->analyser.count = count;
+    t->analyser.state = count == 0 ? SETMEM_ANALYSER_DONE : (settle > 0 ? SETMEM_ANALYSER_SETTLING : SETMEM_ANALYSER_SUMMING);
+}
+
+/* One sample into the analyser: r, u, y at the injection's sample index n (before it advances). */
+static void analyse_sample(setmem_target *t, double r, double u, double y, uint64_t n)
+{
+    setmem_analyser *a = &t->analyser;
+    const double values[3] = {r, u, y};
+    double phase, s, c;
+    int i;
+    if (a->state == SETMEM_ANALYSER_IDLE || a->state == SETMEM_ANALYSER_DONE)
+        return;
+    if (fabs(u) > a->peak_drive)
+        a->peak_drive = fabs(u);
+    if (fabs(y) > a->peak_sensor)
+        a->peak_sensor = fabs(y);
+    if (a->state == SETMEM_ANALYSER_SETTLING) {
+        if (--a->settle_left > 0)
+            return;
+        a->state = SETMEM_ANALYSER_SUMMING;
+        return; /* the next sample is the first summed */
+    }
+    if (a->done == 0)
+        a->first_n = n;
+    phase = t->inject_omega_rad_s * (double)n / t->fs_hz;
+    s = sin(phase);
+    c = cos(phase);
+    for (i = 0; i < 3; ++i) {
+        a->signal[i][SETMEM_SUM_SIN] += values[i] * s;
+        a->signal[i][SETMEM_SUM_COS] += values[i] * c;
+        a->signal[i][SETMEM_SUM_PLAIN] += values[i];
+        a->signal[i][SETMEM_SUM_SQUARE] += values[i] * values[i];
+    }
+    a->reference[SETMEM_REF_SS] += s * s;
+    a->reference[SETMEM_REF_SC] += s * c;
+    a->reference[SETMEM_REF_S] += s;
+    a->reference[SETMEM_REF_CC] += c * c;
+    a->reference[SETMEM_REF_C] += c;
+    if (++a->done == a->count)
+        a->state = SETMEM_ANALYSER_DONE;
+}
+
 void setmem_target_trip(setmem_target *t, const char *reason)
 {
     t->state = SETMEM_TRIPPED;
@@ -55,6 +102,7 @@ void setmem_target_trip(setmem_target *t, const char *reason)
     strncpy(t->reason, reason, SETMEM_TARGET_REASON_LEN - 1);
     t->reason[SETMEM_TARGET_REASON_LEN - 1] = '\0';
     t->last_drive = 0.0;
+    t->analyser.state = SETMEM_ANALYSER_IDLE;
 }
 
 static double delayed(setmem_target *t, double value)
@@ -70,6 +118,7 @@ static double delayed(setmem_target *t, double value)
 double setmem_target_tick(setmem_target *t, double y)
 {
     double compensator, injection, drive;
+    uint64_t n;
     t->ticks++;
     if (t->state == SETMEM_TRIPPED)
         return 0.0;
@@ -81,16 +130,18 @@ double setmem_target_tick(setmem_target *t, double y)
     compensator = setmem_target_filter(t, y);
     compensator = delayed(t, t->state == SETMEM_ENGAGED ? t->gain * compensator : 0.0);
     injection = 0.0;
-    if (t->inject_amplitude != 0.0) {
-        injection = t->inject_amplitude * sin(t->inject_omega_rad_s * (double)t->inject_n / t->fs_hz);
+    n = t->inject_n;
+    if (t->inject_amplitude != 0.0)
+        injection = t->inject_amplitude * sin(t->inject_omega_rad_s * (double)n / t->fs_hz);
+    if (t->inject_omega_rad_s != 0.0) /* the phase runs with the amplitude zero too: the analyser's reference */
         t->inject_n++;
-    }
     drive = compensator + injection;
     if (!(fabs(drive) <= t->drive_limit)) { /* NaN trips too */
         setmem_target_trip(t, "drive_limit");
         return 0.0;
     }
     t->last_drive = drive;
+    analyse_sample(t, injection, drive, y, n);
     return drive;
 }
 

@@ -27,6 +27,27 @@
 #define SETMEM_TARGET_REASON_LEN 32
 
 typedef enum {
+    SETMEM_ANALYSER_IDLE = 0,
+    SETMEM_ANALYSER_SETTLING = 1,
+    SETMEM_ANALYSER_SUMMING = 2,
+    SETMEM_ANALYSER_DONE = 3
+} setmem_analyser_state;
+
+/* The analyser's sums: per signal (r, u, y) v*sin, v*cos, v, v*v; then the reference's
+ * sin*sin, sin*cos, sin, cos*cos, cos (the phase is the injection's: omega * n / fs). */
+enum { SETMEM_SUM_SIN = 0, SETMEM_SUM_COS = 1, SETMEM_SUM_PLAIN = 2, SETMEM_SUM_SQUARE = 3, SETMEM_SIGNAL_SUMS = 4 };
+enum { SETMEM_REF_SS = 0, SETMEM_REF_SC = 1, SETMEM_REF_S = 2, SETMEM_REF_CC = 3, SETMEM_REF_C = 4, SETMEM_REF_SUMS = 5 };
+
+typedef struct {
+    setmem_analyser_state state;
+    uint64_t settle_left, count, done;
+    uint64_t first_n; /* the injection's sample index of the first summed sample */
+    double signal[3][SETMEM_SIGNAL_SUMS]; /* r, u, y */
+    double reference[SETMEM_REF_SUMS];
+    double peak_drive, peak_sensor; /* since ANALYSE, settling included */
+} setmem_analyser;
+
+typedef enum {
     SETMEM_BYPASS = 0,  /* compensator disconnected: drive = own injection only */
     SETMEM_ENGAGED = 1, /* drive = gain * K(y) delayed + own injection */
     SETMEM_TRIPPED = 2  /* drive = 0 until BYPASS; reason says why */
@@ -52,9 +73,10 @@ typedef struct {
     double drive_limit;
     double last_drive;
 
-    /* the target's own injection: amplitude * sin(omega * Ts * n) */
+    /* the target's own injection: amplitude * sin(omega * Ts * n); n counts from INJECT */
     double inject_amplitude, inject_omega_rad_s;
     uint64_t inject_n;
+    setmem_analyser analyser;
 
     /* timing and the watchdog: the host must speak every watchdog_ticks samples */
     double fs_hz;
@@ -80,6 +102,10 @@ void setmem_target_reset_states(setmem_target *t);
  * bits, little-endian. The host computes the same from what it sent: a coefficient the target
  * parsed differently changes it. */
 uint32_t setmem_target_checksum(const setmem_target *t);
+
+/* Start the analyser: wait `settle` samples, then sum `count` samples (see the header comment).
+ * Any earlier analysis is dropped. */
+void setmem_target_analyse(setmem_target *t, uint64_t settle, uint64_t count);
 
 /* The host spoke: the watchdog starts again. */
 void setmem_target_feed(setmem_target *t);

@@ -43,6 +43,7 @@ Example
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -260,20 +261,21 @@ class OpenedTarget:
     recorder of injection, drive and response), for ``setmem-hil verify``."""
 
     target: object  # setmem_hil.drivers.real_time_target.RealTimeTarget
-    rig: object  # setmem_hil.verify.target_service.LoopRig
+    rig: object  # setmem_hil.verify.target_service.LoopRig, or None (the target measures: its analyser)
+    wait: object = time.sleep  # lets the target run for some seconds (an emulated loop: its own steps)
 
 
 def open_target(target_procedure, procedure: Procedure, seed: int = 1) -> OpenedTarget:
     """The target of a verification procedure (:mod:`setmem_hil.io.target_file`) on the run's
     structure: ``"emulated"`` is the run's simulated structure (all its modes) in closed loop
-    with the reference firmware's own C core (:mod:`setmem_hil.sim_backends.emulated_target`)."""
-    from setmem_hil.drivers.real_time_target import RealTimeTarget
+    with the reference firmware's own C core (:mod:`setmem_hil.sim_backends.emulated_target`);
+    ``"serial"`` the reference firmware on a board at ``port`` (any pyserial URL), measured by
+    its own analyser."""
+    from setmem_hil.drivers.real_time_target import RealTimeTarget, SerialLineChannel
 
     t = target_procedure.target
-    if t.kind != "emulated":
-        raise ProcedureError(str(target_procedure.name), "[target] kind", f"{t.kind!r}: measuring the closed loop needs a generator "
-                             "and a recorder beside the target, which only the emulated rig has so far (a serial target "
-                             "loads and engages through setmem_hil.drivers.real_time_target)")
+    if t.kind == "serial":
+        return OpenedTarget(RealTimeTarget(SerialLineChannel(t.port, t.baudrate), f"target on {t.port}"), None)
     from setmem_hil.sim_backends.emulated_target import EmulatedClosedLoop, TargetEmulation
 
     structure = true_structure(procedure)
@@ -283,4 +285,7 @@ def open_target(target_procedure, procedure: Procedure, seed: int = 1) -> Opened
     loop = EmulatedClosedLoop(structure, t.fs_hz, t.delay_samples,
                               TargetEmulation(e.extra_delay_samples, e.dac_gain, e.antialias_corner_hz, e.drop_link_after_lines, e.undamped),
                               noise_rms=e.noise_rms, seed=seed)
-    return OpenedTarget(RealTimeTarget(loop.channel(), f"emulated target ({t.fs_hz:g} Hz)"), loop)
+    target = RealTimeTarget(loop.channel(), f"emulated target ({t.fs_hz:g} Hz)")
+    if t.measure == "analyser":  # the target injects and sums; the rig's own generator and recorder stay unused
+        return OpenedTarget(target, None, lambda seconds: loop.run(max(1, int(round(seconds * t.fs_hz)))))
+    return OpenedTarget(target, loop)

@@ -31,7 +31,7 @@ from setmem_hil.model.modal_model import ModalParameters
 from setmem_hil.numerics.zero_order_hold import held
 from setmem_hil.sim_backends.firmware_core import FirmwareCore
 
-__all__ = ["TargetEmulation", "EmulatedClosedLoop", "EmulatedTargetChannel", "LoopRecord"]
+__all__ = ["TargetEmulation", "EmulatedClosedLoop", "EmulatedTargetChannel", "LoopRecord", "held_discretisation"]
 
 
 @dataclass(frozen=True)
@@ -90,7 +90,7 @@ class EmulatedClosedLoop:
         self.noise_rms, self._rng = float(noise_rms), np.random.default_rng(seed)
         if emulation.undamped:
             structure = ModalParameters(np.column_stack([np.zeros(structure.n_modes), *np.asarray(structure.values).T[1:]]))
-        self._Ad, self._Bd, self._C, self._lag = _held_discretisation(structure, self.fs_hz, emulation.antialias_corner_hz)
+        self._Ad, self._Bd, self._C, self._lag = held_discretisation(structure, self.fs_hz, emulation.antialias_corner_hz)
         self._x = np.zeros(self._Ad.shape[0])
         self._pipeline = np.zeros(int(emulation.extra_delay_samples))
         self._generator = (0.0, 0.0)
@@ -118,7 +118,7 @@ class EmulatedClosedLoop:
         return LoopRecord(self.fs_hz, t0, r, u, y)
 
 
-def _held_discretisation(structure: ModalParameters, fs_hz: float, corner_hz: float | None):
+def held_discretisation(structure: ModalParameters, fs_hz: float, corner_hz: float | None):
     """``(Ad, Bd, C, lag)``: the structure (and the anti-alias lag on its output) for a drive
     held over each sample; ``C`` rows: the response, then (with a lag) the lagged response."""
     A, B, C, _ = structure.state_space_matrices()

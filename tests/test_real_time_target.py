@@ -195,3 +195,61 @@ def test_a_coefficient_the_target_parses_differently_fails_the_read_back():
 
     with pytest.raises(DeviceRejectedError, match="checksum"):
         RealTimeTarget(Rounding(), "rounding target").load(lightly_damped_sections())
+
+
+# -- the target's own analyser (ANALYSE, ANALYSIS?, SUMS?) ----------------------------------------
+def test_the_analyser_refuses_what_its_state_forbids():
+    core = loaded_core(np.array([[2.0, 0, 0, 1, 0, 0]]))
+    assert core.command("ANALYSE 0 100").startswith("ERR ANALYSE needs an injection")
+    assert core.command("ANALYSIS?") == "IDLE" and core.command("SUMS? Y").startswith("ERR no analysis")
+    assert core.command("INJECT 0.1 50") == "OK"
+    assert core.command("ANALYSE 0 0").startswith("ERR ANALYSE needs whole numbers")
+    assert core.command("ANALYSE 1.5 10").startswith("ERR ANALYSE needs whole numbers")
+    assert core.command("ANALYSE 3 10") == "OK"
+    for _ in range(3):
+        core.tick(0.0)
+    assert core.command("ANALYSIS?").startswith("SUMMING 0 10 ")
+    for _ in range(10):
+        core.tick(0.0)
+    assert core.command("ANALYSIS?").startswith("DONE 3 10 ")  # the injection's sample 3 is the first summed
+    assert core.command("SUMS? Q").startswith("ERR SUMS? needs")
+    assert len(core.command("SUMS? REF").split()) == 5 and len(core.command("SUMS? u").split()) == 4
+    assert core.command("INJECT 0.1 60") == "OK" and core.command("ANALYSIS?") == "IDLE"  # sums of another injection
+    core.command("ANALYSE 0 1000")
+    core.command("LIMIT 0.05")
+    core.command("ENGAGE 1")
+    core.tick(0.0)
+    core.tick(1.0)  # drive 2 > 0.05: tripped, the analysis dropped
+    assert core.command("STATE?") == "TRIPPED drive_limit" and core.command("ANALYSIS?") == "IDLE"
+    assert core.command("ANALYSE 0 10").startswith("ERR tripped")
+
+
+def test_the_analysers_sums_give_the_fit_the_samples_give():
+    """Second formulation: the beam in closed loop with the core (the emulated rig), the target's
+    own injection and analyser on; the same run's samples fitted by fit_sine (IEEE 1057) must give
+    the point the sums give, to rounding."""
+    from setmem_hil.estimation.analyser_sums import AnalyserSums, closed_loop_point_from_sums
+    from setmem_hil.estimation.closed_loop_point import closed_loop_point
+    from setmem_hil.sim_backends.beam import beam_parameters
+    from setmem_hil.sim_backends.emulated_target import EmulatedClosedLoop
+
+    loop = EmulatedClosedLoop(beam_parameters().truncated(3), 1000.0, 1, noise_rms=1e-4, seed=3)
+    core = loop.core
+    for line in ("LOAD 1", "SOS 0 0.3 0 0 0 0", "LIMIT 5", "WATCHDOG 0", "ENGAGE 0.5", "INJECT 0.05 4.0", "ANALYSE 700 9000"):
+        assert core.command(line) == "OK", line
+    record = loop.run(9700)
+    reply = core.command("ANALYSIS?").split()
+    assert reply[:3] == ["DONE", "700", "9000"]
+    rows = [tuple(float(v) for v in core.command(f"SUMS? {name}").split()) for name in ("R", "U", "Y", "REF")]
+    sums = AnalyserSums(4.0, 1000.0, 700, 9000, *rows, float(reply[3]), float(reply[4]))
+    n = np.arange(700, 9700)
+    r = 0.05 * np.sin(4.0 * n / 1000.0)  # the target's own injection, as the protocol documents it
+    from_samples = closed_loop_point(n / 1000.0, r, record.u[700:], record.y[700:], 4.0)
+    from_sums = closed_loop_point_from_sums(sums)
+    assert abs(from_sums.S - from_samples.S) < 1e-10 * abs(from_samples.S)
+    assert abs(from_sums.G - from_samples.G) < 1e-9 * abs(from_samples.G)
+    assert from_sums.S_bound == pytest.approx(from_samples.S_bound, rel=1e-6)
+    assert from_sums.G_bound == pytest.approx(from_samples.G_bound, rel=1e-6)
+    assert from_sums.free_response_rms == pytest.approx(from_samples.free_response_rms, rel=1e-6)
+    assert sums.peak_drive == pytest.approx(np.max(np.abs(record.u)), rel=1e-12)
+    assert sums.peak_response == pytest.approx(np.max(np.abs(record.y)), rel=1e-12)

@@ -220,3 +220,106 @@ def test_a_bad_target_procedure_is_named_before_anything_moves(small_run, tmp_pa
     path.write_text(SHIPPED.read_text().replace(*change))
     code, doc, err = run_verify(small_run, path, tmp_path / "out", capsys)
     assert code == 2 and doc is None and message in err and str(path) in err, err
+
+
+# -- a serial target: the firmware built as a board, on a pseudo-terminal, measured by its analyser --
+def serial_target_file(tmp_path: Path, port: str, verify: str = FEW) -> Path:
+    path = tmp_path / "serial.toml"
+    path.write_text(f'name = "board"\n[target]\nkind = "serial"\nport = "{port}"\nfs_hz = 1000.0\ndelay_samples = 1\n'
+                    f'drive_limit = 5.0\nwatchdog_s = 2000.0  # target seconds: the board runs 500x faster than the wall clock\n'
+                    f'[verify]\ngains = [0.25, 0.5, 1.0]\ninjection_amplitude = 0.05\n{verify}\n')
+    return path
+
+
+@pytest.fixture
+def board():
+    """The reference firmware compiled as a board (main.c, the PC port) with the beam (all eight
+    modes, sensor noise 1e-5) as its rig, on a pseudo-terminal, 500x faster than real time."""
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("pseudo-terminals as serial ports: Linux")
+    from setmem_hil.sim_backends.beam import beam_parameters
+    from setmem_hil.sim_backends.board_on_pty import BoardOnPty
+
+    with BoardOnPty(beam_parameters(), 1000.0, 1, speedup=500.0, noise_rms=1e-5) as b:
+        yield b
+
+
+def test_a_serial_board_is_verified_through_its_own_analyser(small_run, board, tmp_path, capsys):
+    """The serial path end to end: pyserial on a pty, the firmware's own injection and analyser
+    (no recorder beside the rig), the point from its sums. Truth: the beam in the board is the
+    emulated target's, whose points the prediction holds (the first test)."""
+    code, doc, err = run_verify(small_run, serial_target_file(tmp_path, board.port), tmp_path / "out", capsys)
+    assert code == 0, err
+    assert doc["verified"] and [s["gain"] for s in doc["steps"]] == [0.25, 0.5, 1.0]
+    assert doc["target"]["kind"] == "serial" and doc["target"]["identity"].startswith("SETMEM-HIL,reference-target")
+    assert len(doc["target"]["checksum_read_back"]) == 8
+    assert all(p["inside"] for s in doc["steps"] for p in s["points"])
+    assert doc["performance"]["measured"] < doc["performance"]["claimed"] < 1.0
+    kept = np.load(tmp_path / "out" / "records" / "0001.npz")
+    assert {"sums_r", "sums_u", "sums_y", "sums_reference", "first_n", "count"} <= set(kept.files)  # what was measured: the sums
+    assert 0 < doc["baseline_response_rms"] < 1e-4
+
+
+def test_a_board_that_loses_power_mid_dwell_exits_4_and_keeps_what_was_measured(small_run, board, tmp_path, capsys):
+    import threading
+    import time
+
+    stop = threading.Event()
+
+    def power_cut_after_two_points():
+        journal = tmp_path / "out" / "journal.jsonl"
+        while not stop.is_set():
+            if journal.exists() and journal.read_text().count('"event": "point"') >= 2:
+                board.kill()
+                return
+            time.sleep(0.02)
+
+    watcher = threading.Thread(target=power_cut_after_two_points)
+    watcher.start()
+    try:
+        code, doc, err = run_verify(small_run, serial_target_file(tmp_path, board.port), tmp_path / "out", capsys)
+    finally:
+        stop.set()
+        watcher.join()
+    assert code == 4, err
+    assert "no reply" in err or "link lost" in err, err
+    assert "switch the drive off at the amplifier" in err  # the bypass could not be confirmed: said so
+    assert doc is not None and not doc["verified"] and any(s["points"] for s in doc["steps"])
+
+
+def test_a_serial_target_cannot_ask_for_a_recorder_it_does_not_have():
+    from setmem_hil.errors import ProcedureError
+    from setmem_hil.io.target_file import parse_target_text
+
+    text = '[target]\nkind = "serial"\nport = "/dev/ttyACM0"\nfs_hz = 1000.0\ndrive_limit = 1.0\n'
+    assert parse_target_text(text).target.measure == "analyser"
+    assert parse_target_text(text.replace('kind = "serial"\nport = "/dev/ttyACM0"', 'kind = "emulated"')).target.measure == "recorder"
+    with pytest.raises(ProcedureError, match="use measure = \"analyser\""):
+        parse_target_text(text + 'measure = "recorder"\n')
+
+
+def test_an_analyser_that_does_not_advance_is_a_fault_with_the_target_left_bypassed(monkeypatch):
+    """A board whose sample timer stopped still answers its line: the analyser's progress stays."""
+    from setmem_hil.drivers.real_time_target import RealTimeTarget
+    from setmem_hil.errors import DeviceTimeoutError
+    from setmem_hil.sim_backends.firmware_core import FirmwareCore
+    from setmem_hil.verify import target_service
+    from setmem_hil.verify.messages import InjectAndRecord
+
+    core = FirmwareCore(1000.0, 1)
+
+    class Line:
+        def exchange(self, line):
+            return core.command(line)
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(target_service, "STALL_S", 0.3)
+    service = target_service.TargetService(RealTimeTarget(Line(), "stopped board"), None, fs_hz=1000.0, delay_samples=1,
+                                           drive_limit=1.0, watchdog_s=0.5, measure="analyser", wait=lambda s: None)
+    with pytest.raises(DeviceTimeoutError, match="did not advance"):
+        service.inject_and_record(None, InjectAndRecord(6.0, 0.05, 1.0, 2.0))
+    assert all(core.tick(0.0) == 0.0 for _ in range(50)) and core.command("STATE?") == "BYPASS"  # the injection off

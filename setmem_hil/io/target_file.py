@@ -19,9 +19,12 @@ from setmem_hil.errors import ProcedureError
 from setmem_hil.io.toml_table import REQUIRED, CheckedTable, KeySpec
 
 __all__ = ["is_verification_procedure", "TargetSettings", "TargetEmulationSettings", "VerifySettings", "VerifyProcedure", "load_target_procedure",
-           "parse_target_text", "SCHEMA", "TARGET_KINDS"]
+           "parse_target_text", "SCHEMA", "TARGET_KINDS", "MEASURE_KINDS"]
 
 TARGET_KINDS = ("emulated", "serial")
+MEASURE_KINDS = ("recorder", "analyser")
+"""How a point is measured: ``recorder``, the rig's recorder of injection, drive and response (the
+emulated rig's; samples kept), or ``analyser``, the target's own analyser (its sums kept)."""
 
 
 @dataclass(frozen=True)
@@ -45,6 +48,7 @@ class TargetSettings:
     port: str = ""
     baudrate: int = 115200
     watchdog_s: float = 0.5
+    measure: str = "recorder"  # MEASURE_KINDS
     emulation: TargetEmulationSettings = field(default_factory=TargetEmulationSettings)
 
 
@@ -84,6 +88,8 @@ SCHEMA: tuple[KeySpec, ...] = (
     _key("target", "port", "string", "", "", "serial port (kind = \"serial\")"),
     _key("target", "baudrate", "integer", "bit/s", 115200, "serial line rate", gt=0),
     _key("target", "watchdog_s", "number", "s", 0.5, "bypass when the host is silent this long", ge=0.0),
+    _key("target", "measure", "choice", "", None, "how a point is measured (default: \"recorder\" for an emulated target, "
+         "\"analyser\" for a serial one)", choices=MEASURE_KINDS),
     _key("target", "emulation", "table", "", {}, "the emulated rig's hidden effects (kind = \"emulated\")"),
     _key("target.emulation", "extra_delay_samples", "integer", "samples", 0, "delay the model does not know", ge=0, le=64),
     _key("target.emulation", "dac_gain", "number", "", 1.0, "drive gain the model does not know", gt=0.0),
@@ -127,11 +133,16 @@ def parse_target_text(text: str, source: str = "<target>") -> VerifyProcedure:
         raise t.error("kind = \"serial\" needs port (e.g. \"/dev/ttyACM0\")")
     if kind == "serial" and e.mapping:
         raise t.error("[target.emulation] is for kind = \"emulated\" only")
+    measure = t.value("measure") or ("analyser" if kind == "serial" else "recorder")
+    if kind == "serial" and measure == "recorder":
+        raise t.error("measure = \"recorder\" needs a recorder beside the rig, which a serial target does not have yet: "
+                      "use measure = \"analyser\" (the target's own)")
     emulation = TargetEmulationSettings(
         extra_delay_samples=e.value("extra_delay_samples"), dac_gain=e.value("dac_gain"), antialias_corner_hz=e.value("antialias_corner_hz"),
         drop_link_after_lines=e.value("drop_link_after_lines"), undamped=e.value("undamped"), noise_rms=e.value("noise_rms"))
     target = TargetSettings(kind=kind, fs_hz=t.value("fs_hz"), delay_samples=t.value("delay_samples"), drive_limit=t.value("drive_limit"),
-                            port=t.value("port"), baudrate=t.value("baudrate"), watchdog_s=t.value("watchdog_s"), emulation=emulation)
+                            port=t.value("port"), baudrate=t.value("baudrate"), watchdog_s=t.value("watchdog_s"), measure=measure,
+                            emulation=emulation)
     gains = v.value("gains")
     if list(gains) != sorted(gains):
         raise v.error(f"gains {list(gains)} must ascend (each step engaged after the one before)")

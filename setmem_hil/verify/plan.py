@@ -46,6 +46,7 @@ import numpy as np
 
 from setmem_hil.campaign.engine import Checkpoint, Emit
 from setmem_hil.errors import DeviceError
+from setmem_hil.estimation.analyser_sums import AnalyserSums, closed_loop_point_from_sums
 from setmem_hil.estimation.closed_loop_point import ClosedLoopPoint, closed_loop_point
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.weights import Weights
@@ -163,8 +164,11 @@ def _rig_at_rest(setup: VerifySetup):
     duration = max(BASELINE_MIN_S, BASELINE_PERIODS * 2 * math.pi / lowest)
     yield Checkpoint("recording the rig at rest")
     record = yield InjectAndRecord(lowest, 0.0, 0.0, duration, label="baseline")
-    y = np.asarray(record.y, float)
-    rms = float(np.sqrt(np.mean((y - y.mean()) ** 2)))
+    if isinstance(record, AnalyserSums):
+        rms = record.response_rms
+    else:
+        y = np.asarray(record.y, float)
+        rms = float(np.sqrt(np.mean((y - y.mean()) ** 2)))
     yield Emit("baseline", {"response_rms": rms, "duration_s": duration})
     return rms
 
@@ -193,7 +197,10 @@ def _measure_step(setup: VerifySetup, gain: float, points: list, baseline_rms: f
         yield Checkpoint(f"gain {gain:g}, {w:.4g} rad/s")
         record_s = setup.periods * 2 * math.pi / w
         record = yield InjectAndRecord(w, setup.injection_amplitude, setup.settle_s, record_s)
-        point = closed_loop_point(record.t_s, record.r, record.u, record.y, w)
+        if isinstance(record, AnalyserSums):  # the target's own analyser
+            point = closed_loop_point_from_sums(record)
+        else:
+            point = closed_loop_point(record.t_s, record.r, record.u, record.y, w)
         k = complex(implemented_response(setup.controller, setup.fs_hz, setup.delay_samples, setup.prewarp_rad_s, [w])[0])
         prediction = predicted_sensitivity(setup.model, setup.weights, k, w, setup.calibration_gain, loop_gain=gain)
         # |W2 S| + |W1 K S| with the weights the claimed mu-bar was computed with
@@ -204,6 +211,10 @@ def _measure_step(setup: VerifySetup, gain: float, points: list, baseline_rms: f
         _check_settled(point, gain, setup.settle_s, baseline_rms)
 
 
+def _near(omega_rad_s: float) -> str:
+    return f" near {omega_rad_s:.4g} rad/s" if math.isfinite(omega_rad_s) else ""  # the analyser's sums carry no spectrum
+
+
 def _check_settled(point: ClosedLoopPoint, gain: float, settle_s: float, baseline_rms: float) -> None:
     """:class:`LoopNotSettled` when the free part of the response exceeds both the forced part and
     :data:`NOT_SETTLED_FACTOR` times the rig at rest (see the module docstring)."""
@@ -212,7 +223,7 @@ def _check_settled(point: ClosedLoopPoint, gain: float, settle_s: float, baselin
     if free > forced_rms and free > NOT_SETTLED_FACTOR * rest:
         raise LoopNotSettled(
             f"the loop did not settle at gain {gain:g}: at {point.omega_rad_s:.4g} rad/s, after the settling time of {settle_s:.4g} s, "
-            f"the response rings near {point.free_response_omega_rad_s:.4g} rad/s ({free:.3g} rms, more than the injected "
+            f"the response rings{_near(point.free_response_omega_rad_s)} ({free:.3g} rms, more than the injected "
             f"response's {forced_rms:.3g} and {free / rest if rest > 0 else math.inf:.3g}x the rig at rest): "
             "the loop is unstable or nearly so; bypassed")
 

@@ -69,7 +69,10 @@ class RecordWriter:
         name = info.get("file_name") or f"{info['seq']:04d}"
         tmp = self.folder / f".{name}.npz"
         with open(tmp, "wb") as f:
-            np.savez(f, t_s=record.t_s, r=record.r, u=record.u, y=record.y, omega_rad_s=info["omega_rad_s"])
+            if hasattr(record, "as_arrays"):  # the target's analyser: its sums are what was measured
+                np.savez(f, **record.as_arrays())
+            else:
+                np.savez(f, t_s=record.t_s, r=record.r, u=record.u, y=record.y, omega_rad_s=info["omega_rad_s"])
         os.replace(tmp, self.folder / f"{name}.npz")
 
 
@@ -98,7 +101,8 @@ def run_verification(setup: VerifySetup, target_procedure, procedure, run_dir: s
     opened = open_target(target_procedure, procedure)
     t = target_procedure.target
     service = TargetService(opened.target, opened.rig, fs_hz=t.fs_hz, delay_samples=t.delay_samples, drive_limit=t.drive_limit,
-                            watchdog_s=t.watchdog_s, response_limit=target_procedure.verify.response_limit)
+                            watchdog_s=t.watchdog_s, response_limit=target_procedure.verify.response_limit, measure=t.measure,
+                            wait=opened.wait)
     journal = JsonLinesJournal(out / "journal.jsonl")
     engine = RunEngine([RecordWriter(out / "records"), journal, _progress(quiet)], safe_state="the target bypassed")
     register_target_commands(engine, service)
@@ -126,7 +130,7 @@ def run_verification(setup: VerifySetup, target_procedure, procedure, run_dir: s
 
 def _confirm_safe(service: TargetService) -> str:
     try:
-        service.rig.set_generator(0.0, 0.0)
+        service.generator_off()
         state = service.target.bypass()
         return "target bypassed and generator off (read back)" if state.mode == BYPASS else f"the target reports {state}"
     except (DeviceError, OSError) as exc:
