@@ -40,7 +40,7 @@ TABLE_B1_UPPER = [[1.2140e-1, 1.2333, 0.0, 7.6251], [5.3030e-1, 4.3162e1, 0.0, 7
 
 def campaign_cost() -> None:
     analysis_s, certificate_s, certs, results = [], [], [], []
-    certify, analyze = analysis_module._certify, analysis_module.analyze_robust_performance
+    certify, analyze = analysis_module.certify_grid, analysis_module.analyze_robust_performance
 
     def timed_certify(*args):
         t = time.perf_counter()
@@ -56,13 +56,13 @@ def campaign_cost() -> None:
         results.append(out)
         return out
 
-    analysis_module._certify, analysis_module.analyze_robust_performance = timed_certify, timed_analyze
+    analysis_module.certify_grid, analysis_module.analyze_robust_performance = timed_certify, timed_analyze
     try:
         procedure = default_procedure()
         with open_experiment(procedure, procedure.seed) as experiment:
             summary = run_campaign(procedure, experiment)
     finally:
-        analysis_module._certify, analysis_module.analyze_robust_performance = certify, analyze
+        analysis_module.certify_grid, analysis_module.analyze_robust_performance = certify, analyze
     total, cert = sum(analysis_s), sum(certificate_s)
     print(f"6.3.2 campaign (seed {procedure.seed}): {summary.experiments_added} added, final mu-bar {summary.final_mu_peak:.4f}, "
           f"reached goal {summary.reached_goal}")

@@ -48,7 +48,8 @@ from setmem_hil.robust.robust_design import DESIGN_METHODS
 from setmem_hil.robust.uncertain_plant import uncertain_plant
 from setmem_hil.model.weights import THESIS_WEIGHTS, Weights
 
-__all__ = ["RobustAnalysis", "analyze_robust_performance", "design_h2_controller", "default_omega_grid"]
+__all__ = ["RobustAnalysis", "analyze_robust_performance", "design_h2_controller", "default_omega_grid", "grid_bounds", "certify_grid",
+           "time_scaled_controller"]
 
 PEAK_TIE_RTOL = 1e-6  # frequencies within this of the peak count as attaining it (4.2.2)
 FAST_TOL, FAST_MAX_ITER = 1e-4, 60  # pass 1 over the grid
@@ -232,12 +233,12 @@ def analyze_robust_performance(
 
         controller = control.ss(controller)
     if robust is not None and robust[0] is not None:
-        robust = ((_time_scaled_controller(robust[0][0], 1.0 / T, M), robust[0][1]), tuning)
+        robust = ((time_scaled_controller(robust[0][0], 1.0 / T, M), robust[0][1]), tuning)
     result = _analyze_normalised(
         model.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
         weights.time_scaled(1.0 / T).magnitude_scaled(1.0 / M),
         None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float) / T,
-        None if controller is None else _time_scaled_controller(controller, 1.0 / T, M),
+        None if controller is None else time_scaled_controller(controller, 1.0 / T, M),
         gain,  # a gain on the whole plant: the same in any time or magnitude unit
         robust,
         certificate_rtol,
@@ -250,7 +251,7 @@ def analyze_robust_performance(
         mu=result.mu,
         mu_lower=result.mu_lower,
         sensitivities=result.sensitivities,
-        controller=_time_scaled_controller(result.controller, T, 1.0 / M),
+        controller=time_scaled_controller(result.controller, T, 1.0 / M),
         controller_order=result.controller_order,
         mu_peak_certified=result.mu_peak_certified,
         mu_certified_level=result.mu_certified_level,
@@ -284,7 +285,7 @@ def _settled(model: IntervalModel, weights: Weights, robust):
     return IntervalModel(lower, upper), replace(weights, **cut), (warm_start, tuning)
 
 
-def _time_scaled_controller(K, factor: float, gain: float = 1.0):
+def time_scaled_controller(K, factor: float, gain: float = 1.0):
     """``K'(s) = gain K(s / factor)``: state space ``(factor A, factor B, gain C, gain D)``."""
     import control
 
@@ -423,9 +424,9 @@ def _analyze_controller(plant, K, omega: np.ndarray, certificate_rtol: float = C
             controller_order=order,
             mu_peak_grid=math.inf,
         )
-    omegas, mats, bounds = _grid_bounds(cl, structure, omega)
+    omegas, mats, bounds = grid_bounds(cl, structure, omega)
     peak_grid = float(max(b.beta.max() for b in bounds))
-    certificate = _certify(cl, structure, omegas, bounds, certificate_rtol)
+    certificate = certify_grid(cl, structure, omegas, bounds, certificate_rtol)
     n_grid = sum(b.beta.size for b in bounds)  # the grid and its refinement, before the certificate's points
     omegas.extend(certificate.omegas)
     mats.extend(certificate.matrices)
@@ -473,7 +474,7 @@ def _analyze_controller(plant, K, omega: np.ndarray, certificate_rtol: float = C
     )
 
 
-def _grid_bounds(cl, structure: MuStructure, omega: np.ndarray) -> tuple[list, list, list]:
+def grid_bounds(cl, structure: MuStructure, omega: np.ndarray) -> tuple[list, list, list]:
     """mu-bar on the grid, precise where the peak can be, then refined twice around the peaks:
     the frequencies, the closed loop's matrices and the bounds, one entry per pass."""
     Mw = cl.frequency_response(omega)
@@ -510,7 +511,7 @@ def _grid_bounds(cl, structure: MuStructure, omega: np.ndarray) -> tuple[list, l
     return omegas, mats, bounds
 
 
-def _certify(cl, structure: MuStructure, omegas: list, bounds: list, rtol: float = CERTIFICATE_RTOL):
+def certify_grid(cl, structure: MuStructure, omegas: list, bounds: list, rtol: float = CERTIFICATE_RTOL):
     """:func:`certify_band` over the band of the grid, from every solved point's scalings."""
     from setmem_hil.robust.mu_certificate import BandCertificate
 

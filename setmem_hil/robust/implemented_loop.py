@@ -20,16 +20,36 @@ same D,G-scaled upper bound (Definition 2.2) on the same structure.
 response at the images is small; :attr:`ImplementedLoop.image_ratio` reports the largest ratio
 ``|G(j(2pi/Ts - w))| / |G(jw)|`` (the first image, through the nominal structure) over the
 frequencies that decide mu-bar (within 10 % of its peak), so a sample rate where it is not small
-is visible. The band is evaluated on a grid
-(the analysis's default grid below Nyquist, refined twice around the peak), not band-certified
-as the continuous loop is: a delay has no finite state space for the certificate's test. Nominal
-stability is checked exactly, on the sampled loop (the nominal structure discretised with the
-hold, the sections, the delay line): an unstable one has mu-bar infinite.
+is visible. Nominal stability is checked exactly, on the sampled loop (the nominal structure
+discretised with the hold, the sections, the delay line): an unstable one has mu-bar infinite.
+
+**Two numbers.** ``mu_bar`` is the D,G-scaled bound of ``M`` with ``K_impl`` on a grid (the
+analysis's default grid below Nyquist, refined twice around the peak): the closest figure to the
+loop as it runs, but nothing is proved between grid points, since a delay has no finite state
+space for the band certificate's Hamiltonian test. ``certified_mu_bar`` is a guarantee for the
+whole band below :data:`NYQUIST_FRACTION` of Nyquist (ours; the thesis has no target): write
+``K_impl = K (1 + delta)``; ``delta(w)`` is explicit, zero at DC (Tustin keeps the DC gain, the
+hold and the delay are 1 there) and close to ``(D + 1/2) w Ts`` in magnitude (the delay and the
+hold's half sample), larger near a compensator resonance that the Tustin map warps. A rational
+weight ``W_delta(s) = g (D + 1/2) Ts s / (1 + (D + 1/2) Ts s / 2.2)`` covers it:
+``|delta(w)| <= |W_delta(jw)|``, with ``g`` the smallest factor that makes it hold, plus
+:data:`ENVELOPE_MARGIN`, on :data:`ENVELOPE_POINTS` frequencies (a scalar function of ``w``,
+checked far more densely than the mu grid, four times denser up to three times while
+``|delta| / |W_delta|`` changes by more than half the margin between neighbours: that largest
+change is ``envelope_step``, and a certificate needs it below half the margin). Then ``delta`` becomes one more complex scalar
+block, before the performance block (``u = K y + q``, ``q = delta_n p``, ``p = W_delta K y``), and
+the continuous, rational loop is band-certified as the analysis certifies it
+(:func:`~setmem_hil.robust.mu_certificate.certify_band`). If its level ``beta`` is below 1 the
+implemented loop's mu-bar is below ``beta`` at every frequency of the band (the main loop
+theorem: every ``|delta_n| <= 1 <= 1/beta`` is covered), so the guarantee is the certified level;
+it is conservative by how much a complex ``delta`` of that size can do that the actual phase does
+not. A level of 1 or more certifies nothing: a loop is engaged only on a level below 1.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,15 +58,22 @@ import scipy.signal
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.weights import Weights
 from setmem_hil.numerics.zero_order_hold import held
-from setmem_hil.robust.augmented_plant import AugmentedPlant, augmented_plant
+from setmem_hil.robust.augmented_plant import AugmentedPlant, StateSpaceMatrices, augmented_plant
 from setmem_hil.robust.controller_forms import second_order_sections
-from setmem_hil.robust.mixed_mu import MuStructure, mixed_mu_upper
+from setmem_hil.robust.mixed_mu import MuStructure
 from setmem_hil.robust.uncertain_plant import uncertain_plant
 
 __all__ = ["ImplementedLoop", "implemented_response", "implemented_mu_bar", "required_sample_rate", "NYQUIST_FRACTION"]
 
 NYQUIST_FRACTION = 0.95
 """The band evaluated ends here (a fraction of Nyquist): the hold's images meet the band at Nyquist."""
+ENVELOPE_POINTS = 20_000
+ENVELOPE_MARGIN = 0.05
+"""``|W_delta| >= (1 + margin) |delta|`` at every one of the envelope's frequencies."""
+CERTIFICATE_GRID_STRIDE = 3
+"""The certificate starts from every third grid point's scalings (it solves more where they do not reach)."""
+ENVELOPE_CEILING = 2.2
+"""``|W_delta|`` at high frequency, over ``g``: ``|delta| <= |K_d / K| + 1``, about 2 where the sections follow ``K``."""
 PRECISE_TOL, PRECISE_MAX_ITER = 1e-7, 100
 IMAGE_CHECK_LEVEL = 0.9
 """The image ratio is reported over the frequencies where mu is within 10 % of its peak."""
@@ -65,14 +92,28 @@ class ImplementedLoop:
     image_ratio: float
     omega_rad_s: np.ndarray
     mu: np.ndarray
+    certified_mu_bar: float = math.inf  # the band certificate's level with delta as a block (module docstring)
+    certified: bool = False  # the certificate covered the whole band
+    envelope_gain: float = math.nan  # g of W_delta
+    envelope_step: float = math.nan  # the largest change of |delta| / |W_delta| between the envelope's neighbours
+
+    @property
+    def guaranteed_mu_bar(self) -> float:
+        """What a decision may rely on: the certified level, infinite when nothing was certified."""
+        return float(self.certified_mu_bar) if self.certified and self.nominally_stable else math.inf
 
     def to_document(self) -> dict:
         finite = math.isfinite(self.mu_bar)
+        guaranteed = self.guaranteed_mu_bar
         return {"fs_hz": float(self.fs_hz), "delay_samples": int(self.delay_samples), "prewarp_rad_s": float(self.prewarp_rad_s),
                 "implemented_mu_bar": float(self.mu_bar) if finite else None,
                 "implemented_mu_bar_omega_rad_s": float(self.mu_bar_omega_rad_s) if finite else None,
+                "implemented_mu_bar_certified": guaranteed if math.isfinite(guaranteed) else None,
                 "nominally_stable": bool(self.nominally_stable), "image_ratio": float(self.image_ratio),
-                "evaluated": "grid below Nyquist, refined at the peak (not band-certified)"}
+                "envelope_gain": float(self.envelope_gain), "envelope_step": float(self.envelope_step),
+                "evaluated": "implemented_mu_bar: grid below 0.95 Nyquist, refined at the peak; implemented_mu_bar_certified: "
+                             "band-certified below 0.95 Nyquist with the delay, hold and sections as a bounded complex "
+                             "uncertainty on the compensator"}
 
 
 def implemented_response(controller, fs_hz: float, delay_samples: int, prewarp_rad_s: float, omega_rad_s) -> np.ndarray:
@@ -141,6 +182,18 @@ def _sampled_loop_stable(plant: AugmentedPlant, Ts: float, sos: np.ndarray, gain
     return bool(np.max(np.abs(np.linalg.eigvals(A))) < 1.0)
 
 
+_MEMO: "OrderedDict[tuple, ImplementedLoop]" = OrderedDict()
+MEMO_SIZE = 64
+"""The same loop asked again (a command's check, then the plan's step; a search over rates) is
+answered from memory: the analysis is a pure function of its arguments."""
+
+
+def _memo_key(model, weights, controller, *rest) -> tuple:
+    arrays = (model.lower, model.upper, *(np.asarray(getattr(controller, name), dtype=float) for name in "ABCD"))
+    return (tuple(a.tobytes() + str(a.shape).encode() for a in arrays), repr(weights),
+            *(v.tobytes() if isinstance(v, np.ndarray) else v for v in rest))
+
+
 def implemented_mu_bar(model: IntervalModel, weights: Weights, controller, fs_hz: float, delay_samples: int, prewarp_rad_s: float,
                        gain: tuple[float, float] | None = None, omega_rad_s=None, performance: bool = True) -> ImplementedLoop:
     """mu-bar of the implemented loop (module docstring), in the analysis's normalised units
@@ -150,7 +203,22 @@ def implemented_mu_bar(model: IntervalModel, weights: Weights, controller, fs_hz
     dynamics ``W1``, without the performance block ``W2``, the last complex block of eq. 6.20-6.22):
     what a loop engaged at a fraction of its gain must keep, since a smaller gain rejects less and
     cannot meet the performance it was designed for."""
-    from setmem_hil.robust.analysis import default_grid_for
+    omega = None if omega_rad_s is None else np.sort(np.asarray(omega_rad_s, dtype=float))
+    key = _memo_key(model, weights, controller, float(fs_hz), int(delay_samples), float(prewarp_rad_s),
+                    None if gain is None else tuple(map(float, gain)), omega, bool(performance))
+    if key in _MEMO:
+        _MEMO.move_to_end(key)
+        return _MEMO[key]
+    loop = _implemented_mu_bar(model, weights, controller, fs_hz, delay_samples, prewarp_rad_s, gain, omega, performance)
+    _MEMO[key] = loop
+    while len(_MEMO) > MEMO_SIZE:
+        _MEMO.popitem(last=False)
+    return loop
+
+
+def _implemented_mu_bar(model: IntervalModel, weights: Weights, controller, fs_hz: float, delay_samples: int, prewarp_rad_s: float,
+                        gain, omega_rad_s, performance: bool) -> ImplementedLoop:
+    from setmem_hil.robust.analysis import default_grid_for, grid_bounds
 
     T, M = weights.reference_frequency_rad_s(), weights.reference_magnitude()
     scaled = model.time_scaled(1.0 / T).magnitude_scaled(1.0 / M)
@@ -163,24 +231,110 @@ def implemented_mu_bar(model: IntervalModel, weights: Weights, controller, fs_hz
     keep = plant.n_real + plant.n_complex - (0 if performance else 1)  # the performance block is the last
     structure = MuStructure(plant.n_real, plant.n_complex - (0 if performance else 1))
 
-    def mu_at(w: np.ndarray) -> np.ndarray:
-        K = M * implemented_response(controller, fs_hz, delay_samples, prewarp_rad_s, w)
-        matrices = _closed_loop_response(plant, w / T, K)[:, :keep, :keep]
-        return mixed_mu_upper(matrices, structure, tol=PRECISE_TOL, max_iter=PRECISE_MAX_ITER).beta
+    class _Loop:  # the implemented loop's matrices at physical frequencies, for the analysis's grid passes
+        @staticmethod
+        def frequency_response(w: np.ndarray) -> np.ndarray:
+            K = M * implemented_response(controller, fs_hz, delay_samples, prewarp_rad_s, w)
+            return _closed_loop_response(plant, np.asarray(w, dtype=float) / T, K)[:, :keep, :keep]
 
-    mu = mu_at(omega)
-    for _ in range(2):  # refine around the peak, as the continuous analysis does
-        k = int(np.argmax(mu))
-        lo, hi = omega[max(k - 1, 0)], omega[min(k + 1, omega.size - 1)]
-        extra = np.linspace(lo, hi, 9)[1:-1]
-        omega, mu = np.concatenate([omega, extra]), np.concatenate([mu, mu_at(extra)])
-        order = np.argsort(omega)
-        omega, mu = omega[order], mu[order]
+    # as the continuous analysis: a fast pass, precise solves where the peak can be, refined twice
+    omegas, _, bounds = grid_bounds(_Loop, structure, omega)
+    omega, mu = np.concatenate(omegas), np.concatenate([b.beta for b in bounds])
+    order = np.argsort(omega)
+    omega, mu = omega[order], mu[order]
     peak = int(np.argmax(mu))
     mu_bar = float(mu[peak]) if stable else math.inf
     deciding = omega[mu >= IMAGE_CHECK_LEVEL * mu[peak]]  # the frequencies that decide mu-bar
+    envelope = _lag_envelope(controller, fs_hz, delay_samples, prewarp_rad_s, float(omega[0]), NYQUIST_FRACTION * nyquist)
+    certificate = _certified_with_lag_block(plant, controller, envelope, T, M, omega / T, performance) if stable else None
     return ImplementedLoop(float(fs_hz), int(delay_samples), float(prewarp_rad_s), mu_bar, float(omega[peak]), stable,
-                           _image_ratio(plant, deciding / T, 2 * nyquist / T), omega, mu)
+                           _image_ratio(plant, deciding / T, 2 * nyquist / T), omega, mu,
+                           certified_mu_bar=math.inf if certificate is None else float(certificate.level),
+                           certified=certificate is not None and bool(certificate.certified) and envelope.resolved,
+                           envelope_gain=envelope.gain, envelope_step=envelope.step)
+
+
+@dataclass(frozen=True)
+class LagEnvelope:
+    """``W_delta(s) = gain * tau s / (1 + tau s / ENVELOPE_CEILING)``, ``tau = (D + 1/2) Ts`` (module docstring)."""
+
+    gain: float
+    tau_s: float
+    step: float  # the largest change of |delta| / |W_delta| between neighbouring frequencies
+
+    @property
+    def resolved(self) -> bool:
+        return self.step < 0.5 * ENVELOPE_MARGIN
+
+    def weight(self, frequency_unit_rad_s: float = 1.0) -> StateSpaceMatrices:
+        """The weight's state space with frequencies in units of ``frequency_unit_rad_s`` (the
+        analysis's normalised frequency: ``W_n(s_n) = W(s_n * unit)``)."""
+        tau = self.tau_s * frequency_unit_rad_s
+        pole = ENVELOPE_CEILING / tau
+        # gain tau s / (1 + s / pole) = gain tau pole - gain tau pole^2 / (s + pole)
+        return StateSpaceMatrices(np.array([[-pole]]), np.array([[1.0]]), np.array([[-self.gain * tau * pole ** 2]]),
+                                  np.array([[self.gain * tau * pole]]))
+
+    def magnitude(self, omega_rad_s: np.ndarray) -> np.ndarray:
+        x = self.tau_s * np.asarray(omega_rad_s, dtype=float)
+        return self.gain * x / np.sqrt(1.0 + (x / ENVELOPE_CEILING) ** 2)
+
+
+def _lag_envelope(controller, fs_hz: float, delay_samples: int, prewarp_rad_s: float, w_lo: float, w_hi: float) -> LagEnvelope:
+    """The smallest ``g`` with ``|W_delta| >= (1 + margin) |delta|`` on the envelope's frequencies,
+    made four times denser (up to three times) while ``|delta| / |W_delta|`` changes by more than
+    half the margin between neighbours; ``step`` is that largest change (below half the margin, the
+    ratio cannot reach 1 between two of them unless ``delta`` has a feature narrower than the spacing)."""
+    import control
+
+    unit = LagEnvelope(1.0, (int(delay_samples) + 0.5) / float(fs_hz), 0.0)
+    for refinement in range(4):
+        w = np.geomspace(max(w_lo, 1e-9 * w_hi), w_hi, ENVELOPE_POINTS * 4 ** refinement)
+        continuous = np.asarray(control.frequency_response(controller, w).complex).reshape(-1)
+        delta = implemented_response(controller, fs_hz, delay_samples, prewarp_rad_s, w) / continuous - 1.0
+        ratio = np.abs(delta) / unit.magnitude(w)
+        gain = (1.0 + ENVELOPE_MARGIN) * float(np.max(ratio))
+        step = float(np.max(np.abs(np.diff(ratio)))) / gain  # in units of |delta| / |W_delta|
+        if step < 0.5 * ENVELOPE_MARGIN:
+            break
+    return LagEnvelope(gain, unit.tau_s, step)
+
+
+def _with_lag_block(plant: AugmentedPlant, weight: StateSpaceMatrices) -> AugmentedPlant:
+    """``plant`` with one more complex block before the performance block: its input ``q`` adds
+    to the drive the structure and ``W1`` see, its output is ``W_delta`` of the compensator's output."""
+    n, nw = plant.A.shape[0], weight.A.shape[0]
+    k = plant.n_real + plant.n_complex - 1  # the performance block's index
+    Z = np.zeros
+    A = np.block([[plant.A, Z((n, nw))], [Z((nw, n)), weight.A]])
+    Bu = np.vstack([plant.Bu, weight.B])
+    Bw = np.hstack([np.vstack([plant.Bw[:, :k], Z((nw, k))]), np.vstack([plant.Bu, Z((nw, 1))]),
+                    np.vstack([plant.Bw[:, k:], Z((nw, plant.n_w - k))])])
+    Cz = np.vstack([np.hstack([plant.Cz[:k], Z((k, nw))]), np.hstack([Z((1, n)), weight.C]),
+                    np.hstack([plant.Cz[k:], Z((plant.Cz.shape[0] - k, nw))])])
+    Dzw_old = np.hstack([plant.Dzw[:, :k], plant.Dzu, plant.Dzw[:, k:]])
+    Dzw = np.vstack([Dzw_old[:k], Z((1, Dzw_old.shape[1])), Dzw_old[k:]])
+    Dzu = np.vstack([plant.Dzu[:k], weight.D, plant.Dzu[k:]])
+    Cy = np.hstack([plant.Cy, Z((1, nw))])
+    Dyw = np.hstack([plant.Dyw[:, :k], Z((1, 1)), plant.Dyw[:, k:]])
+    return AugmentedPlant(A, Bw, Bu, Cz, Dzw, Dzu, Cy, Dyw, plant.n_real, plant.n_complex + 1, plant.names)
+
+
+def _certified_with_lag_block(plant: AugmentedPlant, controller, envelope: LagEnvelope, T: float, M: float, omega_n: np.ndarray,
+                              performance: bool):
+    """The band certificate of the loop with ``delta`` as a block, on the band of ``omega_n``
+    (normalised); None when that loop is not stable (nothing certified)."""
+    from setmem_hil.robust.analysis import certify_grid, grid_bounds, time_scaled_controller
+
+    augmented = _with_lag_block(plant, envelope.weight(T))
+    loop = augmented.closed_loop(time_scaled_controller(controller, 1.0 / T, M))
+    if np.max(np.linalg.eigvals(loop.A).real) >= 0.0:
+        return None
+    keep = augmented.n_real + augmented.n_complex - (0 if performance else 1)
+    loop = StateSpaceMatrices(loop.A, loop.B[:, :keep], loop.C[:keep], loop.D[:keep, :keep])
+    structure = MuStructure(augmented.n_real, augmented.n_complex - (0 if performance else 1))
+    omegas, _, bounds = grid_bounds(loop, structure, np.asarray(omega_n, dtype=float)[::CERTIFICATE_GRID_STRIDE])
+    return certify_grid(loop, structure, omegas, bounds)
 
 
 def _image_ratio(plant: AugmentedPlant, omega_n: np.ndarray, sampling_n: float) -> float:
@@ -199,11 +353,12 @@ def _image_ratio(plant: AugmentedPlant, omega_n: np.ndarray, sampling_n: float) 
 def required_sample_rate(model: IntervalModel, weights: Weights, controller, delay_samples: int, prewarp_rad_s: float,
                          fs_hz: float, goal: float = 1.0, gain=None, max_factor: float = 64.0) -> float | None:
     """The lowest sample rate (doubling from ``fs_hz``, then bisection to 5 %) at which the
-    implemented mu-bar is below ``goal``; None when even ``max_factor * fs_hz`` is not enough."""
+    certified implemented mu-bar is below ``goal``; None when even ``max_factor * fs_hz`` is not
+    enough."""
     def ok(fs: float) -> bool:
         if prewarp_rad_s >= NYQUIST_FRACTION * math.pi * fs:
             return False
-        return implemented_mu_bar(model, weights, controller, fs, delay_samples, prewarp_rad_s, gain).mu_bar < goal
+        return implemented_mu_bar(model, weights, controller, fs, delay_samples, prewarp_rad_s, gain).guaranteed_mu_bar < goal
 
     lo, hi = fs_hz, 2.0 * fs_hz
     while not ok(hi):

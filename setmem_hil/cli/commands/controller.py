@@ -12,7 +12,7 @@ With ``--delay-samples D`` (and ``--fs``) the loop as a real-time target runs it
 ``D`` samples of computation delay, the zero-order hold) is analysed on the iteration's box with
 the same mixed-mu bound (:mod:`setmem_hil.robust.implemented_loop`): the JSON gains
 ``implemented`` (``implemented_mu_bar`` beside the continuous ``mu_peak``), and a loop whose
-implemented mu-bar is >= 1 is not exported: exit 2 naming the sample rate that would be needed.
+certified implemented mu-bar is not below 1 is not exported: exit 2 naming the sample rate that would be needed.
 
 Exit codes: 0 written; 2 bad arguments, a run with no iteration yet, or an implemented loop
 that loses the guarantee (named).
@@ -46,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--fs", type=float, metavar="HZ", help="sample rate of the real-time target: adds the discrete form and sections")
     p.add_argument("--delay-samples", type=int, metavar="D", help="with --fs: the target's computation delay in samples (u[k] "
                    "from y[k-D]); analyse the loop as the target runs it (sections, delay, hold) and refuse one whose "
-                   "mu-bar is >= 1")
+                   "certified mu-bar is not below 1")
     p.add_argument("--iteration", type=int, metavar="K", help="the compensator of iteration K (default: the last)")
     p.set_defaults(func=run)
 
@@ -101,23 +101,25 @@ def run(args: argparse.Namespace) -> int:
     print(f"{out}: compensator of iteration {record.k} (order {K.nstates}, {doc['design']} design, mu-bar {record.mu_peak:.4g}{margin}), "
           "positive feedback u = K y"
           + (f", discrete at {args.fs:g} Hz" if args.fs else "")
-          + ("" if implemented is None else f", implemented mu-bar {implemented['implemented_mu_bar']:.4g} with "
-             f"{args.delay_samples} samples of delay and the hold"))
+          + ("" if implemented is None else f", implemented mu-bar {implemented['implemented_mu_bar']:.4g} (certified "
+             f"{implemented['implemented_mu_bar_certified']:.4g}) with {args.delay_samples} samples of delay and the hold"))
     return 0
 
 
 def implemented_guarantee(run_dir: str, record, K, fs_hz: float, delay_samples: int, command: str = "setmem-hil controller") -> dict:
     """The implemented loop's document (:class:`~setmem_hil.robust.implemented_loop.ImplementedLoop`),
-    or :class:`InputFormatError` when its mu-bar is >= 1, naming the sample rate that would do."""
+    or :class:`InputFormatError` when its certified mu-bar is not below 1, naming the sample rate
+    that would do."""
     from setmem_hil.campaign.compensator import kept_box, stored_procedure
     from setmem_hil.robust.implemented_loop import implemented_mu_bar, required_sample_rate
 
     model, gain = kept_box(record)
     weights = stored_procedure(run_dir).weights
     loop = implemented_mu_bar(model, weights, K, fs_hz, delay_samples, float(record.mu_peak_omega), gain)
-    if not loop.mu_bar < 1.0:  # a NaN is no guarantee either
+    if not loop.guaranteed_mu_bar < 1.0:  # a NaN is no guarantee either
         needed = required_sample_rate(model, weights, K, delay_samples, float(record.mu_peak_omega), fs_hz, gain=gain)
-        cost = "an unstable sampled loop" if not loop.nominally_stable else f"mu-bar {loop.mu_bar:.4g} at {loop.mu_bar_omega_rad_s:.4g} rad/s"
+        cost = ("an unstable sampled loop" if not loop.nominally_stable else
+                f"mu-bar {loop.mu_bar:.4g} at {loop.mu_bar_omega_rad_s:.4g} rad/s, certified {loop.guaranteed_mu_bar:.4g}")
         rate = f"at least {needed:.4g} Hz would be needed" if needed else f"no rate up to {64 * fs_hz:g} Hz is enough"
         raise _error(command, f"--fs {fs_hz:g} --delay-samples {delay_samples}: the loop as the target runs it gives {cost} "
                      f"(continuous {record.mu_peak:.4g}): the delay and the hold cost the margin; {rate} with this delay")

@@ -24,7 +24,7 @@ it, as ``controller --delay-samples`` reports it; null without). The figure (``v
 truth and of the worst sampled plant against 1.
 
 Exit codes: 0 no checked plant violates the claim; 3 one does; 2 bad arguments, no iteration, or
-(with ``--delay-samples``) an implemented loop whose mu-bar is >= 1.
+(with ``--delay-samples``) an implemented loop whose certified mu-bar is not below 1.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--fs", type=float, metavar="HZ", help="sample rate of the closed-loop simulation (default: 20 samples "
                    "per period of the fastest simulated mode, at least 20 per period of the peak)")
     p.add_argument("--delay-samples", type=int, metavar="D", help="with --fs: also analyse the loop as a real-time target runs "
-                   "it (the sections, D samples of delay, the hold): implemented_mu_bar in the report; exit 2 when it is >= 1, "
+                   "it (the sections, D samples of delay, the hold): implemented_mu_bar in the report; exit 2 when its certified value is not below 1, "
                    "naming the sample rate needed")
     p.add_argument("--iteration", type=int, metavar="K", help="the compensator of iteration K (default: the last)")
     p.set_defaults(func=run)

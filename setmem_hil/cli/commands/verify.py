@@ -15,7 +15,7 @@ response, ``<seq>.npz``; the rig at rest before engaging, ``baseline.npz``).
 
 Exit codes: 0 every point inside its prediction; 3 a point outside (named); 4 a target or
 instrument fault, or a loop that grew or did not settle (the target bypassed and the generator off, confirmed);
-2 bad input, or a loop whose implemented mu-bar is >= 1 (never engaged; the sample rate needed
+2 bad input, or a loop whose certified implemented mu-bar is not below 1 (never engaged; the sample rate needed
 is named); 130 interrupted (bypassed, confirmed).
 """
 
@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     setup = vp.VerifySetup(model, calibration, weights, K, sos, sos_gain, prewarp, t.fs_hz, t.delay_samples, v.gains,
                            tuple(frequencies), v.injection_amplitude,
                            v.settle_s if v.settle_s is not None else vp.settle_time_s(model, K, v.gains[0]), v.periods,
-                           full_gain_mu_bar=guarantee["implemented_mu_bar"] or math.nan)
+                           full_gain_mu_bar=guarantee["implemented_mu_bar_certified"] or math.nan)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     from setmem_hil.verify.session import run_verification
