@@ -59,7 +59,7 @@ from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.weights import Weights
 from setmem_hil.numerics.zero_order_hold import held
 from setmem_hil.robust.augmented_plant import AugmentedPlant, StateSpaceMatrices, augmented_plant
-from setmem_hil.robust.controller_forms import second_order_sections
+from setmem_hil.robust.controller_forms import frequency_response, second_order_sections
 from setmem_hil.robust.mixed_mu import MuStructure
 from setmem_hil.robust.uncertain_plant import uncertain_plant
 
@@ -74,7 +74,6 @@ CERTIFICATE_GRID_STRIDE = 3
 """The certificate starts from every third grid point's scalings (it solves more where they do not reach)."""
 ENVELOPE_CEILING = 2.2
 """``|W_delta|`` at high frequency, over ``g``: ``|delta| <= |K_d / K| + 1``, about 2 where the sections follow ``K``."""
-PRECISE_TOL, PRECISE_MAX_ITER = 1e-7, 100
 IMAGE_CHECK_LEVEL = 0.9
 """The image ratio is reported over the frequencies where mu is within 10 % of its peak."""
 
@@ -228,8 +227,7 @@ def _implemented_mu_bar(model: IntervalModel, weights: Weights, controller, fs_h
     omega = grid[grid < NYQUIST_FRACTION * nyquist]
     sos, sos_gain = second_order_sections(controller, fs_hz, prewarp_rad_s)
     stable = _sampled_loop_stable(plant, T / fs_hz, sos, M * sos_gain, int(delay_samples))
-    keep = plant.n_real + plant.n_complex - (0 if performance else 1)  # the performance block is the last
-    structure = MuStructure(plant.n_real, plant.n_complex - (0 if performance else 1))
+    keep, structure = _blocks_kept(plant, performance)
 
     class _Loop:  # the implemented loop's matrices at physical frequencies, for the analysis's grid passes
         @staticmethod
@@ -285,12 +283,10 @@ def _lag_envelope(controller, fs_hz: float, delay_samples: int, prewarp_rad_s: f
     made four times denser (up to three times) while ``|delta| / |W_delta|`` changes by more than
     half the margin between neighbours; ``step`` is that largest change (below half the margin, the
     ratio cannot reach 1 between two of them unless ``delta`` has a feature narrower than the spacing)."""
-    import control
-
     unit = LagEnvelope(1.0, (int(delay_samples) + 0.5) / float(fs_hz), 0.0)
     for refinement in range(4):
         w = np.geomspace(max(w_lo, 1e-9 * w_hi), w_hi, ENVELOPE_POINTS * 4 ** refinement)
-        continuous = np.asarray(control.frequency_response(controller, w).complex).reshape(-1)
+        continuous = frequency_response(controller, w)
         delta = implemented_response(controller, fs_hz, delay_samples, prewarp_rad_s, w) / continuous - 1.0
         ratio = np.abs(delta) / unit.magnitude(w)
         gain = (1.0 + ENVELOPE_MARGIN) * float(np.max(ratio))
@@ -330,11 +326,17 @@ def _certified_with_lag_block(plant: AugmentedPlant, controller, envelope: LagEn
     loop = augmented.closed_loop(time_scaled_controller(controller, 1.0 / T, M))
     if np.max(np.linalg.eigvals(loop.A).real) >= 0.0:
         return None
-    keep = augmented.n_real + augmented.n_complex - (0 if performance else 1)
+    keep, structure = _blocks_kept(augmented, performance)
     loop = StateSpaceMatrices(loop.A, loop.B[:, :keep], loop.C[:keep], loop.D[:keep, :keep])
-    structure = MuStructure(augmented.n_real, augmented.n_complex - (0 if performance else 1))
     omegas, _, bounds = grid_bounds(loop, structure, np.asarray(omega_n, dtype=float)[::CERTIFICATE_GRID_STRIDE])
     return certify_grid(loop, structure, omegas, bounds)
+
+
+def _blocks_kept(plant: AugmentedPlant, performance: bool) -> tuple[int, MuStructure]:
+    """How many of the loop's channels the analysis keeps, and their structure: all, or all but the
+    performance block (the last) for robust stability alone."""
+    dropped = 0 if performance else 1
+    return plant.n_real + plant.n_complex - dropped, MuStructure(plant.n_real, plant.n_complex - dropped)
 
 
 def _image_ratio(plant: AugmentedPlant, omega_n: np.ndarray, sampling_n: float) -> float:

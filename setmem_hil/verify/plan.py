@@ -164,7 +164,7 @@ def verification_plan(setup: VerifySetup, result: VerifyResult | None = None):
 
 def _rig_at_rest(setup: VerifySetup):
     """The response's rms with the target bypassed and the generator off (the record is kept)."""
-    modes = np.sqrt(np.maximum(0.5 * (setup.model.lower[:, 1] + setup.model.upper[:, 1]), 0.0))
+    modes = setup.model.midpoint.natural_frequencies
     lowest = float(np.min(modes[modes > 0])) if np.any(modes > 0) else 2 * math.pi
     duration = max(BASELINE_MIN_S, BASELINE_PERIODS * 2 * math.pi / lowest)
     yield Checkpoint("recording the rig at rest")
@@ -240,7 +240,7 @@ def chosen_frequencies(model: IntervalModel, weights: Weights, controller, fs_hz
     """The predicted peak of ``|W2 S|`` (the largest predicted ``|S|`` weighted), every modelled
     mode's natural frequency (the box's midpoint), and the band's ends (half the lowest mode,
     twice the highest, below 0.4 Nyquist)."""
-    modes = np.sqrt(np.maximum(0.5 * (model.lower[:, 1] + model.upper[:, 1]), 0.0))
+    modes = model.midpoint.natural_frequencies
     lo, hi = 0.5 * float(np.min(modes)), min(2.0 * float(np.max(modes)), 0.4 * math.pi * fs_hz)
     grid = np.geomspace(lo, hi, 400)
     k = implemented_response(controller, fs_hz, delay_samples, prewarp_rad_s, grid)
