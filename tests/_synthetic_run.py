@@ -17,8 +17,7 @@ def one_iteration_run(run_dir: Path, half_width: float = 0.005, groups: tuple = 
     """Write the run into ``run_dir``; returns ``(run_dir, box, analysis)``. ``measured``: the
     iteration's 15 points are in the journal too (the truth's response, bound 1 % of it + 1e-4)."""
     from setmem_hil.campaign.persistence import iteration_fields
-    from setmem_hil.campaign.run_directory import new_journal
-    from setmem_hil.io.journal import JOURNAL_FILENAME, IterationRecord
+    from setmem_hil.io.journal import JOURNAL_FILENAME, IterationRecord, Journal
     from setmem_hil.io.procedure_file import load_procedure
     from setmem_hil.model.modal_model import IntervalModel
     from setmem_hil.robust.analysis import analyze_robust_performance
@@ -33,7 +32,8 @@ def one_iteration_run(run_dir: Path, half_width: float = 0.005, groups: tuple = 
     doc = dict(k=1, n_points=15, mu_peak=analysis.mu_peak, safeguard="new-design", mu_peak_certified=analysis.mu_peak_certified,
                outputs=None, design="h2", floor_modes=(), model=box, plant=box, gain=None, analysis=analysis,
                identification=SimpleNamespace(embedding_gamma=np.zeros(3), mismatch_ratio=np.zeros(3), groups=groups))
-    journal = new_journal(run_dir / JOURNAL_FILENAME, procedure, procedure.source_text, seed=1, strategy="mu")
+    journal = Journal.create(run_dir / JOURNAL_FILENAME, procedure_text=procedure.source_text, procedure_name=procedure.name, seed=1,
+                             software_version="test", backend=procedure.backend.kind, strategy="mu", design="h2")
     if measured:
         from setmem_hil.model.experiment import Measurement
         from setmem_hil.model.modal_model import ModalParameters

@@ -105,6 +105,39 @@ def test_journal_holds_every_measurement_and_each_added_point_is_the_chosen_one(
 
 
 @pytest.mark.slow
+def test_the_journal_is_written_from_the_documents_alone(complete_run, tmp_path):
+    """Second formulation: the documents the subscribers saw, sent to a fresh store, rebuild the
+    run's journal (every measurement, iteration and event); its header comes from the ``start``
+    document and matches the procedure that ran."""
+    from setmem_hil.campaign.persistence import JournalWriter
+    from setmem_hil.io.procedure_file import format_procedure
+
+    summary, iterations, rows, info, events = complete_run
+    store = JournalWriter(tmp_path / "journal.sqlite")
+    for name, document in events:
+        store(name, **document)
+    rebuilt = store.journal
+    try:
+        no_utc = lambda items: [{k: v for k, v in item.items() if k != "utc"} for item in items]  # noqa: E731
+        assert no_utc(rebuilt.measurement_rows()) == no_utc(rows)
+        assert [(it.k, it.n_points, it.next_omega, it.mu_peak) for it in rebuilt.iterations()] == \
+            [(it.k, it.n_points, it.next_omega, it.mu_peak) for it in iterations]
+        for ours, theirs in zip(rebuilt.iterations(), iterations):
+            np.testing.assert_array_equal(ours.lower, theirs.lower)
+            np.testing.assert_array_equal(ours.upper, theirs.upper)
+        kinds = [e["kind"] for e in rebuilt.events()]
+        assert kinds[0] == "run-start" and kinds[-1] == "run-stop"
+        assert kinds[1:-1] == [doc["kind"] for name, doc in events if name == "note"]
+        header = rebuilt.run_info()
+        assert header["finished"] and header["summary"] == summary.to_document()
+        p = procedure()
+        assert (header["procedure_name"], header["seed"], header["strategy"], header["backend"], header["design"]) == \
+            (p.name, SEED, p.input_design.strategy, p.backend.kind, p.design_method)
+        assert header["procedure_text"] == format_procedure(p)
+    finally:
+        store.close()
+
+
 def test_interrupted_campaign_resumes_to_exactly_the_uninterrupted_run(complete_run, tmp_path):
     summary, iterations, rows, _, _ = complete_run
     journal = new_journal(tmp_path)

@@ -319,6 +319,34 @@ def test_the_journal_holds_the_run_start_and_stop(tmp_path):
     journal.close()
 
 
+def test_a_new_journal_is_made_from_the_start_document_and_the_notes_before_it_follow_its_header(tmp_path):
+    """The header comes from the ``start`` document's arguments alone (truth: what the test put
+    there); a note sent before the run (the instruments' identities) is written after the header,
+    before ``run-start``; the procedure's text is in the header, and in the event only by its hash."""
+    import hashlib
+
+    path = tmp_path / "journal.sqlite"
+    store = JournalWriter(path)
+    store(NOTE, kind="instruments", message="fgen: ACME,1")
+    assert not path.exists()  # no journal before the run starts
+    text = "[prior]\n# the procedure\n"
+    start = RunStart("toy", {"procedure": "toy-beam", "procedure_text": text, "backend": "emulated", "strategy": "log-sweep",
+                             "design": "robust"}, seed=7, planned=3)
+    campaign_engine(CountingRig(), [store]).run(toy_plan([1.0], [4.0], iteration_record=False), start)
+    store.close()
+    with Journal.open(path) as j:
+        info = j.run_info()
+        assert (info["procedure_text"], info["procedure_name"], info["seed"], info["backend"], info["strategy"], info["design"]) == \
+            (text, "toy-beam", 7, "emulated", "log-sweep", "robust")
+        from setmem_hil import __version__
+        assert info["software_version"] == __version__
+        events = j.events()
+        assert [e["kind"] for e in events][:2] == ["instruments", "run-start"] and events[-1]["kind"] == "run-stop"
+        arguments = json.loads(json.loads(events[1]["message"])["arguments"])
+        assert "procedure_text" not in arguments and arguments["procedure_sha256"] == hashlib.sha256(text.encode()).hexdigest()
+        assert len(j.measurements()) == 2
+
+
 def test_the_plan_clock_counts_the_plans_computation_and_not_its_requests():
     """Truth: the CPU seconds the plan and the handler each burn (process time: the same under
     load). The handler's 0.4 s must not be counted in either iteration's clock."""

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, Callable, ContextManager, Sequence
 from rich.console import Console
 
 from setmem_hil.campaign.observers import Observer, broadcast, standard_observers
+from setmem_hil.campaign.persistence import JournalWriter
 from setmem_hil.campaign.rig_safety import (
     Terminated,
     arm_exciter,
@@ -33,7 +34,6 @@ from setmem_hil.campaign.rig_safety import (
 from setmem_hil.campaign.run_directory import SUMMARY_FILENAME
 from setmem_hil.errors import CampaignAborted, DeviceError, InconsistentDataError, InputFormatError, RunInterrupted
 from setmem_hil.io.atomic_file import write_json_atomic
-from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure import Procedure
 
 if TYPE_CHECKING:
@@ -56,70 +56,76 @@ class RunOutcome:
     already_finished: bool = False
 
 
-def run_journaled_campaign(procedure: Procedure, experiment: Any, journal: Journal, *, seed: int, strategy: str,
+def run_journaled_campaign(procedure: Procedure, experiment: Any, store: JournalWriter, *, seed: int, strategy: str,
                            observers: Sequence[Observer] = (), continue_stored: bool = False, control=None) -> CampaignSummary:
-    """Algorithm 5.1 on ``experiment`` into ``journal`` with the standard subscribers plus ``observers``
-    (the loop's numerics are imported here, after the run's journal exists)."""
+    """Algorithm 5.1 on ``experiment``, its journal written by ``store`` (a new journal is made from
+    the run's ``start`` document), with the standard subscribers plus ``observers``."""
     from setmem_hil.campaign.runner import run_campaign
 
-    subscribers = [*observers, *standard_observers(procedure, journal)]
-    return run_campaign(procedure, experiment, journal, seed=seed, strategy=strategy, progress=broadcast(subscribers),
+    subscribers = [*observers, *standard_observers(procedure, store)]
+    return run_campaign(procedure, experiment, store, seed=seed, strategy=strategy, progress=broadcast(subscribers),
                         continue_stored=continue_stored, control=control)
 
 
-def run_with_journal(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
+def run_with_journal(procedure: Procedure, store: JournalWriter, run_dir: Path, *, seed: int, strategy: str, console: Console,
                       opener: ExperimentOpener, display: Display | None, experiment: Any = None,
                       continue_stored: bool = False, quiet_report_hint: bool = False, control=None,
                       observers: Sequence[Observer] = ()) -> RunOutcome:
+    """The campaign with rig safety around it (see the module docstring); ``store`` writes the
+    run's journal and is closed when the run ends, however it ends."""
     with sigterm_as_interrupt():
-        return _run_campaign_in(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console,
-                                opener=opener, display=display, experiment=experiment, continue_stored=continue_stored,
-                                quiet_report_hint=quiet_report_hint, control=control, observers=observers)
+        try:
+            return _run_campaign_in(procedure, store, run_dir, seed=seed, strategy=strategy, console=console,
+                                    opener=opener, display=display, experiment=experiment, continue_stored=continue_stored,
+                                    quiet_report_hint=quiet_report_hint, control=control, observers=observers)
+        finally:
+            store.close()
 
 
-def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, seed: int, strategy: str, console: Console,
+def _run_campaign_in(procedure: Procedure, store: JournalWriter, run_dir: Path, *, seed: int, strategy: str, console: Console,
                      opener: ExperimentOpener, display: Display | None, experiment: Any = None,
                      continue_stored: bool = False, quiet_report_hint: bool = False, control=None,
                      observers: Sequence[Observer] = ()) -> RunOutcome:
     resume = f"continue with `setmem-hil run --resume {run_dir}`"
     try:
-        previous_unconfirmed = unconfirmed_output_off(journal)
+        previous_unconfirmed = unconfirmed_output_off(store.journal) if store.journal is not None else None
         if experiment is None:
             experiment = opener(procedure, seed)
-        journal_identities(journal, experiment)
-        arm_exciter(journal, experiment, console, previous_unconfirmed)
+        journal_identities(store, experiment)  # notes before the run's start: written right after a new journal's header
+        arm_exciter(store, experiment, console, previous_unconfirmed)
         with (display(experiment) if display is not None else contextlib.nullcontext(None)) as shown:
-            summary = run_journaled_campaign(procedure, experiment, journal, seed=seed, strategy=strategy,
+            summary = run_journaled_campaign(procedure, experiment, store, seed=seed, strategy=strategy,
                                              observers=([shown] if shown is not None else []) + list(observers),
                                              continue_stored=continue_stored, control=control)
         doc = summary.to_document()
     except KeyboardInterrupt as exc:
         why = "SIGTERM: stopped by a signal" if isinstance(exc, Terminated) else "Ctrl-C: stopped by the operator"
         with sigint_deferred():
-            safety, _ = shut_down(experiment, journal, "interrupted", why)
+            safety, _ = shut_down(experiment, store, "interrupted", why)
         # one line says what was made safe, what is kept and how to go on (the CLI prints it)
         raise RunInterrupted(f"interrupted ({why.split(':')[0]}); {safety}, journal closed with "
-                             f"{stored_count(journal)} measurements; {resume}") from exc
+                             f"{_stored(store)} measurements; {resume}") from exc
     except CampaignAborted as exc:
         with sigint_deferred():
-            safety, _ = shut_down(experiment, journal, "aborted", f"aborted: {exc}")
-        raise CampaignAborted(f"aborted ({exc}); {safety}, journal closed with {stored_count(journal)} measurements; {resume}") from exc
+            safety, _ = shut_down(experiment, store, "aborted", f"aborted: {exc}")
+        raise CampaignAborted(f"aborted ({exc}); {safety}, journal closed with {_stored(store)} measurements; {resume}") from exc
     except DeviceError as exc:
         with sigint_deferred():
-            safety, _ = shut_down(experiment, journal, "device-fault", str(exc))
+            safety, _ = shut_down(experiment, store, "device-fault", str(exc))
         exc.safety_note = safety  # the first fault stays the message; what the clean-up achieved follows it
-        exc.resume_hint = f"journal closed with {stored_count(journal)} measurements; after fixing the rig {resume}"
+        exc.resume_hint = f"journal closed with {_stored(store)} measurements; after fixing the rig {resume}"
         raise
     except BaseException as exc:
         with sigint_deferred():
-            safety, _ = shut_down(experiment, journal, "error", f"{type(exc).__name__}: {exc}")
+            safety, _ = shut_down(experiment, store, "error", f"{type(exc).__name__}: {exc}")
         if isinstance(exc, Exception):
             fix = " --procedure FIXED.toml" if isinstance(exc, (InconsistentDataError, InputFormatError)) else ""
-            exc.resume_hint = (f"{safety}, journal closed with {stored_count(journal)} measurements; continue with "
+            exc.resume_hint = (f"{safety}, journal closed with {_stored(store)} measurements; continue with "
                                f"`setmem-hil run --resume {run_dir}{fix}`")
         raise
     with sigint_deferred():
-        safety, close_error = shut_down(experiment, journal, None, "")
+        safety, close_error = shut_down(experiment, store, None, "")
+        store.close()
     write_json_atomic(doc, run_dir / SUMMARY_FILENAME)
     console.print(f"summary: {run_dir / SUMMARY_FILENAME}" + ("" if quiet_report_hint else f" (report: setmem-hil report {run_dir})"),
                   highlight=False)
@@ -128,3 +134,7 @@ def _run_campaign_in(procedure: Procedure, journal: Journal, run_dir: Path, *, s
     return RunOutcome(run_dir, doc)
 
 
+def _stored(store: JournalWriter) -> str:
+    """The journal's measurements for a message, read after closing it (every point is committed)."""
+    store.close()
+    return stored_count(store.path) if Path(store.path).exists() else "0"

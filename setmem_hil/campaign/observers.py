@@ -21,9 +21,9 @@ from __future__ import annotations
 
 from typing import Any, Callable, Sequence
 
-from setmem_hil.campaign.messages import ITERATION_RECORD
+from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE
+from setmem_hil.campaign.persistence import JournalWriter
 from setmem_hil.errors import SetmemError
-from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure import Procedure
 
 Observer = Callable[..., None]
@@ -38,8 +38,8 @@ class DiscrepancyChecker:
     reads documents only and only observes: the campaign's choices do not depend on it, so a
     replayed run is unchanged; replayed iterations were checked when they ran."""
 
-    def __init__(self, procedure: Procedure, journal: Journal):
-        self.procedure, self.journal = procedure, journal
+    def __init__(self, procedure: Procedure, store: JournalWriter):
+        self.procedure, self.store = procedure, store  # the run's journal exists once the run has started
         self._iteration: dict | None = None
 
     def __call__(self, event: str, **info: Any) -> None:
@@ -54,9 +54,9 @@ class DiscrepancyChecker:
         try:
             report = check_discrepancy(self._iteration["data"], IntervalModel(plant.lower, plant.upper), self.procedure.prior).to_document()
         except (SetmemError, ValueError, ArithmeticError) as exc:  # a failed check must not stop the campaign
-            self.journal.add_event("discrepancy-error", f"iteration {k}: {type(exc).__name__}: {exc}")
+            self.store(NOTE, kind="discrepancy-error", message=f"iteration {k}: {type(exc).__name__}: {exc}")
         else:
-            self.journal.add_discrepancy(k, report)
+            self.store.journal.add_discrepancy(k, report)
 
 
 def broadcast(observers: Sequence[Observer]) -> Observer:
@@ -70,6 +70,7 @@ def broadcast(observers: Sequence[Observer]) -> Observer:
     return call
 
 
-def standard_observers(procedure: Procedure, journal: Journal) -> list[Observer]:
-    """The subscribers every journaled campaign of ``procedure`` gets (see the module docstring)."""
-    return [DiscrepancyChecker(procedure, journal)] if procedure.discrepancy_check else []
+def standard_observers(procedure: Procedure, store: JournalWriter) -> list[Observer]:
+    """The subscribers every journaled campaign of ``procedure`` gets (see the module docstring);
+    ``store`` writes the run's journal."""
+    return [DiscrepancyChecker(procedure, store)] if procedure.discrepancy_check else []

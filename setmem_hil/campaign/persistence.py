@@ -1,8 +1,9 @@
 """The run's stores as subscribers of the engine (:mod:`setmem_hil.campaign.engine`).
 
 :class:`RawRecordWriter` writes every ``raw-record`` document to ``RUN_DIR/raw.h5``
-(:mod:`setmem_hil.io.raw_store`); :class:`JournalWriter` commits every new ``measured`` and
-``note`` document to the journal, each iteration (its ``iteration`` document and its choice, the
+(:mod:`setmem_hil.io.raw_store`); :class:`JournalWriter` writes the journal from the documents
+alone: a new journal's header from the run's ``start`` document, every new ``measured`` and
+``note`` document, each iteration (its ``iteration`` document and its choice, the
 ``iteration-record`` document, laid out as the journal's ``IterationRecord`` here, by
 :func:`iteration_fields`), the run's ``start`` and ``stop`` as events ``run-start`` and
 ``run-stop`` (the document as JSON), and finishes it. :class:`IterationClock` times each
@@ -15,15 +16,17 @@ iterations) are not stored twice.
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from setmem_hil.campaign.engine import START, STOP
-from setmem_hil.campaign.loop_steps import controller_matrices
 from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE
-from setmem_hil.io.journal import IterationRecord, Journal
+from setmem_hil.io.journal import IterationRecord, Journal, journal_path
 from setmem_hil.io.raw_store import RawStore
 
 __all__ = ["IterationClock", "JournalWriter", "RawRecordWriter", "iteration_fields"]
@@ -50,6 +53,8 @@ class IterationClock:
 def iteration_fields(iteration: dict, choice: Any, wall_s: float) -> dict:
     """The journal's ``IterationRecord`` fields from an ``iteration`` document and its choice
     (:class:`~setmem_hil.design.input_design.InputChoice`, or None at the last iteration)."""
+    from setmem_hil.campaign.loop_steps import controller_matrices  # the loop's numerics: loaded once the run has started
+
     model, analysis, result, plant, gain = (iteration[name] for name in ("model", "analysis", "identification", "plant", "gain"))
     return dict(
         k=int(iteration["k"]), n_points=int(iteration["n_points"]), lower=plant.lower, upper=plant.upper,
@@ -70,33 +75,50 @@ def iteration_fields(iteration: dict, choice: Any, wall_s: float) -> dict:
 
 
 class JournalWriter:
-    """Commits the run to its journal (every measurement before the next dwell: a durability rule).
+    """Commits the run to its journal from the documents alone (every measurement before the next
+    dwell: a durability rule).
 
-    ``clock`` times the iterations (default: its own :class:`IterationClock`; the runner shares one
-    with the summary)."""
+    ``journal``: an open :class:`Journal` (a resumed run: its header stays), or the path of a new
+    one, which is created from the run's ``start`` document: the procedure's text and name, the
+    backend, strategy and design (the plan's arguments), the seed and the software version. A
+    ``note`` sent before the ``start`` (the rig's identities, the exciter armed) is kept and
+    written right after the header, so the journal reads in the order things happened; the
+    session's closing notes (why it stopped, the output confirmed off) may follow the ``stop``.
+    The caller closes the journal (:meth:`close`). ``clock`` times the iterations (default: its own
+    :class:`IterationClock`); the writer feeds it every document."""
 
-    def __init__(self, journal: Journal, clock: IterationClock | None = None):
-        self.journal = journal
-        self.already_finished = bool(journal.run_info().get("finished"))
-        self.clock = clock
-        self._own_clock = clock is None
-        if clock is None:
-            self.clock = IterationClock()
+    def __init__(self, journal: Journal | str | os.PathLike, clock: IterationClock | None = None):
+        self.journal: Journal | None = journal if isinstance(journal, Journal) else None
+        self.path = self.journal.path if self.journal is not None else journal_path(journal)
+        self.already_finished = self.journal is not None and bool(self.journal.run_info().get("finished"))
+        self.clock = clock if clock is not None else IterationClock()
         self._iteration: dict | None = None
+        self._early_notes: list[tuple[str, str]] = []
+
+    @property
+    def run_dir(self) -> Path:
+        return Path(self.path).parent
+
+    def close(self) -> None:
+        if self.journal is not None and not self.journal.closed:
+            self.journal.close()
 
     def __call__(self, event: str, **info: Any) -> None:
         if event == "iteration":
             self._iteration = info  # stored with its choice
-        if self._own_clock:
-            self.clock(event, **info)
+        self.clock(event, **info)
         if info.get("replayed"):
             return
-        if event == "measured":
+        if event == START:
+            self._start(info)
+        elif event == NOTE and self.journal is None:
+            self._early_notes.append((info["kind"], info["message"]))
+        elif event == NOTE:
+            self.journal.add_event(info["kind"], info["message"])
+        elif event == "measured":
             seq = self.journal.add_measurement(info["measurement"], iteration=info["iteration"], role=info["role"])
             if seq != info["seq"]:
                 raise RuntimeError(f"{self.journal.path}: measurement stored as seq {seq}, the engine counted {info['seq']}")
-        elif event == NOTE:
-            self.journal.add_event(info["kind"], info["message"])
         elif event == ITERATION_RECORD:
             if self._iteration is None or int(self._iteration["k"]) != int(info["k"]):
                 raise RuntimeError(f"{self.journal.path}: iteration {info['k']}'s choice came without its iteration document")
@@ -104,8 +126,27 @@ class JournalWriter:
             self.journal.add_iteration(IterationRecord(**iteration_fields(self._iteration, info["choice"], wall_s)))
         elif event == "finished" and not self.already_finished:
             self.journal.finish(info["summary"].to_document())
-        elif event in (START, STOP):  # the run's lifecycle: one event each, the document as JSON
-            self.journal.add_event(f"run-{event}", json.dumps(info, sort_keys=True, default=str))
+        elif event == STOP:
+            self.journal.add_event("run-stop", json.dumps(info, sort_keys=True, default=str))
+
+    def _start(self, info: dict) -> None:
+        """The header of a new journal from the ``start`` document, the notes sent before it, then
+        the ``run-start`` event (the document as JSON, the procedure's text by its SHA-256: the
+        header holds the text)."""
+        arguments = json.loads(info.get("arguments") or "{}")
+        if self.journal is None:
+            self.journal = Journal.create(self.path, procedure_text=str(arguments.get("procedure_text", "")),
+                                          procedure_name=str(arguments.get("procedure", "")), seed=int(info["seed"]),
+                                          software_version=str(info["version"]), backend=str(arguments.get("backend", "")),
+                                          strategy=str(arguments.get("strategy", "")), design=str(arguments.get("design", "h2")))
+        for kind, message in self._early_notes:
+            self.journal.add_event(kind, message)
+        self._early_notes.clear()
+        if "procedure_text" in arguments:
+            text = str(arguments.pop("procedure_text"))
+            arguments["procedure_sha256"] = hashlib.sha256(text.encode("utf-8")).hexdigest()
+        document = dict(info, arguments=json.dumps(arguments, sort_keys=True, default=str))
+        self.journal.add_event("run-start", json.dumps(document, sort_keys=True, default=str))
 
 
 class RawRecordWriter:

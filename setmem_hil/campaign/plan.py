@@ -59,7 +59,7 @@ from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.mu_floor import floor_message, floor_modes
 from setmem_hil.robust.robust_design import FINAL_TUNING
 
-__all__ = ["thesis_plan", "planned_measurements", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT", "BATCH_EVENT"]
+__all__ = ["thesis_plan", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT", "BATCH_EVENT"]
 
 EXACT_RESOLVE_EVENT = "exact-resolve"
 """Event holding, as JSON, the candidates re-identified exactly at an iteration and their
@@ -173,11 +173,6 @@ class Identified:
     sensor_models: Any
     data: FrequencyData
     floor: tuple[int, ...]  # modes whose box blocks every compensator (setmem_hil.model.mu_floor)
-
-
-def planned_measurements(procedure: Procedure) -> int:
-    """The most measurements the loop takes: the initial ones and the budget (the progress total)."""
-    return len(procedure.initial_omegas_rad_s) + int(procedure.goal.max_experiments)
 
 
 def measure_points(procedure: Procedure, omegas, iteration: int, role: str, done: int):

@@ -13,7 +13,9 @@ from rich.console import Console
 
 from setmem_hil import __version__
 from setmem_hil.campaign.journaled_run import Display, ExperimentOpener, RunOutcome, run_with_journal
+from setmem_hil.campaign.engine import NOTE
 from setmem_hil.campaign.observers import Observer
+from setmem_hil.campaign.persistence import JournalWriter
 from setmem_hil.campaign.preflight import preflight
 from setmem_hil.campaign.run_directory import SUMMARY_FILENAME, run_lock
 from setmem_hil.errors import InputFormatError
@@ -81,16 +83,17 @@ def resume_run(run_dir: str | os.PathLike, *, console: Console | None = None, op
         )
     with run_lock(run_dir, journal):
         stored = journal.n_measurements()
-        journal.add_event("resumed", f"resumed with {stored} stored measurements and {len(journal.iterations())} iterations (setmem-hil {__version__})")
+        store = JournalWriter(journal)  # the journal's store: what this session says goes to it as note documents
+        store(NOTE, kind="resumed", message=f"resumed with {stored} stored measurements and {len(journal.iterations())} iterations (setmem-hil {__version__})")
         continue_stored = procedure_path is not None or changed is not None
         if procedure_path is not None:
             old_text = changed or info["procedure_text"]
             new_text = procedure.source_text or format_procedure(procedure)
             digest = lambda t: hashlib.sha256(t.encode("utf-8")).hexdigest()[:16]  # noqa: E731
-            journal.add_event(PROCEDURE_CHANGED, f"procedure replaced by {procedure_path} (sha256 {digest(new_text)}, was "
+            store(NOTE, kind=PROCEDURE_CHANGED, message=f"procedure replaced by {procedure_path} (sha256 {digest(new_text)}, was "
                                                  f"{digest(old_text)}); the {stored} stored measurements are reused as data\n{new_text}")
             console.print(f"continuing {run_dir} with {procedure_path}: the {stored} stored measurements are reused", highlight=False)
         console.print(f"resuming {run_dir}: {stored} measurements stored, seed {info['seed']}, strategy {info['strategy']}", highlight=False)
-        return run_with_journal(procedure, journal, run_dir, seed=int(info["seed"]), strategy=str(info["strategy"]), console=console,
+        return run_with_journal(procedure, store, run_dir, seed=int(info["seed"]), strategy=str(info["strategy"]), console=console,
                                  opener=opener, display=display, continue_stored=continue_stored, control=control,
                                  observers=observers)

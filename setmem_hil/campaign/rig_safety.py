@@ -4,11 +4,15 @@
   cleanly; while it shuts down a second one is ignored (:func:`sigint_deferred`), so it cannot
   skip the exciter stop;
 * :func:`shut_down`: the exciter to zero first, then why the run stopped and whether the output
-  is confirmed off go to the journal (:data:`OUTPUT_OFF_EVENT`), then the journal is closed; a
+  is confirmed off (:data:`OUTPUT_OFF_EVENT`) go to the run's store as ``note`` documents; a
   failing clean-up never replaces the cause;
-* :func:`arm_exciter` journals a session that may switch an output on (:data:`EXCITER_ARMED_EVENT`);
+* :func:`arm_exciter` notes a session that may switch an output on (:data:`EXCITER_ARMED_EVENT`);
   one that ended without a confirmed output-off (SIGKILL, power loss) is found by
   :func:`unconfirmed_output_off`, and the next resume switches the output off first.
+
+What they say goes to ``store``, the run's journal store
+(:class:`setmem_hil.campaign.persistence.JournalWriter`), as ``note`` documents like every other
+event of the run: the journal is written from documents alone.
 """
 
 from __future__ import annotations
@@ -17,12 +21,17 @@ import signal
 import sys
 import threading
 from contextlib import contextmanager
-from typing import Any, Iterator
+from pathlib import Path
+from typing import Any, Callable, Iterator
 
 from rich.console import Console
 
+from setmem_hil.campaign.engine import NOTE
 from setmem_hil.errors import SetmemError
 from setmem_hil.io.journal import Journal
+
+Store = Callable[..., None]
+"""Where the notes go: ``store(name, **document)``, the run's journal store."""
 
 __all__ = ["EXCITER_ARMED_EVENT", "INSTRUMENTS_EVENT", "OUTPUT_OFF_EVENT", "Terminated", "arm_exciter", "journal_identities",
            "output_safety", "shut_down", "sigint_deferred", "sigterm_as_interrupt", "stored_count", "unconfirmed_output_off"]
@@ -69,11 +78,11 @@ INSTRUMENTS_EVENT = "instruments"
 """Journal event: the instruments a session drove and what each answered to its identity query."""
 
 
-def journal_identities(journal: Journal, experiment: Any) -> None:
+def journal_identities(store: Store, experiment: Any) -> None:
     from setmem_hil.model.experiment import IdentifiedExperiment
 
     if isinstance(experiment, IdentifiedExperiment) and experiment.identities:
-        journal.add_event(INSTRUMENTS_EVENT, "; ".join(f"{name}: {answer}" for name, answer in experiment.identities.items()))
+        _note(store, INSTRUMENTS_EVENT, "; ".join(f"{name}: {answer}" for name, answer in experiment.identities.items()))
 
 
 EXCITER_ARMED_EVENT = "exciter-armed"
@@ -99,7 +108,7 @@ def unconfirmed_output_off(journal: Journal) -> str | None:
     return f"its last session could not confirm the output off ({last['message']})"
 
 
-def arm_exciter(journal: Journal, experiment: Any, console: Console, previous_unconfirmed: str | None) -> None:
+def arm_exciter(store: Store, experiment: Any, console: Console, previous_unconfirmed: str | None) -> None:
     from setmem_hil.model.experiment import OutputConfirmingExperiment
 
     if not isinstance(experiment, OutputConfirmingExperiment):
@@ -111,13 +120,18 @@ def arm_exciter(journal: Journal, experiment: Any, console: Console, previous_un
             print(f"setmem-hil: {line}", file=sys.stderr, flush=True)
         else:
             console.print(line, highlight=False)
-        journal.add_event(OUTPUT_OFF_EVENT, f"confirmed at resume: {line}")
-    journal.add_event(EXCITER_ARMED_EVENT, f"{experiment.exciter}: the output may be switched on from here")
+        _note(store, OUTPUT_OFF_EVENT, f"confirmed at resume: {line}")
+    _note(store, EXCITER_ARMED_EVENT, f"{experiment.exciter}: the output may be switched on from here")
 
 
-def stored_count(journal: Journal) -> str:
+def _note(store: Store, kind: str, message: str) -> None:
+    store(NOTE, kind=kind, message=message)
+
+
+def stored_count(journal_file: str | Path) -> str:
+    """How many measurements the journal at ``journal_file`` holds (read afresh), for a message."""
     try:
-        j = Journal.open(journal.path)
+        j = Journal.open(journal_file)
         try:
             return str(j.n_measurements())
         finally:
@@ -126,10 +140,10 @@ def stored_count(journal: Journal) -> str:
         return "all completed"
 
 
-def shut_down(experiment: Any, journal: Journal, kind: str | None, message: str) -> tuple[str, BaseException | None]:
-    """Exciter to zero first, then record why we stopped and whether the output is confirmed
-    off, then close the journal. A failing clean-up never replaces the cause: it is returned
-    (with the sentence that says what state the rig is in) for the caller's message."""
+def shut_down(experiment: Any, store: Store, kind: str | None, message: str) -> tuple[str, BaseException | None]:
+    """Exciter to zero first, then note why we stopped and whether the output is confirmed off.
+    A failing clean-up never replaces the cause: it is returned (with the sentence that says what
+    state the rig is in) for the caller's message; closing the journal is the caller's."""
     close_error: BaseException | None = None
     try:
         if experiment is not None:
@@ -137,13 +151,10 @@ def shut_down(experiment: Any, journal: Journal, kind: str | None, message: str)
     except BaseException as exc:  # noqa: BLE001 - reported in the safety sentence, never raised over the cause
         close_error = exc
     safety, confirmed = output_safety(experiment, close_error)
-    try:
-        if kind is not None and not journal.closed:
-            journal.add_event(kind, message)
-        if confirmed is not None and not journal.closed:
-            journal.add_event(OUTPUT_OFF_EVENT, f"{'confirmed' if confirmed else 'NOT confirmed'}: {safety}")
-    finally:
-        journal.close()
+    if kind is not None:
+        _note(store, kind, message)
+    if confirmed is not None:
+        _note(store, OUTPUT_OFF_EVENT, f"{'confirmed' if confirmed else 'NOT confirmed'}: {safety}")
     return safety, close_error
 
 

@@ -15,23 +15,11 @@ from setmem_hil.errors import InputFormatError
 from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure import Procedure
 
-__all__ = ["LOCK_FILENAME", "PROCEDURE_COPY", "SUMMARY_FILENAME", "default_run_dir", "describe_procedure", "directory_lock", "new_journal",
-           "run_lock"]
+__all__ = ["LOCK_FILENAME", "PROCEDURE_COPY", "SUMMARY_FILENAME", "default_run_dir", "describe_procedure", "directory_lock", "run_lock"]
 
 SUMMARY_FILENAME = "summary.json"
 PROCEDURE_COPY = "procedure.toml"
 LOCK_FILENAME = ".run.lock"
-
-
-def new_journal(path: Path, procedure: Procedure, text: str, *, seed: int, strategy: str) -> Journal:
-    """A run's new journal: the procedure's ``text`` (what a resume and the report read), its name,
-    backend and design, the seed, strategy and software version. Every run starts here (``run``,
-    ``campaign``, ``demo`` and each run of a sweep); the run engine's ``start`` document then
-    follows as the journal's ``run-start`` event."""
-    from setmem_hil import __version__
-
-    return Journal.create(path, procedure_text=text, procedure_name=procedure.name, seed=int(seed), software_version=__version__,
-                          backend=procedure.backend.kind, strategy=strategy, design=procedure.design_method)
 
 
 @contextmanager

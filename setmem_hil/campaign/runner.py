@@ -16,27 +16,39 @@ The names other modules import from here (the loop's pieces) are re-exported.
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
-from pathlib import Path
 from typing import Callable
 
 from setmem_hil.campaign.engine import Emit, RunEngine, RunStart
-from setmem_hil.campaign.loop_steps import controller_matrices, goal_certified, identify_sensors, kept_design_of, polished, sensors_document
-from setmem_hil.campaign.next_input import (
-    EXACT_RESOLVE_OUTER_ITERATIONS,
-    batch_frequencies,
-    candidate_noise_bound,
-    dwell_seconds,
-    next_frequency,
-    other_outputs,
-)
 from setmem_hil.campaign.measurement_service import MeasurementService, register_measurements, stored_iterations
 from setmem_hil.campaign.persistence import IterationClock, JournalWriter, RawRecordWriter
-from setmem_hil.campaign.plan import BATCH_EVENT, EXACT_RESOLVE_EVENT, FLOOR_EVENT, UNPRODUCTIVE_REGION_EVENT, planned_measurements, thesis_plan
-from setmem_hil.campaign.summary import CampaignSummary, IterationSummary
-from setmem_hil.errors import CampaignReplayError
+from setmem_hil.campaign.summary import CampaignSummary
+from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure import Procedure
 from setmem_hil.model.experiment import Experiment, OutputConfirmingExperiment
+
+# The loop's pieces other modules import from here, loaded when first asked for: the run's journal
+# is made from its ``start`` document, which must not wait for the loop's numerics to load.
+_REEXPORTED = {
+    "setmem_hil.campaign.loop_steps": ("controller_matrices", "goal_certified", "identify_sensors", "kept_design_of", "polished",
+                                       "sensors_document"),
+    "setmem_hil.campaign.next_input": ("EXACT_RESOLVE_OUTER_ITERATIONS", "batch_frequencies", "candidate_noise_bound", "dwell_seconds",
+                                       "next_frequency", "other_outputs"),
+    "setmem_hil.campaign.plan": ("BATCH_EVENT", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT"),
+    "setmem_hil.campaign.summary": ("IterationSummary",),
+    "setmem_hil.errors": ("CampaignReplayError",),
+}
+
+
+def __getattr__(name: str):
+    import importlib
+
+    for module, names in _REEXPORTED.items():
+        if name in names:
+            return getattr(importlib.import_module(module), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 ProgressFn = Callable[..., None]
 
@@ -44,7 +56,7 @@ ProgressFn = Callable[..., None]
 def run_campaign(
     procedure: Procedure,
     experiment: Experiment,
-    journal=None,
+    journal: Journal | JournalWriter | str | os.PathLike | None = None,
     *,
     seed: int | None = None,
     strategy: str | None = None,
@@ -64,10 +76,13 @@ def run_campaign(
         Anything with ``measure(omega)``; ``total_bound(omega)``, ``n_measured`` and
         ``update_model(model)`` (called after every identification) are used when present.
         Closing it is the caller's job.
-    journal : setmem_hil.io.journal.Journal, optional
+    journal : Journal, path or JournalWriter, optional
         Receives every measurement immediately and every iteration (its raw records go to
-        ``raw.h5`` beside it); an existing journal's contents are replayed (resume). ``finish(summary)`` is called at the end unless the run
-        was already finished.
+        ``raw.h5`` beside it), written from the run's documents
+        (:class:`~setmem_hil.campaign.persistence.JournalWriter`). An open journal's contents are
+        replayed (resume) and it stays open; a path makes a new journal from the run's ``start``
+        document, closed when the run ends. ``finish(summary)`` is called at the end unless the
+        run was already finished.
     seed : int, optional
         Seed of the random baseline (default ``procedure.seed``); the experiment's own noise seed
         is set where the experiment is built.
@@ -108,22 +123,45 @@ def run_campaign(
     KeyboardInterrupt
         Propagates unchanged; every completed dwell is already in the journal.
     """
-    clock = IterationClock()
-    subscribers: list = [clock]
-    if journal is not None:  # the stores first: every display sees what they stored
-        subscribers += [RawRecordWriter(Path(journal.path).parent), JournalWriter(journal, clock)]
+    writer = journal if isinstance(journal, JournalWriter) or journal is None else JournalWriter(journal)
+    clock = writer.clock if writer is not None else IterationClock()  # the writer feeds its clock
+    subscribers: list = [clock] if writer is None else [RawRecordWriter(writer.run_dir), writer]  # the stores first
     if progress is not None:
         subscribers.append(progress)
-    planned = planned_measurements(procedure)
-    engine = RunEngine(subscribers, control=control, stored={} if continue_stored else stored_iterations(journal),
+    history = None if writer is None else writer.journal  # a resumed run's journal; None for a new one
+    planned = procedure.max_measurements
+    engine = RunEngine(subscribers, control=control, stored={} if continue_stored else stored_iterations(history),
                        make_safe=_confirm_output_off(experiment), safe_state="every exciter output confirmed off",
-                       source=str(getattr(journal, "path", "journal")))
-    service = register_measurements(engine, MeasurementService(experiment, history=journal, total=planned, continue_stored=continue_stored))
-    plan = thesis_plan(procedure, experiment, seed=seed, strategy=strategy, design=design, floor_aware=floor_aware)
+                       source=str(writer.path) if writer is not None else "journal")
+    service = register_measurements(engine, MeasurementService(experiment, history=history, total=planned, continue_stored=continue_stored))
+    plan = _thesis_plan(procedure, experiment, seed=seed, strategy=strategy, design=design, floor_aware=floor_aware)
     arguments = dict(procedure=procedure.name, strategy=strategy or procedure.input_design.strategy,
-                     design=design or procedure.design_method, floor_aware=floor_aware, continue_stored=continue_stored)
-    return engine.run(_finished(plan, service, engine, clock), RunStart("thesis-algorithm-5.1", arguments,
-                                                       procedure.seed if seed is None else int(seed), planned))
+                     design=design or procedure.design_method, floor_aware=floor_aware, continue_stored=continue_stored,
+                     backend=procedure.backend.kind, procedure_text=_procedure_text(procedure))
+    try:
+        return engine.run(_finished(plan, service, engine, clock), RunStart("thesis-algorithm-5.1", arguments,
+                                                                             procedure.seed if seed is None else int(seed), planned))
+    finally:
+        if writer is not None and not isinstance(journal, (Journal, JournalWriter)):  # made here from a path: closed here
+            writer.close()
+
+
+def _thesis_plan(procedure: Procedure, experiment: Experiment, **options):
+    """Algorithm 5.1 (:func:`setmem_hil.campaign.plan.thesis_plan`), its numerics loaded once the
+    run has started (after its ``start`` document: the journal exists within a second)."""
+    from setmem_hil.campaign.plan import thesis_plan
+
+    return (yield from thesis_plan(procedure, experiment, **options))
+
+
+def _procedure_text(procedure: Procedure) -> str:
+    """The text a new journal stores (what a resume and the report read): the file's own, else the
+    procedure written out."""
+    if procedure.source_text:
+        return procedure.source_text
+    from setmem_hil.io.procedure_file import format_procedure
+
+    return format_procedure(procedure)
 
 
 def _finished(plan, service: MeasurementService, engine: RunEngine, clock: IterationClock):
@@ -142,9 +180,4 @@ def _confirm_output_off(experiment):
     return experiment.confirm_output_off if isinstance(experiment, OutputConfirmingExperiment) else None
 
 
-__all__ = [
-    "BATCH_EVENT", "CampaignReplayError", "CampaignSummary", "EXACT_RESOLVE_EVENT", "EXACT_RESOLVE_OUTER_ITERATIONS", "FLOOR_EVENT",
-    "IterationSummary", "UNPRODUCTIVE_REGION_EVENT", "batch_frequencies", "candidate_noise_bound", "controller_matrices",
-    "dwell_seconds", "goal_certified", "identify_sensors", "kept_design_of", "next_frequency", "other_outputs", "polished",
-    "run_campaign", "sensors_document",
-]
+__all__ = ["CampaignSummary", "run_campaign", *sorted(name for names in _REEXPORTED.values() for name in names)]

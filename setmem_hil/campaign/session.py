@@ -10,6 +10,7 @@ the first dwell: :mod:`setmem_hil.campaign.preflight`; signals and the exciter o
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -19,6 +20,7 @@ from rich.console import Console
 
 from setmem_hil.campaign.journaled_run import Display, ExperimentOpener, RunOutcome, run_journaled_campaign, run_with_journal
 from setmem_hil.campaign.observers import Observer
+from setmem_hil.campaign.persistence import JournalWriter
 from setmem_hil.campaign.preflight import preflight
 from setmem_hil.campaign.resume import resume_run
 from setmem_hil.campaign.rig_safety import unconfirmed_output_off
@@ -27,9 +29,8 @@ from setmem_hil.campaign.run_directory import (
     SUMMARY_FILENAME,
     default_run_dir,
     describe_procedure,
+    LOCK_FILENAME,
     directory_lock,
-    new_journal,
-    run_lock,
 )
 from setmem_hil.errors import InputFormatError
 from setmem_hil.io.atomic_file import write_text_atomic
@@ -93,15 +94,19 @@ def start_run(
     # Open the rig first: a transport option the driver rejects, or a device that does not
     # start, must not leave behind a journal whose stored procedure can never run.
     experiment = opener(procedure, seed)
-    try:
-        journal = new_journal(run_dir / JOURNAL_FILENAME, procedure, text, seed=seed, strategy=strategy)
-    except BaseException:
-        experiment.close()
-        raise
-    with run_lock(run_dir, journal):
-        write_text_atomic(run_dir / PROCEDURE_COPY, text)
+    with contextlib.ExitStack() as held:
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            held.enter_context(directory_lock(run_dir, LOCK_FILENAME, "another setmem-hil process is running this campaign; "
+                                                                      "wait for it or stop it first"))
+            write_text_atomic(run_dir / PROCEDURE_COPY, text)
+        except BaseException:
+            experiment.close()
+            raise
         console.print(f"run directory: {run_dir}", highlight=False)
         describe_procedure(procedure, console)
-        return run_with_journal(procedure, journal, run_dir, seed=seed, strategy=strategy, console=console,
-                                 experiment=experiment, opener=opener, display=display, quiet_report_hint=quiet_report_hint,
-                                 control=control, observers=observers)
+        # the journal is made by its store from the run's start document (the procedure's text as stored)
+        store = JournalWriter(run_dir / JOURNAL_FILENAME)
+        return run_with_journal(replace(procedure, source_text=text), store, run_dir, seed=seed, strategy=strategy, console=console,
+                                experiment=experiment, opener=opener, display=display, quiet_report_hint=quiet_report_hint,
+                                control=control, observers=observers)

@@ -212,6 +212,12 @@ class Procedure:
     source_text: str = ""  # the file's text, stored in the journal with the run
     source_path: str = ""
 
+    @property
+    def max_measurements(self) -> int:
+        """The most measurements a campaign of this procedure takes: its initial frequencies and the
+        goal's budget of added experiments (the progress display's total)."""
+        return len(self.initial_omegas_rad_s) + int(self.goal.max_experiments)
+
     def time_scaled(self, factor: float) -> "Procedure":
         """The same campaign for the structure with every frequency times ``factor`` (issue 18's
         rescaling rule): prior bands, initial frequencies, safety frequency limits, an explicit

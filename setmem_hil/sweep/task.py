@@ -93,8 +93,9 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str,
         partial directory is then removed).
     """
     from setmem_hil import __version__
+    from setmem_hil.campaign.engine import NOTE
     from setmem_hil.campaign.journaled_run import run_journaled_campaign
-    from setmem_hil.campaign.run_directory import new_journal
+    from setmem_hil.campaign.persistence import JournalWriter
     from setmem_hil.numerics.blas_threads import blas_one_thread
 
     seed = int(seed)
@@ -105,14 +106,14 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str,
         summary = json.loads(done_file.read_text(encoding="utf-8"))
         return {**run_record(seed, strategy, summary, design), "status": "skipped"}
     tmp = new_partial_dir(runs_dir, final.name)
-    journal = None
+    store = None
     try:
         proc = dataclasses.replace(procedure, seed=seed)
         fingerprint = procedure_fingerprint(proc)  # the sweep's procedure: every design of it shares the fingerprint
         if design is not None:
             proc = dataclasses.replace(proc, design_method=design)
-        journal = new_journal(tmp / JOURNAL_NAME, proc, proc.source_text, seed=seed, strategy=strategy)
-        journal.add_event("sweep", f"sweep campaign {final.name}: goal mu-bar < {proc.goal.mu_target:g}, "
+        store = JournalWriter(tmp / JOURNAL_NAME)  # the journal is made from the run's start document
+        store(NOTE, kind="sweep", message=f"sweep campaign {final.name}: goal mu-bar < {proc.goal.mu_target:g}, "
                                    f"at most {proc.goal.max_experiments} added experiments, "
                                    f"procedure fingerprint {fingerprint[:16]}, "
                                    f"host {socket.gethostname()} pid {os.getpid()}")
@@ -120,10 +121,10 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str,
             experiment = open_sim_experiment(proc, seed)
             try:
                 # the same runner and subscribers as `setmem-hil run` (e.g. [discrepancy] checks)
-                result = run_journaled_campaign(proc, experiment, journal, seed=seed, strategy=strategy)
+                result = run_journaled_campaign(proc, experiment, store, seed=seed, strategy=strategy)
             finally:
                 experiment.close()
-        journal.close()
+        store.close()
         doc = result.to_document()
         doc["sweep"] = {"procedure_fingerprint": fingerprint, "procedure_name": proc.name,
                         "seed": seed, "strategy": strategy, "design": proc.design_method, "host": socket.gethostname(),
@@ -133,18 +134,18 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str,
         return {**run_record(seed, strategy, doc, design), "status": "done"}
     except Exception as exc:  # recorded, not fatal to the sweep (issue 9, item 3)
         err = error_document(seed, strategy, exc, f"{socket.gethostname()} pid {os.getpid()}")
-        if journal is not None:
+        if store is not None:
             with contextlib.suppress(Exception):
-                journal.add_event("error", err["error"])
+                store(NOTE, kind="error", message=err["error"])
             with contextlib.suppress(Exception):
-                journal.close()
+                store.close()
         write_json_atomic(err, tmp / ERROR_NAME)
         install_run(tmp, final)
         return {**error_record(seed, strategy, err["error"], design), "status": "failed"}
     except BaseException:
-        if journal is not None:
+        if store is not None:
             with contextlib.suppress(Exception):
-                journal.close()
+                store.close()
         shutil.rmtree(tmp, ignore_errors=True)
         raise
 
