@@ -347,6 +347,38 @@ def test_a_new_journal_is_made_from_the_start_document_and_the_notes_before_it_f
         assert len(j.measurements()) == 2
 
 
+def test_a_campaign_given_a_path_makes_its_journal_from_the_documents_alone(tmp_path):
+    """Second formulation (the slow tier does the same on a whole campaign): every document a run
+    on the simulated beam sent, given to a fresh store, rebuilds its journal (points, iteration,
+    events, summary); the header is the procedure that ran."""
+    import dataclasses
+
+    from setmem_hil.campaign.runner import run_campaign
+    from setmem_hil.io.procedure import Goal, default_procedure
+    from setmem_hil.io.procedure_file import format_procedure
+    from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
+
+    procedure = dataclasses.replace(default_procedure(), seed=2, goal=Goal(mu_target=1.0, max_experiments=0), design_method="h2")
+    seen, sub = recorder()
+    summary = run_campaign(procedure, SimulatedBeamExperiment(seed=2), tmp_path / "run" / "journal.sqlite", progress=sub)
+    rebuilt = JournalWriter(tmp_path / "rebuilt" / "journal.sqlite")
+    for name, document in seen:
+        rebuilt(name, **document)
+    rebuilt.close()
+    no_utc = lambda rows: [{k: v for k, v in row.items() if k not in ("utc", "created_utc", "finished_utc")} for row in rows]  # noqa: E731
+    with Journal.open(tmp_path / "run") as run, Journal.open(tmp_path / "rebuilt") as again:  # the run closed its own journal
+        assert no_utc(again.measurement_rows()) == no_utc(run.measurement_rows()) and len(run.measurements()) == 15
+        assert no_utc([again.run_info()]) == no_utc([run.run_info()])
+        assert [(e["kind"], e["message"]) for e in again.events()] == [(e["kind"], e["message"]) for e in run.events()]
+        ours, theirs = again.iterations(), run.iterations()
+        assert [(it.k, it.mu_peak, it.next_omega) for it in ours] == [(it.k, it.mu_peak, it.next_omega) for it in theirs]
+        np.testing.assert_array_equal(ours[0].upper, theirs[0].upper)
+        info = run.run_info()
+        assert (info["procedure_name"], info["seed"], info["strategy"], info["design"], info["backend"]) == \
+            (procedure.name, 2, procedure.input_design.strategy, "h2", procedure.backend.kind)
+        assert info["procedure_text"] == format_procedure(procedure) and info["summary"] == summary.to_document()
+
+
 def test_the_plan_clock_counts_the_plans_computation_and_not_its_requests():
     """Truth: the CPU seconds the plan and the handler each burn (process time: the same under
     load). The handler's 0.4 s must not be counted in either iteration's clock."""
