@@ -104,23 +104,23 @@ def _run_campaign_in(procedure: Procedure, store: JournalWriter, run_dir: Path, 
             safety, _ = shut_down(experiment, store, "interrupted", why)
         # one line says what was made safe, what is kept and how to go on (the CLI prints it)
         raise RunInterrupted(f"interrupted ({why.split(':')[0]}); {safety}, journal closed with "
-                             f"{_stored(store)} measurements; {resume}") from exc
+                             f"{_closed_with(store)} measurements; {resume}") from exc
     except CampaignAborted as exc:
         with sigint_deferred():
             safety, _ = shut_down(experiment, store, "aborted", f"aborted: {exc}")
-        raise CampaignAborted(f"aborted ({exc}); {safety}, journal closed with {_stored(store)} measurements; {resume}") from exc
+        raise CampaignAborted(f"aborted ({exc}); {safety}, journal closed with {_closed_with(store)} measurements; {resume}") from exc
     except DeviceError as exc:
         with sigint_deferred():
             safety, _ = shut_down(experiment, store, "device-fault", str(exc))
         exc.safety_note = safety  # the first fault stays the message; what the clean-up achieved follows it
-        exc.resume_hint = f"journal closed with {_stored(store)} measurements; after fixing the rig {resume}"
+        exc.resume_hint = f"journal closed with {_closed_with(store)} measurements; after fixing the rig {resume}"
         raise
     except BaseException as exc:
         with sigint_deferred():
             safety, _ = shut_down(experiment, store, "error", f"{type(exc).__name__}: {exc}")
         if isinstance(exc, Exception):
             fix = " --procedure FIXED.toml" if isinstance(exc, (InconsistentDataError, InputFormatError)) else ""
-            exc.resume_hint = (f"{safety}, journal closed with {_stored(store)} measurements; continue with "
+            exc.resume_hint = (f"{safety}, journal closed with {_closed_with(store)} measurements; continue with "
                                f"`setmem-hil run --resume {run_dir}{fix}`")
         raise
     with sigint_deferred():
@@ -134,7 +134,7 @@ def _run_campaign_in(procedure: Procedure, store: JournalWriter, run_dir: Path, 
     return RunOutcome(run_dir, doc)
 
 
-def _stored(store: JournalWriter) -> str:
+def _closed_with(store: JournalWriter) -> str:
     """The journal's measurements for a message, read after closing it (every point is committed)."""
     store.close()
     return stored_count(store.path) if Path(store.path).exists() else "0"

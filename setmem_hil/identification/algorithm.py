@@ -360,7 +360,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         # the split's conservatism (a far mode's box bounded by the pair's mismatch); no deep search
         _identify_group_in_place(data, lo, hi, res, list(range(n)), prior, counter, group_unverified,
                                  GroupSettings(max_boxes=POLISH_BOXES, search_points=POLISH_POINTS,
-                                               subset_stage=False))
+                                               subset_stage=False, contract_at_budget=True))
     for i, reason in group_unverified.items():
         last_unverified[i] = tuple(last_unverified[i]) + (reason,)
 

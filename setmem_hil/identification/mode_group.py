@@ -84,6 +84,13 @@ class GroupSettings:
     on every side is a leaf: no split can narrow the answer by more.
     ``tight_ratio``: a box whose remainders are all below this fraction of the bound is a leaf
     whatever the witnesses (its relaxation is within about ``1 + tight_ratio`` of the exact set).
+    ``contract_at_budget``: past ``max_boxes`` no box is split, and each open box is contracted
+    once more before it becomes a leaf, instead of being kept as it stood (a half then holds its
+    parent's extent in every parameter but the cut one). The answer can only narrow: every such
+    leaf lies inside the box it replaces. Used by the final all-modes contraction (the polish,
+    :mod:`setmem_hil.identification.algorithm`), where it costs a few contractions; in the group
+    searches themselves it changed which boxes the later stages searched, and a campaign on the
+    two-plane cantilever then chose differently and kept its floors longer (stop 57).
     """
 
     fine_ratio: float = 1.0
@@ -96,6 +103,7 @@ class GroupSettings:
     max_depth: int = 40
     search_points: int = 160
     subset_stage: bool = True  # search a subset of the points first (the hull searched again with all)
+    contract_at_budget: bool = False  # past max_boxes: each open box contracted once more, not kept as it stood
     workers: int = field(default_factory=lambda: min(2, os.cpu_count() or 1))
 
 
@@ -824,23 +832,24 @@ def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings:
     solver runs outside the GIL), the boxes' results applied in the order they were taken
     (:func:`setmem_hil.numerics.in_order_pool.run_in_order`: the same answer from the same data,
     whatever the threads' timing or their number). Returns the leaves (contracted, not proved
-    empty). Past ``max_boxes`` no box is split: every open box is contracted once and becomes a
-    leaf (the hull is still guaranteed, only wider than a longer search's). A leaf is ``(lo, hi, flags)``: ``flags`` maps its uncertified bounds
+    empty). Past ``max_boxes`` every open box becomes a leaf as it stands, or with
+    ``settings.contract_at_budget`` contracted once more: the hull is still guaranteed, only
+    wider than a longer search's. A leaf is ``(lo, hi, flags)``: ``flags`` maps its uncertified bounds
     ``(parameter, +1 lower / -1 upper)`` to the reason; the root's are ``root_flags``."""
     open_boxes = [(lo, hi, 0, dict(root_flags))]
     search.root = (lo, hi)
     leaves: list[tuple[np.ndarray, np.ndarray, dict]] = []
     taken = [0]
 
+    spent = [False]  # the budget is spent: with contract_at_budget, nothing is split from here
+
     def take():
         if open_boxes and taken[0] >= settings.max_boxes:
-            # The budget is spent: from here no box is split, and each open one is contracted once
-            # more (certified like every box) before it becomes a leaf. Kept as it stood, a half
-            # holds its parent's extent in every parameter but the cut one; on the 0.5 % pair at 5x
-            # noise the far mode's a0 came out 9.1x the exact set's that way, 7.0x this way, in half
-            # the time (the pair's tighter box makes every later stage cheaper). Set when taken, read
-            # when applied: the same on any threads' timing (in_order_pool).
             counts["exhausted"] = True
+            if not settings.contract_at_budget:
+                leaves.extend((b_lo, b_hi, flags) for b_lo, b_hi, _, flags in open_boxes)
+                open_boxes.clear()
+            spent[0] = True  # set when taken, read when applied: the same on any threads' timing (in_order_pool)
         while open_boxes:
             k = int(np.argmax([_priority(search, b[0], b[1]) for b in open_boxes]))
             b_lo, b_hi, depth, flags = open_boxes.pop(k)
@@ -867,7 +876,7 @@ def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings:
             counts["pruned"] += 1
             return
         depth, flags = box[2], _merged_flags(box[3], out[4])
-        children = None if counts["exhausted"] else _children(search, out[0], out[1], out[2], depth, settings, flags)
+        children = None if spent[0] else _children(search, out[0], out[1], out[2], depth, settings, flags)
         if children is None:
             leaves.append((out[0], out[1], flags))
             return
@@ -931,10 +940,6 @@ def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSet
     if subsets[0].size < omega.size:
         subsets = subsets + [np.arange(omega.size)] if settings.subset_stage else [np.arange(omega.size)]
     for idx in subsets:
-        # ``counts`` is shared by the stages: when the subset's search spent the box budget, the
-        # search with every point splits nothing and contracts the subset's hull once (searching
-        # it again from the start on the 0.5 % same-sign pair at 5x noise: 165 s and worst ratio
-        # 7.55, against 76 s and 7.06)
         search = _Search(omega[idx], g[idx], E[idx], settings)
         search.hint = anchor
         leaves = _branch_and_bound(search, box_lo, box_hi, settings, counts, flags)
