@@ -194,6 +194,32 @@ def test_a_groups_bounds_do_not_depend_on_the_threads(monkeypatch):
     assert np.all(runs[0].lower <= truth.values[:2]) and np.all(truth.values[:2] <= runs[0].upper)
 
 
+def test_contracting_the_open_boxes_at_the_budget_only_narrows_and_keeps_every_fitting_point():
+    """``contract_at_budget`` (the final all-modes contraction's): a search cut short after a few
+    boxes gives a box inside the one the open boxes kept as they stood, and strictly narrower
+    somewhere; both hold the truth and points checked to fit every line (an independent local
+    search, :func:`feasible_points.fitting_extent`, from the truth)."""
+    from setmem_hil.identification.feasible_points import fitting_extent
+    from setmem_hil.identification.mode_group import GroupSettings, identify_group
+    from setmem_hil.model.modal_model import ModalParameters
+
+    truth, data, prior = close_pair_case(0.01, n=100)
+    far = ModalParameters(truth.values[2:])
+    g = data.response - far.frequency_response(data.omega_rad_s)
+    box = prior.initial_bounds()
+    lo, hi = box.lower[:2], box.upper[:2]
+    kept, contracted = (identify_group(data.omega_rad_s, g, data.bound, lo, hi,
+                                       GroupSettings(max_boxes=6, contract_at_budget=flag, subset_stage=False))
+                        for flag in (False, True))
+    assert kept.exhausted and contracted.exhausted
+    assert np.all(contracted.lower >= kept.lower) and np.all(contracted.upper <= kept.upper)
+    assert np.any(contracted.upper - contracted.lower < 0.9 * (kept.upper - kept.lower))
+    inner_lo, inner_hi = fitting_extent(data.omega_rad_s, g, data.bound, lo.reshape(-1), hi.reshape(-1), truth.values[:2].reshape(-1))
+    for result in (kept, contracted):
+        assert np.all(result.lower.reshape(-1) <= np.minimum(inner_lo, truth.values[:2].reshape(-1)))
+        assert np.all(result.upper.reshape(-1) >= np.maximum(inner_hi, truth.values[:2].reshape(-1)))
+
+
 def test_a_centre_pole_on_a_measured_line_gives_no_nan_to_the_conic_program():
     """A box whose centre's pole sits a hair (1e-155) from a measured line: the remainder and the
     pole's derivative overflow; the disc form drops the pole term, and 0 x inf was a NaN in the
