@@ -84,14 +84,14 @@ class JournalWriter:
     ``note`` sent before the ``start`` (the rig's identities, the exciter armed) is kept and
     written right after the header, so the journal reads in the order things happened; the
     session's closing notes (why it stopped, the output confirmed off) may follow the ``stop``.
-    The caller closes the journal (:meth:`close`). ``clock`` times the iterations (default: its own
-    :class:`IterationClock`); the writer feeds it every document."""
+    The caller closes the journal (:meth:`close`). ``clock`` times the iterations (an
+    :class:`IterationClock` the writer feeds every document; the runner reads it for the summary)."""
 
-    def __init__(self, journal: Journal | str | os.PathLike, clock: IterationClock | None = None):
+    def __init__(self, journal: Journal | str | os.PathLike):
         self.journal: Journal | None = journal if isinstance(journal, Journal) else None
         self.path = self.journal.path if self.journal is not None else journal_path(journal)
         self.already_finished = self.journal is not None and bool(self.journal.run_info().get("finished"))
-        self.clock = clock if clock is not None else IterationClock()
+        self.clock = IterationClock()
         self._iteration: dict | None = None
         self._early_notes: list[tuple[str, str]] = []
 
