@@ -36,6 +36,10 @@ EXACT_RESOLVE_GROUP_BOXES = 24
 """Boxes per stage of a close group's search in those re-solves (a prediction, five per choice: the
 deep search of 400 took 80 s per re-solve on the two-plane cantilever's first 28 points)."""
 
+EXACT_RESOLVE_POLISH_PIECES = 0
+"""The re-solves' final contraction starts from the box reached, not from the groups' leaves (a
+prediction; the pieces' second contraction costs more than the rest of a re-solve)."""
+
 
 def candidate_noise_bound(experiment: Any, omega_rad_s: np.ndarray, measured: list[Measurement]) -> np.ndarray:
     """``R(omega)`` expected at the candidates (see the module docstring)."""
@@ -58,7 +62,8 @@ def identify_settings(exact_resolve: bool = False):
     from setmem_hil.identification.algorithm import IdentifySettings
 
     if exact_resolve:
-        return IdentifySettings(max_outer_iterations=EXACT_RESOLVE_OUTER_ITERATIONS, group_boxes=EXACT_RESOLVE_GROUP_BOXES)
+        return IdentifySettings(max_outer_iterations=EXACT_RESOLVE_OUTER_ITERATIONS, group_boxes=EXACT_RESOLVE_GROUP_BOXES,
+                                polish_pieces=EXACT_RESOLVE_POLISH_PIECES)
     return IdentifySettings()
 
 

@@ -28,7 +28,7 @@ from setmem_hil.identification.embedding import conservatism_ratio, embedding_bo
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import A0, A1, B0, B1, IntervalModel
-from setmem_hil.identification.mode_group import GroupSettings, close_groups, identify_group
+from setmem_hil.identification.mode_group import GroupSettings, close_groups, identify_group, piece_hulls
 from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 from setmem_hil.identification.one_mode_solver import OneModeProblem
 from setmem_hil.identification.partitioning import PartitionPlan, minimal_partition, partition_boxes
@@ -37,6 +37,7 @@ from setmem_hil.identification.residual_terms import bound_residual, residual_mi
 from setmem_hil.identification.residue_bootstrap import bootstrap_residue_bounds
 
 POLISH_BOXES = 48  # boxes the final all-modes contraction may use (24 left the far mode of the 1 % pair at 5x noise 2.1x the exact set, stop 54; 48: 1.8x)
+POLISH_PIECES = 256  # boxes from the groups' last leaves that start the polish, at most (their hulls; one per group in every combination)
 POLISH_POINTS = 400  # points that polish uses in every box (more: the subset in coarse boxes; a far mode's few resonant points decide it)
 
 __all__ = [
@@ -65,6 +66,7 @@ class IdentifySettings:
     groups: bool = True  # closely spaced modes identified together where the split cannot narrow (issue 47)
     group_rounds: int = 2
     group_boxes: int = GroupSettings.max_boxes  # boxes per stage of a group's search
+    polish_pieces: int = POLISH_PIECES  # boxes from the groups' leaves that start the final contraction, at most (0: its hull)
 
 
 @dataclass(frozen=True)
@@ -350,17 +352,22 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
                               _assign_points_to_modes(prior, data.omega_rad_s), _band_centres(prior),
                               np.array([m.zeta_max for m in prior.modes]))
     group_unverified: dict[int, str] = {}
+    group_pieces: dict[tuple, tuple] = {}
     for _ in range(settings.group_rounds if groups else 0):
         for group in groups:
-            _identify_group_in_place(data, lo, hi, res, list(group), prior, counter, group_unverified,
-                                     GroupSettings(max_boxes=settings.group_boxes))
+            group_pieces[tuple(group)] = _identify_group_in_place(
+                data, lo, hi, res, list(group), prior, counter, group_unverified, GroupSettings(max_boxes=settings.group_boxes))
         iterations += _outer_loop([data], lo, hi, res, prior, settings, counter, optimizers, gammas, plans, last_unverified, ())
     if groups:
-        # every mode together, once, from the box reached: a contraction that removes the rest of
-        # the split's conservatism (a far mode's box bounded by the pair's mismatch); no deep search
-        _identify_group_in_place(data, lo, hi, res, list(range(n)), prior, counter, group_unverified,
-                                 GroupSettings(max_boxes=POLISH_BOXES, search_points=POLISH_POINTS,
-                                               subset_stage=False, contract_at_budget=True))
+        # every mode together, from the box reached: a contraction that removes the rest of the
+        # split's conservatism (a far mode's box bounded by the pair's mismatch); no deep search.
+        # Then once more from the groups' last leaves (a few hulls along each pair's set), which
+        # keep how a pair's parameters go together; it starts from the first one's box, so it can
+        # only narrow it.
+        _polish(data, lo, hi, res, prior, counter, group_unverified)
+        pieces = polish_pieces(group_pieces, lo, hi, settings.polish_pieces)
+        if pieces:
+            _polish(data, lo, hi, res, prior, counter, group_unverified, pieces)
     for i, reason in group_unverified.items():
         last_unverified[i] = tuple(last_unverified[i]) + (reason,)
 
@@ -391,12 +398,46 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
     )
 
 
+def _polish(data, lo, hi, res, prior, counter, unverified, pieces: tuple = ()) -> None:
+    """Every mode contracted together (in place), in ``POLISH_BOXES`` boxes beyond ``pieces``."""
+    _identify_group_in_place(data, lo, hi, res, list(range(lo.shape[0])), prior, counter, unverified,
+                             GroupSettings(max_boxes=POLISH_BOXES + len(pieces), search_points=POLISH_POINTS,
+                                           subset_stage=False, contract_at_budget=True), pieces)
+
+
+def polish_pieces(group_pieces: dict, lo: np.ndarray, hi: np.ndarray, most: int = POLISH_PIECES) -> tuple:
+    """Boxes of every mode whose union holds every parameter in ``lo, hi`` that fits: each group's
+    last leaves (``group_pieces``: group -> pieces, each certified to hold its part of the set)
+    merged into at most ``most ** (1 / groups)`` hulls (:func:`mode_group.piece_hulls`), one from
+    each group in every combination, the other modes at ``lo, hi``. Empty when no group left
+    pieces, or when ``most`` leaves fewer than two per group (more than eight groups at 256)."""
+    usable = {group: p for group, p in group_pieces.items() if p}
+    per_group = int(most ** (1.0 / max(len(usable), 1)) + 1e-9)
+    if not usable or per_group < 2:
+        return ()
+    combos = [(lo.copy(), hi.copy())]
+    for group, pieces in usable.items():
+        merged = piece_hulls(pieces, per_group)
+        rows = list(group)
+        grown = []
+        for c_lo, c_hi in combos:
+            for p_lo, p_hi in merged:
+                n_lo, n_hi = c_lo.copy(), c_hi.copy()
+                n_lo[rows], n_hi[rows] = np.maximum(lo[rows], p_lo), np.minimum(hi[rows], p_hi)
+                if np.all(n_lo <= n_hi):
+                    grown.append((n_lo, n_hi))
+        combos = grown
+    return tuple(combos)
+
+
 def _identify_group_in_place(data: FrequencyData, lo: np.ndarray, hi: np.ndarray, res: dict, group: list[int],
                              prior: Prior, counter: _SolveCounter, unverified: dict,
-                             group_settings: GroupSettings = GroupSettings()) -> None:
+                             group_settings: GroupSettings = GroupSettings(), pieces: tuple = ()) -> tuple:
     """The group's modes bounded jointly (:mod:`setmem_hil.identification.mode_group`): the data
     minus every other mode's midpoint, the bound plus their worst-case mismatch (eq. 3.11 with the
-    group in place of one mode); the result is intersected with ``lo, hi`` (never loosens)."""
+    group in place of one mode); the result is intersected with ``lo, hi`` (never loosens).
+    ``pieces`` (boxes of the group covering its feasible set) start the search. Returns the
+    search's last leaves (:attr:`GroupResult.pieces`)."""
     current = IntervalModel(lo, hi)
     w = data.omega_rad_s
     mismatch = mode_mismatch_bounds(current, w)
@@ -405,7 +446,7 @@ def _identify_group_in_place(data: FrequencyData, lo: np.ndarray, hi: np.ndarray
     g_group = data.response - estimates[outside].sum(axis=0) - residual_midpoint_response(res, w)
     E = data.bound + mismatch[outside].sum(axis=0) + residual_mismatch(res, w)
     try:
-        found = identify_group(w, g_group, E, lo[group], hi[group], group_settings)
+        found = identify_group(w, g_group, E, lo[group], hi[group], group_settings, pieces)
     except ValueError:
         raise InconsistentDataError(
             f"modes {', '.join(str(k + 1) for k in group)} (identified together): no parameters within the prior fit the "
@@ -423,6 +464,7 @@ def _identify_group_in_place(data: FrequencyData, lo: np.ndarray, hi: np.ndarray
             unverified.pop(k, None)
         else:
             unverified[k] = f"group {[j + 1 for j in group]}: {found.unverified_reason}"
+    return found.pieces
 
 
 def _mismatch_ratios(prior: Prior, data: FrequencyData, E_all: np.ndarray) -> np.ndarray:

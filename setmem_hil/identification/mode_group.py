@@ -84,6 +84,12 @@ class GroupSettings:
     on every side is a leaf: no split can narrow the answer by more.
     ``tight_ratio``: a box whose remainders are all below this fraction of the bound is a leaf
     whatever the witnesses (its relaxation is within about ``1 + tight_ratio`` of the exact set).
+    ``divided_ratio``: a point is written in the divided form only where its remainder is at most
+    this fraction of its bound (the divided form inflates the point's disc by ``1 + remainder /
+    bound``); elsewhere in the lifted (a pair) or mixed form. Until stop 57 it was 1: points with a
+    remainder up to the bound had their discs up to doubled. A tenth: fewer boxes and narrower
+    intervals on the benchmark but for one case (docs/closely-spaced-modes.md; 1,200 lines of the
+    3 % pair 9.6 -> 5.9 s).
     ``contract_at_budget``: past ``max_boxes`` no box is split, and each open box is contracted
     once more before it becomes a leaf, instead of being kept as it stood (a half then holds its
     parent's extent in every parameter but the cut one). The answer can only narrow: every such
@@ -96,6 +102,7 @@ class GroupSettings:
     fine_ratio: float = 1.0
     settle_fraction: float = 0.15
     tight_ratio: float = 0.1
+    divided_ratio: float = 0.1  # the divided form only where its remainder is at most this fraction of the bound
     max_boxes: int = 400
     max_contractions: int = 8
     contraction_tolerance: float = 0.02
@@ -120,6 +127,10 @@ class GroupResult:
     pruned: int
     n_solves: int
     exhausted: bool  # max_boxes reached: the open boxes' hull was kept
+    # the last stage's leaves, ``(lower, upper)`` of shape ``(m, 4)`` each: their union holds every
+    # parameter that fits (the hull above loses how the modes' parameters go together); empty when
+    # a leaf has an uncertified bound (it might not hold its part of the set)
+    pieces: tuple = ()
 
 
 GROUP_MISMATCH_RATIO = 1.0  # a neighbour's worst-case mismatch above the data's bound in a mode's band
@@ -648,15 +659,15 @@ class _Search:
         return bool(np.all(_remainders(self.omega[finite], lo, hi) <= ratio * self.E[finite]))
 
     def _cones(self, lo, hi, idx):
-        """Each point's cone: the divided form where its remainder is below the point's bound; a pair
-        elsewhere in its lifted form (:func:`lifted_pair`), a larger group in its multiplied form
+        """Each point's cone: the divided form where its remainder is at most ``divided_ratio`` of the
+        point's bound; a pair elsewhere in its lifted form (:func:`lifted_pair`), a larger group in its multiplied form
         (all are outer relaxations; the choice only picks the tighter). Returns ``(r_c, J, err, C,
         products)`` with the points whose cone holds over the whole box left out (they bound
         nothing there)."""
         omega, g, E = self.omega[idx], self.g[idx], self.E[idx]
         r_c, J, err, rho = linearised_group(omega, g, lo, hi)
         C = E + rho
-        divided = rho <= E
+        divided = rho <= self.settings.divided_ratio * E
         products = None
         if not divided.all():
             mult = ~divided
@@ -827,7 +838,7 @@ LOOKAHEAD = 2  # boxes in flight: a setting of the search, not the machine's cor
 
 
 def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings: GroupSettings, counts: dict,
-                      root_flags: dict):
+                      root_flags: dict, pieces: tuple = ()):
     """Best-first search of the box (:func:`_priority`) by ``settings.workers`` threads (the conic
     solver runs outside the GIL), the boxes' results applied in the order they were taken
     (:func:`setmem_hil.numerics.in_order_pool.run_in_order`: the same answer from the same data,
@@ -835,7 +846,10 @@ def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings:
     empty). Past ``max_boxes`` every open box becomes a leaf as it stands, or with
     ``settings.contract_at_budget`` contracted once more: the hull is still guaranteed, only
     wider than a longer search's. A leaf is ``(lo, hi, flags)``: ``flags`` maps its uncertified bounds
-    ``(parameter, +1 lower / -1 upper)`` to the reason; the root's are ``root_flags``."""
+    ``(parameter, +1 lower / -1 upper)`` to the reason; the root's are ``root_flags``.
+
+    ``pieces`` (boxes whose union holds the root's feasible set, :func:`piece_hulls`): the
+    contracted root's children are its intersections with them, not its two halves."""
     open_boxes = [(lo, hi, 0, dict(root_flags))]
     search.root = (lo, hi)
     leaves: list[tuple[np.ndarray, np.ndarray, dict]] = []
@@ -876,6 +890,11 @@ def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings:
             counts["pruned"] += 1
             return
         depth, flags = box[2], _merged_flags(box[3], out[4])
+        parts = _pieces_of(out[0], out[1], pieces) if depth == 0 and not spent[0] else []
+        if parts:
+            # a piece's own bounds are certified (its search's); the root's flags kept on all (conservative)
+            open_boxes.extend((p_lo, p_hi, 1, dict(flags)) for p_lo, p_hi in parts)
+            return
         children = None if spent[0] else _children(search, out[0], out[1], out[2], depth, settings, flags)
         if children is None:
             leaves.append((out[0], out[1], flags))
@@ -887,6 +906,35 @@ def _branch_and_bound(search: _Search, lo: np.ndarray, hi: np.ndarray, settings:
 
     run_in_order(take, compute, apply, LOOKAHEAD, settings.workers)
     return leaves
+
+
+def _pieces_of(lo, hi, pieces) -> list:
+    """The non-empty intersections of the box with ``pieces`` (flat ``(lower, upper)``), or ``[]``
+    for none or a single one (then the box is split as usual)."""
+    parts = []
+    for p_lo, p_hi in pieces:
+        c_lo, c_hi = np.maximum(lo, p_lo), np.minimum(hi, p_hi)
+        if np.all(c_lo <= c_hi):
+            parts.append((c_lo, c_hi))
+    return parts if len(parts) > 1 else []
+
+
+def piece_hulls(pieces, count: int) -> list:
+    """At most ``count`` boxes whose union holds the union of ``pieces`` (``(lower, upper)``
+    pairs): the pieces ordered along the main direction of their centres (in units of their
+    spread) and cut into ``count`` runs of consecutive pieces, each run replaced by its hull. A
+    close pair's set is a thin slanted sliver (its residues go together); a few hulls along it
+    keep much of that, where the one hull of all loses it (our choice, issue 47, stop 58)."""
+    pieces = list(pieces)
+    if len(pieces) <= count:
+        return pieces
+    centres = np.array([0.5 * (np.ravel(l) + np.ravel(h)) for l, h in pieces])
+    spread = np.ptp(centres, axis=0)
+    z = (centres - centres.mean(axis=0)) / np.where(spread > 0, spread, 1.0)
+    direction = np.linalg.svd(z, full_matrices=False)[2][0]
+    order = np.argsort(z @ direction, kind="stable")
+    return [(np.min([pieces[i][0] for i in run], axis=0), np.max([pieces[i][1] for i in run], axis=0))
+            for run in np.array_split(order, count)]
 
 
 def _hull(leaves):
@@ -902,7 +950,7 @@ def _hull(leaves):
     return lo, hi, flags
 
 
-def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSettings()) -> GroupResult:
+def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSettings(), pieces: tuple = ()) -> GroupResult:
     """Certified bounds of a group of modes' parameters (module docstring).
 
     The search runs first on at most ``settings.search_points`` points (a subset: its set
@@ -917,6 +965,9 @@ def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSet
         bound on each point's error (the data's bound plus the outside modes' mismatch, eq. 3.11).
     lo, hi : arrays (m, 4)
         The group's current box (the prior intersected with earlier bounds); finite.
+    pieces : sequence of (lower, upper), arrays (m, 4)
+        Boxes whose union holds every parameter of the box that fits (an earlier search's leaves,
+        :func:`piece_hulls`): the first stage starts from them instead of halving the box.
 
     Returns
     -------
@@ -939,15 +990,19 @@ def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSet
     subsets = [_search_subset(omega, settings.search_points, box_lo, box_hi)]
     if subsets[0].size < omega.size:
         subsets = subsets + [np.arange(omega.size)] if settings.subset_stage else [np.arange(omega.size)]
+    flat_pieces = tuple((np.ravel(p_lo), np.ravel(p_hi)) for p_lo, p_hi in pieces)
     for idx in subsets:
         search = _Search(omega[idx], g[idx], E[idx], settings)
         search.hint = anchor
-        leaves = _branch_and_bound(search, box_lo, box_hi, settings, counts, flags)
+        leaves = _branch_and_bound(search, box_lo, box_hi, settings, counts, flags, flat_pieces)
+        flat_pieces = ()
         n_solves += search.n_solves
         if not leaves:
             raise ValueError("every box of the group was proved empty")
         box_lo, box_hi, flags = _hull(leaves)  # the next stage's root: its flags carry over
         anchor = search.anchor  # fits the subset: where the search with every point starts looking
     reason = "; ".join(sorted(set(flags.values())))
+    certified_leaves = all(not leaf_flags for _, _, leaf_flags in leaves)
+    kept = tuple((l.reshape(m, 4), h.reshape(m, 4)) for l, h, _ in leaves) if certified_leaves else ()
     return GroupResult(box_lo.reshape(m, 4), box_hi.reshape(m, 4), not flags, reason, counts["boxes"],
-                       len(leaves), counts["pruned"], n_solves, counts["exhausted"])
+                       len(leaves), counts["pruned"], n_solves, counts["exhausted"], kept)
