@@ -18,6 +18,7 @@ never loosen (eq. 5.4-5.5), and the start is guaranteed (:mod:`setmem_hil.identi
 
 from __future__ import annotations
 
+import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -415,18 +416,18 @@ def polish_pieces(group_pieces: dict, lo: np.ndarray, hi: np.ndarray, most: int 
     per_group = int(most ** (1.0 / max(len(usable), 1)) + 1e-9)
     if not usable or per_group < 2:
         return ()
-    combos = [(lo.copy(), hi.copy())]
+    # each group's hulls clipped to the box once (an empty one drops out), then every combination
+    clipped = []
     for group, pieces in usable.items():
-        merged = piece_hulls(pieces, per_group)
         rows = list(group)
-        grown = []
-        for c_lo, c_hi in combos:
-            for p_lo, p_hi in merged:
-                n_lo, n_hi = c_lo.copy(), c_hi.copy()
-                n_lo[rows], n_hi[rows] = np.maximum(lo[rows], p_lo), np.minimum(hi[rows], p_hi)
-                if np.all(n_lo <= n_hi):
-                    grown.append((n_lo, n_hi))
-        combos = grown
+        boxes = [(np.maximum(lo[rows], p_lo), np.minimum(hi[rows], p_hi)) for p_lo, p_hi in piece_hulls(pieces, per_group)]
+        clipped.append((rows, [(b_lo, b_hi) for b_lo, b_hi in boxes if np.all(b_lo <= b_hi)]))
+    combos = []
+    for choice in itertools.product(*(boxes for _, boxes in clipped)):
+        c_lo, c_hi = lo.copy(), hi.copy()
+        for (rows, _), (p_lo, p_hi) in zip(clipped, choice):
+            c_lo[rows], c_hi[rows] = p_lo, p_hi
+        combos.append((c_lo, c_hi))
     return tuple(combos)
 
 
