@@ -385,13 +385,15 @@ def _pair_with_a_flaky_solver(monkeypatch, parameter: int, when, max_boxes: int 
 
 
 A0_OF_MODE_1 = 1  # index of mode 1's a0 in the group's (a1, a0, b1, b0) x 2
+A0_OF_MODE_2 = 5  # mode 2's
 
 
 def test_an_uncertified_bound_inside_the_answer_leaves_the_answer_verified(monkeypatch):
-    """A box whose upper bound of mode 1's a0 stays uncertified but lies below the true a0 cannot
+    """A box whose upper bound of mode 2's a0 stays uncertified but lies below the true a0 cannot
     hold the answer's bound (the answer holds the truth): the answer stays verified and holds the
-    truth. (Every flag once made the whole group unverified.)"""
-    p = A0_OF_MODE_1
+    truth. (Every flag once made the whole group unverified.) Mode 2's: with the multiplied
+    points' radii affine (stop 59) no box of the first 24 lies below mode 1's true a0."""
+    p = A0_OF_MODE_2
     truth, _, result, injected = _pair_with_a_flaky_solver(monkeypatch, p, lambda lo, hi, x: hi[p] < x[p])
     assert injected > 0
     assert result.verified, result.unverified_reason

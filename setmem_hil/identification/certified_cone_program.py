@@ -156,13 +156,22 @@ class AffineConeProgram:
         :meth:`bound_box` must lie inside it.
     omega_rad_s : array (N,), optional
         The points' frequencies (kept for diagnostics).
+    products : ProductTerms, optional
+        Auxiliary product variables of the residuals (module docstring).
+    bound_slopes : (array (N, P), array (N, n_aux)), optional
+        The radii's slopes per unit of ``x`` and per product: point ``j``'s radius is ``C_j +
+        slope_j (x - c) + product_slope_j z`` (an affine bound of a multiplied denominator's
+        magnitude, :mod:`setmem_hil.identification.magnitude_bound`), ``C_j`` given to
+        :meth:`bound_box`. The certificates need nothing more: the radius is a row of ``A`` like
+        the residual's.
     """
 
-    def __init__(self, r_c, J, err_rc, box_lo, box_hi, omega_rad_s=None, products: ProductTerms | None = None):
+    def __init__(self, r_c, J, err_rc, box_lo, box_hi, omega_rad_s=None, products: ProductTerms | None = None,
+                 bound_slopes: tuple | None = None):
         box_lo = np.asarray(box_lo, dtype=float)
         box_hi = np.asarray(box_hi, dtype=float)
         self._setup(np.asarray(r_c, dtype=complex), np.asarray(J, dtype=complex), np.asarray(err_rc, dtype=float),
-                    box_lo, box_hi, omega_rad_s, products)
+                    box_lo, box_hi, omega_rad_s, products, bound_slopes)
 
     @staticmethod
     def box_centre(box_lo, box_hi):
@@ -173,7 +182,8 @@ class AffineConeProgram:
         half = np.where(finite & free, 0.5 * (box_hi - box_lo), 1.0)
         return centre, half
 
-    def _setup(self, r_c, J_unscaled, err_rc_abs, box_lo, box_hi, omega_rad_s, products: ProductTerms | None = None):
+    def _setup(self, r_c, J_unscaled, err_rc_abs, box_lo, box_hi, omega_rad_s, products: ProductTerms | None = None,
+               bound_slopes: tuple | None = None):
         n_params = box_lo.size
         self.n_params = n_params
         self.omega = None if omega_rad_s is None else np.asarray(omega_rad_s, dtype=float)
@@ -194,6 +204,13 @@ class AffineConeProgram:
         A_soc = np.zeros((3 * n, p + n_aux))
         A_soc[1::3] = -Jf.real / self.sigma[:, None]
         A_soc[2::3] = -Jf.imag / self.sigma[:, None]
+        if bound_slopes is not None:
+            # the cone's radius affine in the variables (C + slope (x - c) + product_slope z: an
+            # affine bound of a denominator's magnitude, magnitude_bound.py); s = b - A v
+            slope, product_slope = bound_slopes
+            A_soc[0::3, :p] = -(np.asarray(slope, dtype=float) * self.half[None, :])[:, self.free] / self.sigma[:, None]
+            if n_aux:
+                A_soc[0::3, p:] = -np.asarray(product_slope, dtype=float) / self.sigma[:, None]
         b_soc = np.zeros(3 * n)
         b_soc[1::3] = r_c.real / self.sigma
         b_soc[2::3] = r_c.imag / self.sigma

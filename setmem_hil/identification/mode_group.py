@@ -64,6 +64,7 @@ import numpy as np
 from setmem_hil.identification import feasible_points
 from setmem_hil.identification.certified_cone_program import AffineConeProgram, ProductTerms
 from setmem_hil.identification.embedding import denominator_max, denominator_min
+from setmem_hil.identification.magnitude_bound import AffineMagnitudeBound, affine_magnitude_bound
 from setmem_hil.model.modal_model import A0, A1, B0, B1, near_resonance
 from setmem_hil.numerics.in_order_pool import run_in_order
 
@@ -111,6 +112,7 @@ class GroupSettings:
     search_points: int = 160
     subset_stage: bool = True  # search a subset of the points first (the hull searched again with all)
     contract_at_budget: bool = False  # past max_boxes: each open box contracted once more, not kept as it stood
+    affine_radius: bool = True  # the multiplied denominators' magnitude bounded affinely where tighter (stop 59)
     workers: int = field(default_factory=lambda: min(2, os.cpu_count() or 1))
 
 
@@ -406,6 +408,34 @@ def _sub_box(lo, hi, modes):
     return np.asarray(lo, dtype=float)[cols], np.asarray(hi, dtype=float)[cols], cols
 
 
+def denominator_bound(omega_rad_s, lo, hi, pairs, box_max) -> AffineMagnitudeBound:
+    """The affine bound of ``|D|`` (one mode's box, ``pairs`` empty) or ``|D_1 D_2|`` (a pair's,
+    its products in the columns ``pairs`` of :func:`lifted_pair`) that replaces ``box_max`` on the
+    right of the multiplied constraint where it is tighter (:mod:`magnitude_bound`, stop 59).
+    Slopes per unit of the box's normalised coordinates."""
+    w, _, c, h, _, _, m = _box_terms(omega_rad_s, lo, hi)
+    factors = [_affine_factors(w, c[i], h[i]) for i in range(m)]
+    deviations = [np.hypot(h[i, A0], w * h[i, A1]) for i in range(m)]
+    if m == 1:
+        D, dD = factors[0][0], factors[0][1]
+        return affine_magnitude_bound(D, dD.T, np.zeros((w.size, 0)), deviations[0], box_max)
+    (D1, dD1, _, _), (D2, dD2, _, _) = factors
+    Q_c, Q_y, Q_z = _product_of_affine(D1, dD1, D2, dD2)
+    pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    cols = pairs[:, 0] * 4 + pairs[:, 1] - 4
+    deviation = np.abs(D1) * deviations[1] + deviations[0] * np.abs(D2) + deviations[0] * deviations[1]
+    bound = affine_magnitude_bound(Q_c, Q_y, Q_z[:, cols], deviation, box_max)
+    # a product of Q that is not a variable of the program (g = 0 at every point) cannot be bounded
+    missing = np.any(np.delete(Q_z, cols, axis=1) != 0, axis=1)
+    return AffineMagnitudeBound(bound.constant, bound.slope, bound.product_slope, bound.usable & ~missing)
+
+
+def _per_unit_x(slope_y, lo, hi):
+    """Slopes per unit of the normalised coordinates ``y`` turned into slopes per unit of ``x``."""
+    half = 0.5 * (np.asarray(hi, dtype=float) - np.asarray(lo, dtype=float))
+    return np.where(half > 0, slope_y / np.where(half > 0, half, 1.0), 0.0)
+
+
 def mixed_form(omega_rad_s, g, lo, hi, multiplied: tuple[int, ...]):
     """A point's constraint multiplied through by the denominators of one mode or a pair only
     (those whose own remainder is large there), the group's other modes in their mean-value form
@@ -486,28 +516,39 @@ def _multiplied_modes(omega, E, lo, hi) -> list:
     return choice
 
 
-def _mixed_cones(omega, g, E, lo, hi, mult, cones):
-    """Write the cones of the points ``mult`` (in place into ``cones = (r_c, J, err, C)``) in the
-    form :func:`_multiplied_modes` picks; returns the product terms of the pairs used, or
-    ``None``."""
-    r_c, J, err, C = cones
+def _mixed_cones(omega, g, E, lo, hi, mult, cones, affine_radius: bool = True):
+    """Write the cones of the points ``mult`` (in place into ``cones = (r_c, J, err, C, slope)``,
+    ``slope`` the radius's slope per unit of ``x``) in the form :func:`_multiplied_modes` picks,
+    the multiplied denominators' magnitude bounded affinely where that is tighter
+    (:func:`denominator_bound`); returns the product terms of the pairs used and their slopes in
+    the radius, or ``(None, None)``."""
+    r_c, J, err, C, slope = cones
     choice = _multiplied_modes(omega, E, lo, hi)
-    K_cols, pairs = [], []
+    K_cols, pairs, K_slopes = [], [], []
     for modes in dict.fromkeys(choice[j] for j in np.flatnonzero(mult)):
         rows = mult & np.array([c == modes for c in choice])
+        bound = None
         if modes is None:
             P_c, J_m, err_m, rho_m, scale = multiplied_group(omega, g, lo, hi)
             lifted = None
         else:
             P_c, J_m, err_m, scale, rho_m, lifted = mixed_form(omega, g, lo, hi, modes)
+            k_lo, k_hi, k_cols = _sub_box(lo, hi, modes)
+            local_pairs = np.searchsorted(k_cols, lifted.pairs) if lifted is not None else ()
+            bound = denominator_bound(omega, k_lo, k_hi, local_pairs, scale)
         r_c[rows], J[rows], err[rows] = P_c[rows], J_m[rows], err_m[rows]
         C[rows] = scale[rows] * E[rows] + rho_m[rows]
+        affine = np.zeros_like(rows) if bound is None or not affine_radius else rows & bound.usable
+        if affine.any():
+            C[affine] = bound.constant[affine] * E[affine] + rho_m[affine]
+            slope[np.ix_(affine, k_cols)] = E[affine, None] * _per_unit_x(bound.slope[affine], k_lo, k_hi)
         if lifted is not None and lifted.K.shape[1]:
             K_cols.append(np.where(rows[:, None], lifted.K, 0.0))
             pairs.append(lifted.pairs)
+            K_slopes.append(np.where(affine[:, None], E[:, None] * bound.product_slope, 0.0))
     if not K_cols:
-        return None
-    return ProductTerms(np.hstack(K_cols), np.vstack(pairs))
+        return None, None
+    return ProductTerms(np.hstack(K_cols), np.vstack(pairs)), np.hstack(K_slopes)
 
 
 def _remainders(omega, lo, hi) -> np.ndarray:
@@ -661,14 +702,17 @@ class _Search:
     def _cones(self, lo, hi, idx):
         """Each point's cone: the divided form where its remainder is at most ``divided_ratio`` of the
         point's bound; a pair elsewhere in its lifted form (:func:`lifted_pair`), a larger group in its multiplied form
-        (all are outer relaxations; the choice only picks the tighter). Returns ``(r_c, J, err, C,
-        products)`` with the points whose cone holds over the whole box left out (they bound
-        nothing there)."""
+        (all are outer relaxations; the choice only picks the tighter), the multiplied
+        denominators' magnitude on the right bounded affinely where that is tighter
+        (:func:`denominator_bound`). Returns ``(r_c, J, err, C, products, active, slopes)`` with
+        the points whose cone holds over the whole box left out (they bound nothing there);
+        ``slopes`` (``None`` when every radius is constant) are the radii's slopes per unit of
+        ``x`` and per product."""
         omega, g, E = self.omega[idx], self.g[idx], self.E[idx]
         r_c, J, err, rho = linearised_group(omega, g, lo, hi)
         C = E + rho
         divided = rho <= self.settings.divided_ratio * E
-        products = None
+        products, slope, product_slope = None, np.zeros(J.shape), None
         if not divided.all():
             mult = ~divided
             r_c, J, err, C = r_c.copy(), J.copy(), err.copy(), C.copy()
@@ -678,17 +722,30 @@ class _Search:
                 products = ProductTerms(K, lifted.pairs)
                 C[mult] = scale[mult] * E[mult]
                 r_c[mult], J[mult], err[mult] = P_c[mult], J_m[mult], err_m[mult]
+                bound = denominator_bound(omega, lo, hi, lifted.pairs, scale)
+                affine = mult & bound.usable & self.settings.affine_radius
+                C[affine] = bound.constant[affine] * E[affine]
+                slope[affine] = E[affine, None] * _per_unit_x(bound.slope[affine], lo, hi)
+                product_slope = np.where(affine[:, None], E[:, None] * bound.product_slope, 0.0)
             else:
-                products = _mixed_cones(omega, g, E, lo, hi, mult, (r_c, J, err, C))
+                products, product_slope = _mixed_cones(omega, g, E, lo, hi, mult, (r_c, J, err, C, slope),
+                                                       self.settings.affine_radius)
         C = np.where(np.isfinite(E), C, np.inf)
         h = 0.5 * (np.asarray(hi, dtype=float) - np.asarray(lo, dtype=float))
         reach = np.abs(r_c) + np.abs(J) @ h + err
+        radius_min = C - np.abs(slope) @ h  # the radius's least value over the box
         if products is not None:
             reach = reach + np.sum(np.abs(products.K), axis=1)
-        active = np.isfinite(C) & ~(reach * (1.0 + 1e-9) < C)
+            radius_min = radius_min - np.sum(np.abs(product_slope), axis=1)
+        active = np.isfinite(C) & ~(reach * (1.0 + 1e-9) < radius_min)
+        slopes = None
+        if np.any(slope[active]) or (product_slope is not None and np.any(product_slope[active])):
+            n_aux = 0 if products is None else products.K.shape[1]
+            slopes = (slope[active], np.zeros((int(active.sum()), n_aux)) if product_slope is None
+                      else product_slope[active])
         if products is not None:
             products = ProductTerms(products.K[active], products.pairs)
-        return r_c[active], J[active], err[active], C[active], products, active
+        return r_c[active], J[active], err[active], C[active], products, active, slopes
 
     def _points_for(self, lo, hi) -> np.ndarray:
         """The points a box's program uses: every point once the box is fine (its remainders all
@@ -712,10 +769,10 @@ class _Search:
         sol, verdicts = None, {}
         for _ in range(self.settings.max_contractions):
             idx = self._points_for(lo, hi)
-            r_c, J, err, C, products, active = self._cones(lo, hi, idx)
+            r_c, J, err, C, products, active, slopes = self._cones(lo, hi, idx)
             if not active.any():
                 return lo, hi, False, [], verdicts
-            program = AffineConeProgram(r_c, J, err, lo, hi, self.omega[idx][active], products)
+            program = AffineConeProgram(r_c, J, err, lo, hi, self.omega[idx][active], products, slopes)
             sol = program.bound_box(C, lo, hi)
             with self._lock:
                 self.n_solves += program.n_solves
