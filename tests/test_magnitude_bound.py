@@ -101,3 +101,25 @@ def test_one_contraction_with_the_affine_radius_holds_the_exact_set_and_is_narro
         assert np.all(out[0] <= ex_lo + slack) and np.all(out[1] >= ex_hi - slack), affine
         widths[affine] = out[1] - out[0]
     assert np.all(widths[True] < 0.8 * widths[False])
+
+
+@pytest.mark.parametrize("modes", [2, 3])
+def test_a_line_without_a_bound_is_left_out_silently(modes):
+    """A line whose bound is infinite (it constrains nothing: a campaign's unusable line) is left out
+    of the program without a floating-point warning reaching the user (inf times a zero slope), and
+    the other lines' cones are those of the data without it."""
+    import warnings
+
+    truth, data, _ = close_pair_case(0.01, residues=(4.0, 2.5), noise=5.0, n=120)
+    w, g, E = data.omega_rad_s, data.response, data.bound.copy()
+    x0 = truth.values[:modes].reshape(-1)
+    lo, hi = x0 - 0.02 * np.abs(x0) - 0.01, x0 + 0.02 * np.abs(x0) + 0.01
+    resonant = int(np.argmin(np.abs(w - 10.0)))
+    E[resonant] = np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = _Search(w, g, E, GroupSettings(workers=1))._cones(lo, hi, np.arange(w.size))
+    keep = np.arange(w.size) != resonant
+    ref = _Search(w[keep], g[keep], E[keep], GroupSettings(workers=1))._cones(lo, hi, np.arange(keep.sum()))
+    assert not out[5][resonant]
+    assert np.array_equal(out[3], ref[3]) and np.array_equal(out[6][0], ref[6][0])

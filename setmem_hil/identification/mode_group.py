@@ -538,14 +538,17 @@ def _mixed_cones(omega, g, E, lo, hi, mult, cones, affine_radius: bool = True):
             bound = denominator_bound(omega, k_lo, k_hi, local_pairs, scale)
         r_c[rows], J[rows], err[rows] = P_c[rows], J_m[rows], err_m[rows]
         C[rows] = scale[rows] * E[rows] + rho_m[rows]
-        affine = np.zeros_like(rows) if bound is None or not affine_radius else rows & bound.usable
+        affine = np.zeros_like(rows) if bound is None or not affine_radius else rows & bound.usable & np.isfinite(E)
         if affine.any():
             C[affine] = bound.constant[affine] * E[affine] + rho_m[affine]
             slope[np.ix_(affine, k_cols)] = E[affine, None] * _per_unit_x(bound.slope[affine], k_lo, k_hi)
         if lifted is not None and lifted.K.shape[1]:
             K_cols.append(np.where(rows[:, None], lifted.K, 0.0))
             pairs.append(lifted.pairs)
-            K_slopes.append(np.where(affine[:, None], E[:, None] * bound.product_slope, 0.0))
+            K_slope = np.zeros(lifted.K.shape)
+            if affine.any():
+                K_slope[affine] = E[affine, None] * bound.product_slope[affine]
+            K_slopes.append(K_slope)
     if not K_cols:
         return None, None
     return ProductTerms(np.hstack(K_cols), np.vstack(pairs)), np.hstack(K_slopes)
@@ -723,10 +726,11 @@ class _Search:
                 C[mult] = scale[mult] * E[mult]
                 r_c[mult], J[mult], err[mult] = P_c[mult], J_m[mult], err_m[mult]
                 bound = denominator_bound(omega, lo, hi, lifted.pairs, scale)
-                affine = mult & bound.usable & self.settings.affine_radius
+                affine = mult & bound.usable & np.isfinite(E) & self.settings.affine_radius
                 C[affine] = bound.constant[affine] * E[affine]
                 slope[affine] = E[affine, None] * _per_unit_x(bound.slope[affine], lo, hi)
-                product_slope = np.where(affine[:, None], E[:, None] * bound.product_slope, 0.0)
+                product_slope = np.zeros(bound.product_slope.shape)
+                product_slope[affine] = E[affine, None] * bound.product_slope[affine]
             else:
                 products, product_slope = _mixed_cones(omega, g, E, lo, hi, mult, (r_c, J, err, C, slope),
                                                        self.settings.affine_radius)
