@@ -365,10 +365,11 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         # Then once more from the groups' last leaves (a few hulls along each pair's set), which
         # keep how a pair's parameters go together; it starts from the first one's box, so it can
         # only narrow it.
-        _polish(data, lo, hi, res, prior, counter, group_unverified)
+        grouped = tuple(sorted({k for group in groups for k in group}))
+        _polish(data, lo, hi, res, prior, counter, group_unverified, grouped)
         pieces = polish_pieces(group_pieces, lo, hi, settings.polish_pieces)
         if pieces:
-            _polish(data, lo, hi, res, prior, counter, group_unverified, pieces)
+            _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pieces)
     for i, reason in group_unverified.items():
         last_unverified[i] = tuple(last_unverified[i]) + (reason,)
 
@@ -399,11 +400,13 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
     )
 
 
-def _polish(data, lo, hi, res, prior, counter, unverified, pieces: tuple = ()) -> None:
-    """Every mode contracted together (in place), in ``POLISH_BOXES`` boxes beyond ``pieces``."""
+def _polish(data, lo, hi, res, prior, counter, unverified, grouped: tuple, pieces: tuple = ()) -> None:
+    """Every mode contracted together (in place), in ``POLISH_BOXES`` boxes beyond ``pieces``; a
+    split cuts the parameter of a mode in ``grouped`` (the groups' modes) widest against the
+    witnesses' hull (:func:`mode_group._relatively_widest`)."""
     _identify_group_in_place(data, lo, hi, res, list(range(lo.shape[0])), prior, counter, unverified,
                              GroupSettings(max_boxes=POLISH_BOXES + len(pieces), search_points=POLISH_POINTS,
-                                           subset_stage=False, contract_at_budget=True), pieces)
+                                           subset_stage=False, contract_at_budget=True, split_among=grouped), pieces)
 
 
 def polish_pieces(group_pieces: dict, lo: np.ndarray, hi: np.ndarray, most: int = POLISH_PIECES) -> tuple:

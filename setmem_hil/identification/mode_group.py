@@ -113,6 +113,9 @@ class GroupSettings:
     subset_stage: bool = True  # search a subset of the points first (the hull searched again with all)
     contract_at_budget: bool = False  # past max_boxes: each open box contracted once more, not kept as it stood
     affine_radius: bool = True  # the multiplied denominators' magnitude bounded affinely where tighter (stop 59)
+    # the modes whose parameters a split may cut, the one widest against the witnesses' hull
+    # (None: the remainders' rule, :func:`_split_dimension`); the polish's, stop 59
+    split_among: tuple[int, ...] | None = None
     workers: int = field(default_factory=lambda: min(2, os.cpu_count() or 1))
 
 
@@ -874,6 +877,20 @@ def _widest_mode(search: _Search, lo: np.ndarray, hi: np.ndarray):
     return [int(np.argmax(_protrusion(inner, lo, hi))) // 4]
 
 
+def _relatively_widest(inner, lo, hi, modes) -> int:
+    """The free parameter of ``modes`` whose box is widest against the witnesses' hull ``inner``
+    (``-1`` when none is free). The polish's rule (stop 59): there a far mode's own poles are
+    already narrow, and what keeps its residues wide is the pair's box, whose residues trade
+    against each other; the remainders' rule never cuts a residue (it is linear: halving it blurs
+    nothing), so the pair's residues were never cut and the far mode kept their corners' slack."""
+    index = np.arange(np.size(lo))
+    free = (hi > lo) & np.isin(index // 4, modes)
+    if not free.any():
+        return -1
+    width = np.maximum(inner[1] - inner[0], 1e-12 * np.maximum(np.abs(inner[0]), 1e-300))
+    return int(index[free][np.argmax(((hi - lo) / width)[free])])
+
+
 def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSettings, flags: dict):
     """A contracted box's two halves, or ``None`` when it is a leaf: settled against the witnesses,
     tight, fine before any witness exists, or at the depth limit; never while a flagged
@@ -884,7 +901,11 @@ def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSe
     leaf = search.settled(lo, hi) or (fine and (search.inner is None or search.within(lo, hi, settings.tight_ratio)))
     if (leaf and not search.flag_outside(lo, hi, flags)) or depth >= settings.max_depth:
         return None
-    k = _split_dimension(search.omega, search.E, lo, hi, _widest_mode(search, lo, hi))
+    k = -1
+    if settings.split_among is not None and search.inner is not None:
+        k = _relatively_widest(search.inner, lo, hi, settings.split_among)
+    if k < 0:
+        k = _split_dimension(search.omega, search.E, lo, hi, _widest_mode(search, lo, hi))
     if k < 0:
         k = _split_dimension(search.omega, search.E, lo, hi)
     if k < 0:
