@@ -37,6 +37,11 @@ coefficients back to two close poles is ill-conditioned exactly where the modes 
 sensitivity grows as the inverse of the poles' distance), and the branch-and-bound on the modal
 parameters tightens the envelopes there.
 
+The multiplied forms' right side (stop 59): ``E max_box |Q|`` (eq. 3.34, ``Q`` the multiplied
+denominators) is loose to first order in the box; where tighter, ``|Q|`` is bounded instead by an
+affine function of the parameters and products, tangent at the centre
+(:mod:`setmem_hil.identification.magnitude_bound`), exact to second order.
+
 Where to refine (our choice): best-first on how far a box sticks out of the hull of points checked
 to fit (witnesses, :mod:`setmem_hil.identification.feasible_points`); a box within
 ``settle_fraction`` of that hull's width on every side is a leaf. The witnesses only steer the
