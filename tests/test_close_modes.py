@@ -235,17 +235,16 @@ def test_points_whose_divided_remainder_is_over_a_tenth_of_their_bound_are_writt
     points with remainders between a tenth of the bound and the bound): both choices hold the
     linearised exact set (HiGHS, independent of the conic programs); the tenth's box lies inside the
     other's and is more than 10 % narrower somewhere."""
-    from setmem_hil.identification.mode_group import GroupSettings, _Search
-    from setmem_hil.model.modal_model import ModalParameters
+    import importlib.util
+    from pathlib import Path
 
-    truth, data, prior = close_pair_case(0.03, residues=(4.0, 2.5), noise=5.0)
-    w, E = data.omega_rad_s, data.bound
-    g = data.response - ModalParameters(truth.values[2:]).frequency_response(w)
-    box = prior.initial_bounds()
-    ex_lo, ex_hi = (v.reshape(-1) for v in linearised_extent(w, g, E, truth.values[:2], box.lower[:2], box.upper[:2]))
-    centre, half = truth.values[:2].reshape(-1), 4.0 * (ex_hi - ex_lo)
-    lo = np.maximum(centre - half, box.lower[:2].reshape(-1))
-    hi = np.minimum(centre + half, box.upper[:2].reshape(-1))
+    from setmem_hil.identification.mode_group import GroupSettings, _Search
+
+    spec = importlib.util.spec_from_file_location("_close_pair_box", Path(__file__).with_name("_close_pair_box.py"))
+    helpers = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(helpers)
+    case = helpers.pair_box_around_truth(0.03, (4.0, 2.5), 5.0)
+    w, g, E, ex_lo, ex_hi, lo, hi = case.w, case.g, case.E, case.ex_lo, case.ex_hi, case.lo, case.hi
     rho = linearised_group(w, g, lo, hi)[3]
     assert np.sum((rho > 0.1 * E) & (rho <= E)) >= 20  # the points the choice is about
     boxes = {}

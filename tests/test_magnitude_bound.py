@@ -7,14 +7,21 @@ set in HiGHS (:func:`exact_set.linearised_extent`), independent of the conic pro
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from setmem_hil.identification.embedding import denominator_max
-from setmem_hil.identification.exact_set import linearised_extent
 from setmem_hil.identification.mode_group import GroupSettings, _Search, denominator_bound
 from setmem_hil.model.modal_model import A0, A1, ModalParameters, modal_response
 from setmem_hil.sim_backends.close_pair import close_pair_case
+
+_spec = importlib.util.spec_from_file_location("_close_pair_box", Path(__file__).with_name("_close_pair_box.py"))
+_helpers = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_helpers)
+_pair_box_around_truth = _helpers.pair_box_around_truth
 
 
 def _denominator(x_mode, w):
@@ -85,14 +92,8 @@ def test_one_contraction_with_the_affine_radius_holds_the_exact_set_and_is_narro
     pair at five times the noise): with the multiplied points' radii affine (stop 59) and with the
     box's maximum (eq. 3.34), both boxes hold the linearised exact set (HiGHS, independent of the
     conic programs), and the affine one is narrower by more than a fifth in every parameter."""
-    truth, data, prior = close_pair_case(0.03, residues=(4.0, 2.5), noise=5.0)
-    w, E = data.omega_rad_s, data.bound
-    g = data.response - ModalParameters(truth.values[2:]).frequency_response(w)
-    box = prior.initial_bounds()
-    ex_lo, ex_hi = (v.reshape(-1) for v in linearised_extent(w, g, E, truth.values[:2], box.lower[:2], box.upper[:2]))
-    centre, half = truth.values[:2].reshape(-1), 4.0 * (ex_hi - ex_lo)
-    lo = np.maximum(centre - half, box.lower[:2].reshape(-1))
-    hi = np.minimum(centre + half, box.upper[:2].reshape(-1))
+    case = _pair_box_around_truth(0.03, (4.0, 2.5), 5.0)
+    w, g, E, ex_lo, ex_hi, lo, hi = case.w, case.g, case.E, case.ex_lo, case.ex_hi, case.lo, case.hi
     widths = {}
     for affine in (False, True):
         out = _Search(w, g, E, GroupSettings(affine_radius=affine, workers=1)).contract(lo, hi)
