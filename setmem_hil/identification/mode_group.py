@@ -396,8 +396,7 @@ def lifted_pair(omega_rad_s, g, lo, hi):
     r_c = g * dd[0] - nd[0] - dn[0]
     J_y = g[:, None] * dd[1] - nd[1] - dn[1]
     K = g[:, None] * dd[2] - nd[2] - dn[2]
-    half = h.reshape(-1)
-    J = np.where(half > 0, J_y / np.where(half > 0, half, 1.0), 0.0)
+    J = _per_unit_x(J_y, lo, hi)
     used = np.flatnonzero(np.any(K != 0, axis=0))
     pairs = np.array([(k // 4, 4 + k % 4) for k in used], dtype=int).reshape(-1, 2)
     # rounding: every coefficient is a sum of products of at most three factors, each below these
@@ -524,6 +523,19 @@ def _multiplied_modes(omega, E, lo, hi) -> list:
     return choice
 
 
+def _affine_radius(bound: AffineMagnitudeBound, rows, E, rho, radius, cols, sub_lo, sub_hi) -> np.ndarray:
+    """Write the affine radius ``E U + rho`` of ``bound`` (over the sub-box ``sub_lo, sub_hi`` of
+    the parameters ``cols``) into ``radius = (C, slope)`` at the rows where it is usable (a finite
+    bound; in place); returns the product slopes (zero elsewhere)."""
+    C, slope = radius
+    affine = rows & bound.usable & np.isfinite(E)
+    C[affine] = bound.constant[affine] * E[affine] + rho[affine]
+    slope[np.ix_(affine, cols)] = E[affine, None] * _per_unit_x(bound.slope[affine], sub_lo, sub_hi)
+    product_slope = np.zeros(bound.product_slope.shape)
+    product_slope[affine] = E[affine, None] * bound.product_slope[affine]
+    return product_slope
+
+
 def _mixed_cones(omega, g, E, lo, hi, mult, cones, affine_radius: bool = True):
     """Write the cones of the points ``mult`` (in place into ``cones = (r_c, J, err, C, slope)``,
     ``slope`` the radius's slope per unit of ``x``) in the form :func:`_multiplied_modes` picks,
@@ -543,20 +555,16 @@ def _mixed_cones(omega, g, E, lo, hi, mult, cones, affine_radius: bool = True):
             P_c, J_m, err_m, scale, rho_m, lifted = mixed_form(omega, g, lo, hi, modes)
             k_lo, k_hi, k_cols = _sub_box(lo, hi, modes)
             local_pairs = np.searchsorted(k_cols, lifted.pairs) if lifted is not None else ()
-            bound = denominator_bound(omega, k_lo, k_hi, local_pairs, scale)
+            bound = denominator_bound(omega, k_lo, k_hi, local_pairs, scale) if affine_radius else None
         r_c[rows], J[rows], err[rows] = P_c[rows], J_m[rows], err_m[rows]
         C[rows] = scale[rows] * E[rows] + rho_m[rows]
-        affine = np.zeros_like(rows) if bound is None or not affine_radius else rows & bound.usable & np.isfinite(E)
-        if affine.any():
-            C[affine] = bound.constant[affine] * E[affine] + rho_m[affine]
-            slope[np.ix_(affine, k_cols)] = E[affine, None] * _per_unit_x(bound.slope[affine], k_lo, k_hi)
+        K_slope = None
+        if bound is not None:
+            K_slope = _affine_radius(bound, rows, E, rho_m, (C, slope), k_cols, k_lo, k_hi)
         if lifted is not None and lifted.K.shape[1]:
             K_cols.append(np.where(rows[:, None], lifted.K, 0.0))
             pairs.append(lifted.pairs)
-            K_slope = np.zeros(lifted.K.shape)
-            if affine.any():
-                K_slope[affine] = E[affine, None] * bound.product_slope[affine]
-            K_slopes.append(K_slope)
+            K_slopes.append(np.zeros(lifted.K.shape) if K_slope is None else K_slope)
     if not K_cols:
         return None, None
     return ProductTerms(np.hstack(K_cols), np.vstack(pairs)), np.hstack(K_slopes)
@@ -733,12 +741,10 @@ class _Search:
                 products = ProductTerms(K, lifted.pairs)
                 C[mult] = scale[mult] * E[mult]
                 r_c[mult], J[mult], err[mult] = P_c[mult], J_m[mult], err_m[mult]
-                bound = denominator_bound(omega, lo, hi, lifted.pairs, scale)
-                affine = mult & bound.usable & np.isfinite(E) & self.settings.affine_radius
-                C[affine] = bound.constant[affine] * E[affine]
-                slope[affine] = E[affine, None] * _per_unit_x(bound.slope[affine], lo, hi)
-                product_slope = np.zeros(bound.product_slope.shape)
-                product_slope[affine] = E[affine, None] * bound.product_slope[affine]
+                if self.settings.affine_radius:
+                    bound = denominator_bound(omega, lo, hi, lifted.pairs, scale)
+                    product_slope = _affine_radius(bound, mult, E, np.zeros_like(E), (C, slope),
+                                                   np.arange(np.size(lo)), lo, hi)
             else:
                 products, product_slope = _mixed_cones(omega, g, E, lo, hi, mult, (r_c, J, err, C, slope),
                                                        self.settings.affine_radius)
@@ -748,6 +754,7 @@ class _Search:
         radius_min = C - np.abs(slope) @ h  # the radius's least value over the box
         if products is not None:
             reach = reach + np.sum(np.abs(products.K), axis=1)
+        if product_slope is not None:
             radius_min = radius_min - np.sum(np.abs(product_slope), axis=1)
         active = np.isfinite(C) & ~(reach * (1.0 + 1e-9) < radius_min)
         slopes = None
@@ -864,11 +871,15 @@ def _priority(search: _Search, lo: np.ndarray, hi: np.ndarray) -> float:
     return float(np.max(_protrusion(inner, lo, hi)))
 
 
+def _hull_width(inner) -> np.ndarray:
+    """The witnesses' hull's width per parameter, kept above zero (a single witness: a point)."""
+    return np.maximum(inner[1] - inner[0], 1e-12 * np.maximum(np.abs(inner[0]), 1e-300))
+
+
 def _protrusion(inner, lo, hi) -> np.ndarray:
     """How far each parameter of the box sticks out beyond the witnesses' hull ``inner``, in units
     of the hull's width."""
-    width = np.maximum(inner[1] - inner[0], 1e-12 * np.maximum(np.abs(inner[0]), 1e-300))
-    return np.maximum(inner[0] - lo, hi - inner[1]) / width
+    return np.maximum(inner[0] - lo, hi - inner[1]) / _hull_width(inner)
 
 
 def _widest_mode(search: _Search, lo: np.ndarray, hi: np.ndarray):
@@ -892,8 +903,7 @@ def _relatively_widest(inner, lo, hi, modes) -> int:
     free = (hi > lo) & np.isin(index // 4, modes)
     if not free.any():
         return -1
-    width = np.maximum(inner[1] - inner[0], 1e-12 * np.maximum(np.abs(inner[0]), 1e-300))
-    return int(index[free][np.argmax(((hi - lo) / width)[free])])
+    return int(index[free][np.argmax(((hi - lo) / _hull_width(inner))[free])])
 
 
 def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSettings, flags: dict):
