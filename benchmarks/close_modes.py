@@ -3,20 +3,28 @@
 For each separation of the pair (10, 3, 1 and 0.5 %), residue signs (opposite: 4 and -2.5; same:
 4 and 2.5) and noise level (the bound 2 % |G| + 1e-4, and five times it), on the synthetic
 structure of :mod:`setmem_hil.sim_backends.close_pair` (300 lines), identifies the model and
-prints, per mode, each interval's width over the exact feasible set's extent. The exact set is
-computed independently of the identification: the model linearised at the truth, each point's
-disc as an inscribed 64-gon, every extent a linear program in HiGHS
-(:func:`setmem_hil.identification.exact_set.linearised_extent`). Where the set is large against
-the model's curvature (a 1 % pair at five times the noise) the linearised set's extremes miss the
-data by up to 2.5 bounds, so a second reference is printed beside it: the extent reached by points
-checked to fit (:func:`setmem_hil.identification.feasible_points.fitting_extent`, a local search
-from the truth). That extent is inside the exact set's, so the ratio over it can only overstate. Also printed: whether the truth is
-inside every interval, whether every mode is verified, the groups, and the time. Last, the time
-of 1,200 lines with the 3 % pair.
+prints, per mode, each interval's width over the exact feasible set's extent. The exact set (every
+parameter vector that fits every point within its bound) is bracketed independently of the
+identification, from inside and approximately:
+
+- **inside** (the headline, stop 60): the extent reached by points checked to fit every point
+  (:func:`setmem_hil.identification.feasible_points.fitting_extent` from the truth, with its
+  multi-start: nonlinear programs in SLSQP and sequential conic programs). The exact set reaches
+  at least that far, so an interval's width over it is an *upper bound* of its ratio to the exact
+  set: the figure the 1.5x target is judged on;
+- **linearised**: the model linearised at the truth, each point's disc as an inscribed 64-gon,
+  every extent a linear program in HiGHS
+  (:func:`setmem_hil.identification.exact_set.linearised_extent`). Neither inner nor outer: where
+  the set is large against the model's curvature (a 1 % pair at five times the noise, any 0.5 %
+  pair) its extremes miss the data by up to five bounds, and points that fit reach up to 3.7 times
+  its extent (the 0.5 % same-sign pair at five times the noise). Printed beside, as an estimate.
+
+Also printed: whether the truth is inside every interval, whether every mode is verified, the
+groups, and the time. Last, the time of 1,200 lines with the 3 % pair.
 
 Run: ``.venv/bin/python benchmarks/close_modes.py [--separations 0.1,0.03] [--lines 300]
 [--figure docs/images/close-modes-ratios.png]``; ``--figure`` also draws each case's worst ratio
-against the separation (the figure in docs/closely-spaced-modes.md).
+bound against the separation (the figure in docs/closely-spaced-modes.md).
 """
 
 from __future__ import annotations
@@ -32,6 +40,9 @@ from setmem_hil.identification.feasible_points import fitting_extent
 from setmem_hil.sim_backends.close_pair import close_pair_case
 
 
+PARAMETERS = ("a1", "a0", "b1", "b0")
+
+
 def one_case(separation, residues, noise, lines, groups=True, with_fitting=False):
     truth, data, prior = close_pair_case(separation, residues, noise, lines)
     start = time.perf_counter()
@@ -42,11 +53,13 @@ def one_case(separation, residues, noise, lines, groups=True, with_fitting=False
     ratio = result.model.width / (ex_hi - ex_lo)
     if with_fitting:
         # the extent reached by points checked to fit (an inner bound: the ratio over it can only
-        # overstate), from the truth, which fits
+        # overstate), from the truth, which fits, and again from every point found (multi-start)
         in_lo, in_hi = fitting_extent(data.omega_rad_s, data.response, data.bound, box.lower, box.upper,
-                                      truth.values)
+                                      truth.values, restarts=True)
         ratio_fitting = result.model.width / np.where(in_hi > in_lo, in_hi - in_lo, np.nan)
-        return result, ratio, bool(result.model.contains(truth).all()), elapsed, ratio_fitting
+        # the guarantee itself, checked: every interval holds every point found to fit
+        holds = bool(np.all(result.model.lower <= in_lo) and np.all(result.model.upper >= in_hi))
+        return result, ratio, bool(result.model.contains(truth).all()) and holds, elapsed, ratio_fitting
     return result, ratio, bool(result.model.contains(truth).all()), elapsed
 
 
@@ -69,7 +82,7 @@ def ratio_figure(rows, path) -> None:
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("separation of the pair (%)")
-    ax.set_ylabel("worst interval / exact set")
+    ax.set_ylabel("worst interval / exact set (upper bound)")
     ax.set_title("Close pairs: widest interval over the exact set (300 lines)", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
@@ -86,8 +99,8 @@ def main() -> None:
     parser.add_argument("--figure", default=None, help="also draw the worst ratios against the separation into this PNG")
     args = parser.parse_args()
     rows = []
-    print("separation  residues  noise  | worst ratio per mode, linearised exact set | over fitting points"
-          " | truth in | verified | groups | time")
+    print("separation  residues  noise  | worst ratio per mode: bound (over points that fit) | estimate (linearised)"
+          " | truth and fitting points in | verified | groups | time")
     worst_all = worst_fit = 0.0
     for sep in [float(s) for s in args.separations.split(",")]:
         for residues, name in (((4.0, -2.5), "opposite"), ((4.0, 2.5), "same")):
@@ -97,13 +110,16 @@ def main() -> None:
                 worst = np.max(ratio, axis=1)
                 worst_all = max(worst_all, float(np.max(ratio)))
                 worst_fit = max(worst_fit, float(np.nanmax(ratio_fit)))
-                rows.append((sep, name, noise, float(np.max(ratio))))
-                print(f"{sep * 100:6.1f} %   {name:8s}  {noise:3.0f}x   | " + "  ".join(f"{v:5.2f}" for v in worst)
-                      + " | " + "  ".join(f"{v:5.2f}" for v in np.nanmax(ratio_fit, axis=1))
+                rows.append((sep, name, noise, float(np.nanmax(ratio_fit))))
+                print(f"{sep * 100:6.1f} %   {name:8s}  {noise:3.0f}x   | " + "  ".join(f"{v:5.2f}" for v in np.nanmax(ratio_fit, axis=1))
+                      + " | " + "  ".join(f"{v:5.2f}" for v in worst)
                       + f" | {inside!s:5} | {bool(result.verified.all())!s:5} | {[tuple(k + 1 for k in g) for g in result.groups]} | {elapsed:6.1f} s",
                       flush=True)
-    print(f"worst ratio over every case and parameter: {worst_all:.2f} (linearised exact set), "
-          f"{worst_fit:.2f} (over the extent of points checked to fit: an upper bound of the true ratio)")
+                over = [f"mode {i + 1} {PARAMETERS[j]} {ratio_fit[i, j]:.2f}" for i, j in zip(*np.nonzero(ratio_fit > 1.5))]
+                if over:
+                    print("        over 1.5: " + ", ".join(over), flush=True)
+    print(f"worst ratio over every case and parameter: {worst_fit:.2f} (over the extent of points checked to fit: "
+          f"an upper bound of the true ratio), {worst_all:.2f} (over the linearised exact set: an estimate)")
     if args.figure:
         ratio_figure(rows, args.figure)
         print(f"figure: {args.figure}")

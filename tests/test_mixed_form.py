@@ -3,9 +3,10 @@ held against truth computed another way:
 
 - the mixed form's affine part plus its remainder against the constraint multiplied through by
   the chosen denominators, evaluated directly from the model's definition at sampled parameters;
-- the farthest fitting point along a parameter against the exact extent of a set that is convex
-  (the poles fixed, the residues free: the set is an intersection of discs), computed by HiGHS
-  with each disc as an inscribed and a circumscribed 64-gon;
+- the farthest fitting point along a parameter (the sequential conic search and the nonlinear
+  program) against the exact extent of a set that is convex (the poles fixed, the residues free:
+  the set is an intersection of discs), computed by HiGHS with each disc as an inscribed and a
+  circumscribed 64-gon;
 - the search's subset of points against each mode's resonance band.
 """
 
@@ -13,7 +14,8 @@ import numpy as np
 import pytest
 from scipy.optimize import linprog
 
-from setmem_hil.identification.feasible_points import farthest_fitting, misfit
+from setmem_hil.identification import feasible_points
+from setmem_hil.identification.feasible_points import farthest_fitting, misfit, nlp_farthest
 from setmem_hil.identification.mode_group import _search_subset, mixed_form
 from setmem_hil.sim_backends.close_pair import close_pair_case
 
@@ -95,8 +97,9 @@ def _disc_extent(w, g, E, fixed, k, sign, inscribed):
     return res.x[k]
 
 
+@pytest.mark.parametrize("search", [farthest_fitting, nlp_farthest])
 @pytest.mark.parametrize("parameter,sign", [(3, 1.0), (3, -1.0), (7, 1.0), (11, -1.0), (10, 1.0)])
-def test_the_farthest_fitting_point_reaches_the_exact_extent_of_a_convex_set(parameter, sign):
+def test_the_farthest_fitting_point_reaches_the_exact_extent_of_a_convex_set(parameter, sign, search):
     truth, data, _ = close_pair_case(0.03, n=120)
     x_true = truth.values.reshape(-1)
     w, g, E = data.omega_rad_s, data.response, data.bound
@@ -104,7 +107,7 @@ def test_the_farthest_fitting_point_reaches_the_exact_extent_of_a_convex_set(par
     residues = np.r_[2, 3, 6, 7, 10, 11]
     lo[residues] -= 5.0
     hi[residues] += 5.0
-    x = farthest_fitting(w, g, E, lo, hi, x_true, parameter, sign)
+    x = search(w, g, E, lo, hi, x_true, parameter, sign)
     # it fits, by the model evaluated from its definition
     G = sum(N / D for D, N in _terms(x, w))
     assert np.max(np.abs(g - G) / E) <= 1.0
@@ -182,3 +185,19 @@ def test_restoration_carries_the_search_along_a_curved_set_and_every_point_it_re
         reach[restore] = (x[2] - x_true[2]) / linearised_reach
     assert reach[True] >= 0.5
     assert reach[True] > 2.0 * reach[False]
+
+
+def test_a_nonlinear_program_that_oversteps_the_set_is_pulled_back_to_a_point_that_fits(monkeypatch):
+    """:func:`nlp_farthest` asked (by a negative margin) for points that miss every bound by 1 %:
+    SLSQP ends outside the set, and what comes back is pulled back to fit, by the model evaluated
+    from its definition, still well away from the start (the segment is mostly inside)."""
+    monkeypatch.setattr(feasible_points, "NLP_MARGIN", -0.02)
+    truth, data, prior = close_pair_case(0.01, residues=(4.0, -2.5), noise=5.0, n=120)
+    w, g, E = data.omega_rad_s, data.response, data.bound
+    box = prior.initial_bounds()
+    x_true = truth.values.reshape(-1)
+    for k, sign in ((1, 1.0), (3, -1.0), (9, 1.0)):
+        x = nlp_farthest(w, g, E, box.lower, box.upper, x_true, k, sign)
+        G = sum(N / D for D, N in _terms(x, w))
+        assert np.max(np.abs(g - G) / E) <= 1.0
+        assert sign * (x[k] - x_true[k]) > 0
