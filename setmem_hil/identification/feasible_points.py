@@ -60,6 +60,12 @@ def misfit(x, omega_rad_s, g, E) -> float:
 STEP_POINTS = 200  # the worst-fitting points a step's conic program sees (the true misfit judges it)
 
 
+def _unit_steps(J, E) -> np.ndarray:
+    """Each parameter's step that alone moves the worst point's misfit ``|J_jp dx| / E_j`` by one:
+    the scale of the local searches' variables."""
+    return 1.0 / np.maximum(np.max(np.abs(J) / E[:, None], axis=0), 1e-300)
+
+
 def _minimax_step(x, omega, g, E, lo, hi, trust, toward=None, margin: float = 1.0):
     """One conic program (Clarabel) on the model linearised at ``x``: ``min t`` over ``|r - J dx|
     <= t E`` at the ``STEP_POINTS`` worst-fitting points, ``x + dx`` in the box and ``|dx_p| <=
@@ -75,7 +81,7 @@ def _minimax_step(x, omega, g, E, lo, hi, trust, toward=None, margin: float = 1.
         worst = np.argsort(np.abs(r) / E)[-STEP_POINTS:]
         r, J, E = r[worst], J[worst], E[worst]
     Jf = J[:, free]
-    scale = 1.0 / np.maximum(np.max(np.abs(Jf) / E[:, None], axis=0), 1e-300)
+    scale = _unit_steps(Jf, E)
     Jf = Jf * scale[None, :] / E[:, None]
     r = r / E
     n, p = r.size, Jf.shape[1]
@@ -265,16 +271,15 @@ def nlp_farthest(omega_rad_s, g, E, lo, hi, start, k: int, sign: float, max_iter
     omega, g, E, lo, hi = _bounded_points(omega_rad_s, g, E, lo, hi)
     x0 = np.asarray(start, dtype=float).reshape(-1)
     free = np.flatnonzero(hi > lo)
-    _, J0 = model_jacobian(x0, omega)
-    scale = 1.0 / np.maximum(np.max(np.abs(J0[:, free]) / E[:, None], axis=0), 1e-300)
+    scale = _unit_steps(model_jacobian(x0, omega)[1][:, free], E)
 
     def point(z):
         x = x0.copy()
         x[free] = x0[free] + scale * z
         return x
 
-    def room(z):  # >= 0 where the point fits
-        r = (g - model_jacobian(point(z), omega)[0]) / E
+    def room(z):  # >= 0 where the point fits (the response alone: SLSQP asks for it more often than the Jacobian)
+        r = (g - modal_response(point(z).reshape(-1, 4), omega).sum(axis=0)) / E
         return (1.0 - NLP_MARGIN) - (r.real ** 2 + r.imag ** 2)
 
     def room_jacobian(z):
