@@ -201,3 +201,53 @@ def test_a_nonlinear_program_that_oversteps_the_set_is_pulled_back_to_a_point_th
         G = sum(N / D for D, N in _terms(x, w))
         assert np.max(np.abs(g - G) / E) <= 1.0
         assert sign * (x[k] - x_true[k]) > 0
+
+
+def test_lifting_the_pair_where_its_remainders_blur_a_point_holds_the_exact_set_and_narrows_a_box(monkeypatch):
+    """Stop 61: in a group of three, the pair is lifted (exact in its products) wherever the other
+    modes' remainders exceed a hundredth of the point's bound, where one mode was multiplied alone
+    wherever the others merely fit. One contraction of a box four times the linearised exact set's
+    extent around the truth (a 3 % same-sign pair and its far mode, five times the noise: there the
+    linearisation is exact to many digits; HiGHS, independent of the conic programs): both rules
+    hold that set and the truth, and the new rule's box is narrower somewhere by over 5 %."""
+    from setmem_hil.identification import mode_group
+    from setmem_hil.identification.exact_set import linearised_extent
+
+    truth, data, prior = close_pair_case(0.03, residues=(4.0, 2.5), noise=5.0)
+    w, g, E = data.omega_rad_s, data.response, data.bound
+    box = prior.initial_bounds()
+    ex_lo, ex_hi = (v.reshape(-1) for v in linearised_extent(w, g, E, truth.values, box.lower, box.upper))
+    centre, half = truth.values.reshape(-1), 4.0 * (ex_hi - ex_lo)
+    lo = np.maximum(centre - half, box.lower.reshape(-1))
+    hi = np.minimum(centre + half, box.upper.reshape(-1))
+    boxes = {}
+    for rest in (1.0, mode_group.NEGLIGIBLE_REST):
+        monkeypatch.setattr(mode_group, "NEGLIGIBLE_REST", rest)
+        choice = mode_group._multiplied_modes(w, E, lo, hi)
+        boxes[rest] = mode_group._Search(w, g, E, mode_group.GroupSettings(workers=1)).contract(lo, hi)
+        assert boxes[rest] is not None
+        out_lo, out_hi = boxes[rest][:2]
+        slack = 1e-6 * (ex_hi - ex_lo)
+        assert np.all(out_lo <= np.minimum(ex_lo, centre) + slack) and np.all(out_hi >= np.maximum(ex_hi, centre) - slack)
+    lifted = sum(1 for c in choice if c is not None and len(c) == 2)
+    assert lifted >= 10  # the points the rule is about
+    (lo_old, hi_old), (lo_new, hi_new) = boxes[1.0][:2], boxes[mode_group.NEGLIGIBLE_REST][:2]
+    assert np.any(hi_new - lo_new < 0.95 * (hi_old - lo_old))
+
+
+def test_the_polish_cuts_the_widest_residue_slope_while_it_spans_over_its_share_of_the_box():
+    """``_wide_residue_slope``: among the given modes' b1 (index 2 of each ``(a1, a0, b1, b0)``),
+    the widest, only while wider than the share of the searched box's; never another parameter,
+    never a mode not given."""
+    from setmem_hil.identification.mode_group import _wide_residue_slope
+
+    root = (np.zeros(12), np.ones(12))
+    lo, hi = np.zeros(12), np.full(12, 0.1)
+    hi[2], hi[6], hi[10] = 0.6, 0.8, 0.9  # b1 of modes 0, 1, 2
+    hi[1] = 1.0  # a wider a0: not a residue slope
+    assert _wide_residue_slope(root, lo, hi, (0, 1), 0.25) == 6
+    assert _wide_residue_slope(root, lo, hi, (0, 1, 2), 0.25) == 10
+    assert _wide_residue_slope(root, lo, hi, (0,), 0.25) == 2
+    assert _wide_residue_slope(root, lo, hi, (0, 1), 0.85) == -1
+    hi[6] = lo[6]  # a fixed b1 is never cut
+    assert _wide_residue_slope(root, lo, hi, (1,), 0.0) == -1
