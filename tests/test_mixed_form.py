@@ -203,13 +203,14 @@ def test_a_nonlinear_program_that_oversteps_the_set_is_pulled_back_to_a_point_th
         assert sign * (x[k] - x_true[k]) > 0
 
 
-def test_lifting_the_pair_where_its_remainders_blur_a_point_holds_the_exact_set_and_narrows_a_box(monkeypatch):
-    """Stop 61: in a group of three, the pair is lifted (exact in its products) wherever the other
-    modes' remainders exceed a hundredth of the point's bound, where one mode was multiplied alone
-    wherever the others merely fit. One contraction of a box four times the linearised exact set's
-    extent around the truth (a 3 % same-sign pair and its far mode, five times the noise: there the
+def test_lifting_the_pair_where_its_remainders_blur_a_point_holds_the_exact_set_and_narrows_a_box():
+    """Stop 61: in a group of three, a close pair (``GroupSettings.lift_pairs``) is lifted (exact in
+    its products) wherever the other modes' remainders exceed a hundredth of the point's bound,
+    where one mode was multiplied alone wherever the others merely fit (still the rule for modes
+    not named a pair). One contraction of a box four times the linearised exact set's extent
+    around the truth (a 3 % same-sign pair and its far mode, five times the noise: there the
     linearisation is exact to many digits; HiGHS, independent of the conic programs): both rules
-    hold that set and the truth, and the new rule's box is narrower somewhere by over 5 %."""
+    hold that set and the truth, and the pair's rule gives a box narrower somewhere by over 5 %."""
     from setmem_hil.identification import mode_group
     from setmem_hil.identification.exact_set import linearised_extent
 
@@ -221,17 +222,16 @@ def test_lifting_the_pair_where_its_remainders_blur_a_point_holds_the_exact_set_
     lo = np.maximum(centre - half, box.lower.reshape(-1))
     hi = np.minimum(centre + half, box.upper.reshape(-1))
     boxes = {}
-    for rest in (1.0, mode_group.NEGLIGIBLE_REST):
-        monkeypatch.setattr(mode_group, "NEGLIGIBLE_REST", rest)
-        choice = mode_group._multiplied_modes(w, E, lo, hi)
-        boxes[rest] = mode_group._Search(w, g, E, mode_group.GroupSettings(workers=1)).contract(lo, hi)
-        assert boxes[rest] is not None
-        out_lo, out_hi = boxes[rest][:2]
+    for pairs in ((), ((0, 1),)):
+        settings = mode_group.GroupSettings(workers=1, lift_pairs=pairs)
+        boxes[pairs] = mode_group._Search(w, g, E, settings).contract(lo, hi)
+        assert boxes[pairs] is not None
+        out_lo, out_hi = boxes[pairs][:2]
         slack = 1e-6 * (ex_hi - ex_lo)
         assert np.all(out_lo <= np.minimum(ex_lo, centre) + slack) and np.all(out_hi >= np.maximum(ex_hi, centre) - slack)
-    lifted = sum(1 for c in choice if c is not None and len(c) == 2)
-    assert lifted >= 10  # the points the rule is about
-    (lo_old, hi_old), (lo_new, hi_new) = boxes[1.0][:2], boxes[mode_group.NEGLIGIBLE_REST][:2]
+    lifted = [mode_group._multiplied_modes(w, E, lo, hi, pairs).count((0, 1)) for pairs in ((), ((0, 1),))]
+    assert lifted[1] >= lifted[0] + 10  # the points the rule is about
+    (lo_old, hi_old), (lo_new, hi_new) = boxes[()][:2], boxes[((0, 1),)][:2]
     assert np.any(hi_new - lo_new < 0.95 * (hi_old - lo_old))
 
 

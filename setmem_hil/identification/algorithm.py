@@ -367,10 +367,11 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         # keep how a pair's parameters go together; it starts from the first one's box, so it can
         # only narrow it.
         grouped = tuple(sorted({k for group in groups for k in group}))
-        _polish(data, lo, hi, res, prior, counter, group_unverified, grouped)
+        pairs = tuple(tuple(group) for group in groups if len(group) == 2)
+        _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pairs)
         pieces = polish_pieces(group_pieces, lo, hi, settings.polish_pieces)
         if pieces:
-            _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pieces)
+            _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pairs, pieces)
     for i, reason in group_unverified.items():
         last_unverified[i] = tuple(last_unverified[i]) + (reason,)
 
@@ -401,16 +402,18 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
     )
 
 
-def _polish(data, lo, hi, res, prior, counter, unverified, grouped: tuple, pieces: tuple = ()) -> None:
-    """Every mode contracted together (in place), in ``POLISH_BOXES`` boxes beyond ``pieces``; a
-    split cuts the widest b1 of a mode in ``grouped`` (the groups' modes) while it is wider than
-    ``POLISH_B1_SHARE`` of the polished box's (:func:`mode_group._wide_residue_slope`), else the
-    parameter of those modes widest against the witnesses' hull
-    (:func:`mode_group._relatively_widest`)."""
+def _polish(data, lo, hi, res, prior, counter, unverified, grouped: tuple, pairs: tuple, pieces: tuple = ()) -> None:
+    """Every mode contracted together (in place), in ``POLISH_BOXES`` boxes beyond ``pieces``,
+    the ``pairs`` (the groups of two) lifted at the points they blur
+    (:func:`mode_group._multiplied_modes`). A split cuts the parameter of a mode in ``grouped``
+    (the groups' modes) widest against the witnesses' hull (:func:`mode_group._relatively_widest`);
+    where a mode outside the groups sticks out furthest, first the widest b1 of a grouped mode while
+    it is wider than ``POLISH_B1_SHARE`` of the polished box's
+    (:func:`mode_group._wide_residue_slope`)."""
     _identify_group_in_place(data, lo, hi, res, list(range(lo.shape[0])), prior, counter, unverified,
                              GroupSettings(max_boxes=POLISH_BOXES + len(pieces), search_points=POLISH_POINTS,
                                            subset_stage=False, contract_at_budget=True, split_among=grouped,
-                                           cut_wide_b1=POLISH_B1_SHARE), pieces)
+                                           cut_wide_b1=POLISH_B1_SHARE, lift_pairs=pairs), pieces)
 
 
 def polish_pieces(group_pieces: dict, lo: np.ndarray, hi: np.ndarray, most: int = POLISH_PIECES) -> tuple:

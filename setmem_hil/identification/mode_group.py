@@ -122,9 +122,13 @@ class GroupSettings:
     # the modes whose parameters a split may cut, the one widest against the witnesses' hull
     # (None: the remainders' rule, :func:`_split_dimension`); the polish's, stop 59
     split_among: tuple[int, ...] | None = None
-    # with split_among: first cut the widest b1 of those modes while it is wider than this share of
-    # the searched box's (None: never); the polish's, stop 61 (:func:`_wide_residue_slope`)
+    # with split_among: where a mode outside split_among sticks out furthest, first cut the widest
+    # b1 of those modes while it is wider than this share of the searched box's (None: never); the
+    # polish's, stop 61 (:func:`_wide_residue_slope`)
     cut_wide_b1: float | None = None
+    # in a group of three or more, the close pairs (group-local modes) a point lifts rather than
+    # multiplying one mode alone (:func:`_multiplied_modes`); the polish's, stop 61
+    lift_pairs: tuple[tuple[int, int], ...] = ()
     workers: int = field(default_factory=lambda: min(2, os.cpu_count() or 1))
 
 
@@ -504,18 +508,22 @@ def mixed_form(omega_rad_s, g, lo, hi, multiplied: tuple[int, ...]):
     return r_c, J, err, scale, rho, products
 
 
-def _multiplied_modes(omega, E, lo, hi) -> list:
+def _multiplied_modes(omega, E, lo, hi, lift_pairs: tuple = ()) -> list:
     """Per point, the modes to multiply through in a group of three or more (:func:`mixed_form`):
-    the mode with the largest remainder alone where the others' remainders together are at most
-    ``NEGLIGIBLE_REST`` of the point's bound; else the two largest (a pair, in its lifted form) where
-    the rest fits within the bound; else the largest alone where the others fit; else ``None``
-    (every denominator: :func:`multiplied_group`).
+    the mode with the largest remainder when the others' remainders together fit within the
+    point's bound, else the two largest when the rest does, else ``None`` (every denominator:
+    :func:`multiplied_group`). Where the two largest are one of ``lift_pairs`` (close pairs, as
+    group-local mode indices), the pair is lifted unless the others' remainders together are under
+    ``NEGLIGIBLE_REST`` of the bound.
 
     Why the pair before the single mode (stop 61): a close pair's two remainders add in the
     single form although the data see the pair's residue sums, which the lifted form keeps exact
     in the products shared by every point. On a 0.5 % same-sign pair (300 lines) it took the pair
     from 1.37 / 1.40 to 1.14 / 1.16 of the exact set and the far mode from 2.20 to 1.92, in the
-    same time (docs/closely-spaced-modes.md)."""
+    same time (docs/closely-spaced-modes.md). Only a close pair: two modes far apart have no sum
+    the data see, and their products' envelopes over coarse boxes may be looser than one mode
+    multiplied alone."""
+    pairs = {tuple(sorted(int(k) for k in pair)) for pair in lift_pairs}
     m = np.size(lo) // 4
     per_mode = np.array([_remainders(omega, *_sub_box(lo, hi, [i])[:2]) for i in range(m)])
     order = np.argsort(-per_mode, axis=0, kind="stable")
@@ -525,10 +533,12 @@ def _multiplied_modes(omega, E, lo, hi) -> list:
     choice = []
     for j in range(np.size(omega)):
         first, second = int(order[0, j]), int(order[1, j])
-        if rest_of_one[j] <= NEGLIGIBLE_REST * E[j]:
+        top_two = tuple(sorted((first, second)))
+        alone_below = NEGLIGIBLE_REST * E[j] if top_two in pairs else E[j]
+        if rest_of_one[j] <= alone_below:
             choice.append((first,))
         elif rest_of_two[j] <= E[j]:
-            choice.append(tuple(sorted((first, second))))
+            choice.append(top_two)
         elif rest_of_one[j] <= E[j]:
             choice.append((first,))
         else:
@@ -549,14 +559,14 @@ def _affine_radius(bound: AffineMagnitudeBound, rows, E, rho, radius, cols, sub_
     return product_slope
 
 
-def _mixed_cones(omega, g, E, lo, hi, mult, cones, affine_radius: bool = True):
+def _mixed_cones(omega, g, E, lo, hi, mult, cones, affine_radius: bool = True, lift_pairs: tuple = ()):
     """Write the cones of the points ``mult`` (in place into ``cones = (r_c, J, err, C, slope)``,
     ``slope`` the radius's slope per unit of ``x``) in the form :func:`_multiplied_modes` picks,
     the multiplied denominators' magnitude bounded affinely where that is tighter
     (:func:`denominator_bound`); returns the product terms of the pairs used and their slopes in
     the radius, or ``(None, None)``."""
     r_c, J, err, C, slope = cones
-    choice = _multiplied_modes(omega, E, lo, hi)
+    choice = _multiplied_modes(omega, E, lo, hi, lift_pairs)
     K_cols, pairs, K_slopes = [], [], []
     for modes in dict.fromkeys(choice[j] for j in np.flatnonzero(mult)):
         rows = mult & np.array([c == modes for c in choice])
@@ -760,7 +770,7 @@ class _Search:
                                                    np.arange(np.size(lo)), lo, hi)
             else:
                 products, product_slope = _mixed_cones(omega, g, E, lo, hi, mult, (r_c, J, err, C, slope),
-                                                       self.settings.affine_radius)
+                                                       self.settings.affine_radius, self.settings.lift_pairs)
         C = np.where(np.isfinite(E), C, np.inf)
         h = 0.5 * (np.asarray(hi, dtype=float) - np.asarray(lo, dtype=float))
         reach = np.abs(r_c) + np.abs(J) @ h + err
@@ -921,12 +931,15 @@ def _relatively_widest(inner, lo, hi, modes) -> int:
 
 def _wide_residue_slope(root, lo, hi, modes, share: float) -> int:
     """The widest ``b1`` of ``modes`` while it is wider than ``share`` of the searched box's
-    (``root``), else ``-1``. The polish's first cut (stop 61): a close pair's b1 each span their
+    (``root``), else ``-1``. The polish's first cut where a mode outside the groups is what sticks
+    out furthest (stop 61): a close pair's b1 each span their
     prior in the exact set (only their sum is determined), so the witnesses' rule never cuts them,
     yet the lifted form's envelope of each b1 times the other mode's a0 (``jw a0`` in the products:
     the largest coefficients) grows with their width, and it is those envelopes that held the
     pair's residue sums, and through them a far mode, loose in every leaf: halving a leaf's pair b1
-    narrowed its far-mode bound most (docs/closely-spaced-modes.md)."""
+    narrowed its far-mode bound most (docs/closely-spaced-modes.md). Only there: cut wherever a
+    grouped b1 was wide, the polish of a campaign with three pairs (six grouped modes, each b1 to
+    be cut twice) spent its budget on them, and its first iterations' boxes widened (stop 61)."""
     index = np.arange(np.size(lo))
     slopes = index[(hi > lo) & np.isin(index // 4, modes) & (index % 4 == B1)]
     if not slopes.size:
@@ -947,7 +960,8 @@ def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSe
     if (leaf and not search.flag_outside(lo, hi, flags)) or depth >= settings.max_depth:
         return None
     k = -1
-    if settings.split_among is not None and settings.cut_wide_b1 is not None and search.inner is not None:
+    if (settings.split_among is not None and settings.cut_wide_b1 is not None and search.inner is not None
+            and int(np.argmax(_protrusion(search.inner, lo, hi))) // 4 not in settings.split_among):
         k = _wide_residue_slope(search.root, lo, hi, settings.split_among, settings.cut_wide_b1)
     if k < 0 and settings.split_among is not None and search.inner is not None:
         k = _relatively_widest(search.inner, lo, hi, settings.split_among)
