@@ -37,7 +37,11 @@ from setmem_hil.model.prior import Prior
 from setmem_hil.identification.residual_terms import bound_residual, residual_midpoint_response, residual_mismatch
 from setmem_hil.identification.residue_bootstrap import bootstrap_residue_bounds
 
-POLISH_BOXES = 240  # boxes the final all-modes contraction may use (24 left the far mode of the 1 % pair at 5x noise 2.1x the exact set, stop 54; 48: 1.8x; 240 with the pair's b1 cut first, stop 61: a 0.5 % pair's far mode 2.20 -> 1.38)
+POLISH_BOXES = 48  # boxes the final all-modes contraction may use (24 left the far mode of the 1 % pair at 5x noise 2.1x the exact set, stop 54; 48: 1.8x)
+# ... and with a mode outside every group, whose bound the pair's b1 cut serves (stop 61: a 0.5 % pair's
+# far mode 2.20 -> 1.38 with 240; 240 for a campaign whose six modes are all in pairs moved its first
+# iterations' mu-bar from 1.91 / 1.76 to 2.43 / 1.92)
+POLISH_BOXES_LONE_MODE = 240
 POLISH_B1_SHARE = 0.25  # the polish cuts a grouped mode's b1 first while it is wider than this share of the polished box's
 POLISH_PIECES = 256  # boxes from the groups' last leaves that start the polish, at most (their hulls; one per group in every combination)
 POLISH_POINTS = 400  # points that polish uses in every box (more: the subset in coarse boxes; a far mode's few resonant points decide it)
@@ -403,15 +407,17 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
 
 
 def _polish(data, lo, hi, res, prior, counter, unverified, grouped: tuple, pairs: tuple, pieces: tuple = ()) -> None:
-    """Every mode contracted together (in place), in ``POLISH_BOXES`` boxes beyond ``pieces``,
-    the ``pairs`` (the groups of two) lifted at the points they blur
+    """Every mode contracted together (in place), in ``POLISH_BOXES`` boxes beyond ``pieces``
+    (``POLISH_BOXES_LONE_MODE`` when a mode is outside every group), the ``pairs`` (the groups of
+    two) lifted at the points they blur
     (:func:`mode_group._multiplied_modes`). A split cuts the parameter of a mode in ``grouped``
     (the groups' modes) widest against the witnesses' hull (:func:`mode_group._relatively_widest`);
     where a mode outside the groups sticks out furthest, first the widest b1 of a grouped mode while
     it is wider than ``POLISH_B1_SHARE`` of the polished box's
     (:func:`mode_group._wide_residue_slope`)."""
+    budget = POLISH_BOXES_LONE_MODE if len(grouped) < lo.shape[0] else POLISH_BOXES
     _identify_group_in_place(data, lo, hi, res, list(range(lo.shape[0])), prior, counter, unverified,
-                             GroupSettings(max_boxes=POLISH_BOXES + len(pieces), search_points=POLISH_POINTS,
+                             GroupSettings(max_boxes=budget + len(pieces), search_points=POLISH_POINTS,
                                            subset_stage=False, contract_at_budget=True, split_among=grouped,
                                            cut_wide_b1=POLISH_B1_SHARE, lift_pairs=pairs), pieces)
 
