@@ -471,3 +471,29 @@ def test_the_polish_cuts_the_parameter_of_a_grouped_mode_widest_against_the_witn
                 if ratio > best_ratio:
                     best, best_ratio = p, ratio
         assert _relatively_widest(inner, lo, hi, modes) == best
+
+
+def test_the_polish_budget_is_the_settings_or_the_rule(monkeypatch):
+    """``IdentifySettings.polish_boxes`` (stop 62) sets the final contraction's boxes (beyond its
+    pieces); without it, the rule's 240 where a mode is outside every group (the far mode here).
+    Either answer holds the truth."""
+    from setmem_hil.identification import algorithm
+
+    truth, data, prior = close_pair_case(0.03, n=120)
+    real = algorithm.identify_group
+
+    def budgets_of(settings):
+        seen = []
+
+        def spy(omega, g, E, lo, hi, group_settings, pieces=()):
+            if group_settings.lift_pairs:  # only the polish lifts pairs
+                seen.append(group_settings.max_boxes - len(pieces))
+            return real(omega, g, E, lo, hi, group_settings, pieces)
+
+        monkeypatch.setattr(algorithm, "identify_group", spy)
+        result = identify(data, prior, settings=settings)
+        assert result.model.contains(truth).all() and result.groups == ((0, 1),)
+        return seen
+
+    assert set(budgets_of(algorithm.IdentifySettings(polish_boxes=5))) == {5}
+    assert set(budgets_of(algorithm.IdentifySettings())) == {algorithm.POLISH_BOXES_LONE_MODE}
