@@ -960,11 +960,13 @@ def _children(search: _Search, lo, hi, fine: bool, depth: int, settings: GroupSe
     if (leaf and not search.flag_outside(lo, hi, flags)) or depth >= settings.max_depth:
         return None
     k = -1
-    if (settings.split_among is not None and settings.cut_wide_b1 is not None and search.inner is not None
-            and int(np.argmax(_protrusion(search.inner, lo, hi))) // 4 not in settings.split_among):
-        k = _wide_residue_slope(search.root, lo, hi, settings.split_among, settings.cut_wide_b1)
-    if k < 0 and settings.split_among is not None and search.inner is not None:
-        k = _relatively_widest(search.inner, lo, hi, settings.split_among)
+    if settings.split_among is not None and search.inner is not None:
+        # first the grouped b1, where a mode outside the groups sticks out furthest
+        if (settings.cut_wide_b1 is not None
+                and int(np.argmax(_protrusion(search.inner, lo, hi))) // 4 not in settings.split_among):
+            k = _wide_residue_slope(search.root, lo, hi, settings.split_among, settings.cut_wide_b1)
+        if k < 0:
+            k = _relatively_widest(search.inner, lo, hi, settings.split_among)
     if k < 0:
         k = _split_dimension(search.omega, search.E, lo, hi, _widest_mode(search, lo, hi))
     if k < 0:
