@@ -13,7 +13,7 @@ from scipy.optimize import minimize
 
 from setmem_hil.identification.algorithm import identify
 from setmem_hil.identification.exact_set import linearised_extent, model_jacobian
-from setmem_hil.identification.mode_group import close_groups, linearised_group, multiplied_group
+from setmem_hil.identification.mode_group import close_groups, linearised_group, multiplied_group, second_order_group
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.sim_backends.close_pair import close_pair_case
 
@@ -55,6 +55,46 @@ def test_remainder_bounds_hold_at_sampled_parameters_and_jacobians_match_finite_
         worst_mul = max(worst_mul, np.max(np.abs(mul - P_c - J_mul @ (x - c)) / rho_mul))
     assert worst_div <= 1.0 and worst_mul <= 1.0
     assert worst_div > 0.3 and worst_mul > 0.3  # and not loose by orders of magnitude
+
+
+def test_the_second_order_form_holds_at_sampled_parameters_and_its_products_are_the_mixed_derivatives():
+    """Against the model evaluated directly: the residual at any parameter of the box (corners
+    included) is the form's affine part plus its products ``y_p y_q`` within the remainder bound;
+    the products' coefficients are the residual's mixed second derivatives at the centre (finite
+    differences); away from a pair's resonance its remainder is far below the mean-value form's."""
+    rng = np.random.default_rng(3)
+    w = np.concatenate([np.linspace(8.0, 12.0, 40), np.linspace(25.0, 35.0, 40)])
+    g = rng.normal(size=w.size) + 1j * rng.normal(size=w.size)
+    lo = np.array([0.05, 99.0, -0.1, 2.0, 0.05, 100.0, -0.1, 1.0, 0.28, 955.0, -0.01, 2.9])
+    hi = np.array([0.25, 101.0, 0.1, 8.0, 0.45, 103.0, 0.1, 7.0, 0.32, 965.0, 0.01, 3.1])
+    c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    r_c, J, _, rho, products = second_order_group(w, g, lo, hi)
+    assert np.allclose(r_c, _direct3(c, w, g))
+    assert {(int(p) % 4, int(q) % 4) for p, q in products.pairs} == {(3, 1), (3, 0), (2, 1), (2, 0)}
+    assert all(int(p) // 4 == int(q) // 4 for p, q in products.pairs)  # a mode's own products only
+    for k, (p, q) in enumerate(products.pairs):
+        used = products.K[:, k] != 0
+        e_p, e_q = np.eye(12)[p] * 1e-3 * h[p], np.eye(12)[q] * 1e-3 * h[q]
+        mixed = (_direct3(c + e_p + e_q, w, g) - _direct3(c + e_p - e_q, w, g) - _direct3(c - e_p + e_q, w, g)
+                 + _direct3(c - e_p - e_q, w, g)) / (4e-6)  # per unit of y_p y_q
+        assert np.allclose(mixed[used], products.K[used, k], rtol=1e-3, atol=1e-6 * np.abs(products.K[:, k]).max())
+    usable = np.isfinite(rho)
+    worst = 0.0
+    for trial in range(3000):
+        y = rng.uniform(-1.0, 1.0, size=12) if trial % 2 else rng.choice([-1.0, 1.0], size=12)
+        z = np.array([y[p] * y[q] for p, q in products.pairs])
+        gap = np.abs(_direct3(c + h * y, w, g) - r_c - J @ (h * y) - products.K @ z)
+        worst = max(worst, np.max(gap[usable] / rho[usable]))
+    assert 0.3 < worst <= 1.0
+    far = w > 20.0  # the pair's remainder at the far mode's lines: n d is its first-order part
+    pair_second, pair_first = second_order_group(w, g, lo[:8], hi[:8])[3], linearised_group(w, g, lo[:8], hi[:8])[3]
+    assert np.all(pair_second[far] < 0.1 * pair_first[far])
+
+
+def _direct3(x, w, g):
+    """``g - G(x)`` evaluated from the definition, any number of modes."""
+    s = 1j * w
+    return g - sum((b1 * s + b0) / (s * s + a1 * s + a0) for a1, a0, b1, b0 in np.asarray(x).reshape(-1, 4))
 
 
 def test_separated_modes_are_never_grouped_and_close_ones_are():
@@ -475,7 +515,8 @@ def test_the_polish_cuts_the_parameter_of_a_grouped_mode_widest_against_the_witn
 
 def test_the_polish_budget_is_the_settings_or_the_rule(monkeypatch):
     """``IdentifySettings.polish_boxes`` (stop 62) sets the final contraction's boxes (beyond its
-    pieces); without it, the rule's 240 where a mode is outside every group (the far mode here).
+    pieces) and ``polish_second_order`` (stop 63) its form; without them, the rule's 240 boxes and
+    the second-order form where a mode is outside every group (the far mode here).
     Either answer holds the truth."""
     from setmem_hil.identification import algorithm
 
@@ -487,7 +528,7 @@ def test_the_polish_budget_is_the_settings_or_the_rule(monkeypatch):
 
         def spy(omega, g, E, lo, hi, group_settings, pieces=()):
             if group_settings.lift_pairs:  # only the polish lifts pairs
-                seen.append(group_settings.max_boxes - len(pieces))
+                seen.append((group_settings.max_boxes - len(pieces), group_settings.second_order))
             return real(omega, g, E, lo, hi, group_settings, pieces)
 
         monkeypatch.setattr(algorithm, "identify_group", spy)
@@ -495,5 +536,6 @@ def test_the_polish_budget_is_the_settings_or_the_rule(monkeypatch):
         assert result.model.contains(truth).all() and result.groups == ((0, 1),)
         return seen
 
-    assert set(budgets_of(algorithm.IdentifySettings(polish_boxes=5))) == {5}
-    assert set(budgets_of(algorithm.IdentifySettings())) == {algorithm.POLISH_BOXES_LONE_MODE}
+    assert set(budgets_of(algorithm.IdentifySettings(polish_boxes=5, polish_second_order=False))) == {(5, False)}
+    # the rule where a mode is outside every group: 240 boxes, the divided points to second order (stop 63)
+    assert set(budgets_of(algorithm.IdentifySettings())) == {(algorithm.POLISH_BOXES_LONE_MODE, True)}

@@ -79,6 +79,9 @@ class IdentifySettings:
     # same-sign pair at five times the noise, 1,000 took the far mode's b1 1.65 -> 1.49 of the exact set but
     # the upper mode's a1 1.37 -> 1.65, in about 4.6 times the time (stop 62)
     polish_boxes: int | None = None
+    # the final contraction's divided-form points to second order (mode_group.second_order_group); None:
+    # where a mode is outside every group (measured there: stop 63), not where every mode is grouped
+    polish_second_order: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -378,13 +381,15 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         # only narrow it.
         grouped = tuple(sorted({k for group in groups for k in group}))
         pairs = tuple(tuple(group) for group in groups if len(group) == 2)
+        lone_mode = len(grouped) < lo.shape[0]
         budget = settings.polish_boxes
         if budget is None:
-            budget = POLISH_BOXES_LONE_MODE if len(grouped) < lo.shape[0] else POLISH_BOXES
-        _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pairs, budget)
+            budget = POLISH_BOXES_LONE_MODE if lone_mode else POLISH_BOXES
+        second_order = lone_mode if settings.polish_second_order is None else settings.polish_second_order
+        _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pairs, budget, second_order)
         pieces = polish_pieces(group_pieces, lo, hi, settings.polish_pieces)
         if pieces:
-            _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pairs, budget, pieces)
+            _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pairs, budget, second_order, pieces)
     for i, reason in group_unverified.items():
         last_unverified[i] = tuple(last_unverified[i]) + (reason,)
 
@@ -416,18 +421,20 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
 
 
 def _polish(data, lo, hi, res, prior, counter, unverified, grouped: tuple, pairs: tuple, budget: int,
-            pieces: tuple = ()) -> None:
+            second_order: bool, pieces: tuple = ()) -> None:
     """Every mode contracted together (in place), in ``budget`` boxes beyond ``pieces``
     (``IdentifySettings.polish_boxes``), the ``pairs`` (the groups of two) lifted at the points they blur
     (:func:`mode_group._multiplied_modes`). A split cuts the parameter of a mode in ``grouped``
     (the groups' modes) widest against the witnesses' hull (:func:`mode_group._relatively_widest`);
     where a mode outside the groups sticks out furthest, first the widest b1 of a grouped mode while
     it is wider than ``POLISH_B1_SHARE`` of the polished box's
-    (:func:`mode_group._wide_residue_slope`)."""
+    (:func:`mode_group._wide_residue_slope`). With ``second_order`` the points in the divided form
+    keep each mode's bilinear term (:func:`mode_group.second_order_group`, stop 63)."""
     _identify_group_in_place(data, lo, hi, res, list(range(lo.shape[0])), prior, counter, unverified,
                              GroupSettings(max_boxes=budget + len(pieces), search_points=POLISH_POINTS,
                                            subset_stage=False, contract_at_budget=True, split_among=grouped,
-                                           cut_wide_b1=POLISH_B1_SHARE, lift_pairs=pairs), pieces)
+                                           cut_wide_b1=POLISH_B1_SHARE, lift_pairs=pairs, second_order=second_order),
+                             pieces)
 
 
 def polish_pieces(group_pieces: dict, lo: np.ndarray, hi: np.ndarray, most: int = POLISH_PIECES) -> tuple:

@@ -42,6 +42,13 @@ denominators) is loose to first order in the box; where tighter, ``|Q|`` is boun
 affine function of the parameters and products, tangent at the centre
 (:mod:`setmem_hil.identification.magnitude_bound`), exact to second order.
 
+Second order where it matters (stop 63, the polish where a mode is outside every group): a point in
+the divided form keeps each mode's bilinear term ``dN dD / D_c^2`` exactly, the four products of a
+mode's residue and pole deviations as shared variables in their McCormick envelopes
+(:func:`second_order_group`); the remainder left is third order. A parameter the data fix far
+more finely than their bound (a far mode's b1) is widened by any slack in the discs' radii, and
+the first-order remainder of a close pair's wide residues at the far mode's lines was that slack.
+
 Where to refine (our choice): best-first on how far a box sticks out of the hull of points checked
 to fit (witnesses, :mod:`setmem_hil.identification.feasible_points`); a box within
 ``settle_fraction`` of that hull's width on every side is a leaf. The witnesses only steer the
@@ -75,6 +82,10 @@ from setmem_hil.numerics.in_order_pool import run_in_order
 
 _EPS = np.finfo(float).eps
 UNUSABLE_RATIO = 50.0  # a point whose remainder exceeds this many bounds counts as unusable when choosing a split
+# the second-order form only where the mean-value remainder is over this share of the bound: its products'
+# dense columns made each solve of the 1,200 lines slower (7-8 s -> 10.5 s), and below it the disc's slack is
+# a thousandth of the bound (stop 63: 59 of the 1,200 lines of the 3 % pair were above it, 1.5 above 1e-2)
+SECOND_ORDER_FLOOR = 1e-3
 NEGLIGIBLE_REST = 0.01  # in a group of three: one mode multiplied alone only where the others' remainders are below this share of the bound
 
 
@@ -119,6 +130,7 @@ class GroupSettings:
     subset_stage: bool = True  # search a subset of the points first (the hull searched again with all)
     contract_at_budget: bool = False  # past max_boxes: each open box contracted once more, not kept as it stood
     affine_radius: bool = True  # the multiplied denominators' magnitude bounded affinely where tighter (stop 59)
+    second_order: bool = False  # the divided form's points to second order (:func:`second_order_group`); the polish's, stop 63
     # the modes whose parameters a split may cut, the one widest against the witnesses' hull
     # (None: the remainders' rule, :func:`_split_dimension`); the polish's, stop 59
     split_among: tuple[int, ...] | None = None
@@ -285,6 +297,76 @@ def linearised_group(omega_rad_s, g, lo, hi, with_jacobian: bool = True):
         J[broken] = 0.0
     r_c[broken], rho[broken], err[broken] = 0.0, np.inf, 0.0
     return r_c, J, err, rho
+
+
+def second_order_group(omega_rad_s, g, lo, hi):
+    """The divided form to second order (our choice, issue 47, stop 63): each mode's term with its
+    bilinear part kept exactly, the products of the mode's own residue and pole deviations as
+    variables shared by every point (relaxed by their McCormick envelopes, as in
+    :func:`lifted_pair`). With ``n = dN`` and ``d = dD`` the deviations from the centre,
+
+        N / D = N_c / D_c + n / D_c - N_c d / D_c^2 - n d / D_c^2 + R2,   R2 = N d^2 / (D_c^2 D),
+
+    so ``|R2| <= (|N_c| + |dN|) |dD|^2 / (|D_c|^2 min_box |D|)``: smaller than the mean-value
+    remainder of :func:`linearised_group` by about ``|dD| / |D_c|``. Why: a parameter the data fix
+    far more finely than their bound (a far mode's b1, fixed to 1e-4 by 300 intersecting discs)
+    is widened by any slack in the discs' radii, however small against the bound. Away from a
+    close pair's resonance the pair's remainder is mostly ``n d``: its residues' wide boxes (each
+    b1, b0 spans its prior; only their sums are fixed) times its poles' (stop 63, the 0.5 % same-sign
+    pair at five times the noise: 3-8 % of the bound at the far mode's lines; with it set to zero
+    there, a diagnostic, the far mode's b1 went from 1.65 to 1.35 of the exact set). As a variable
+    shared by every point, ``n d`` is held by the data instead of inflating every disc.
+
+    Where a mode's box spans more than the distance to resonance (the disc form of
+    :func:`linearised_group` is tighter than ``R2``) that mode keeps the disc form there.
+
+    Returns ``(r_c, J, err, rho, products)`` as :func:`linearised_group`, plus the product
+    terms (``None`` when no product is used): the cone is ``|r_c + J (x - c) + K z| <= E + rho``.
+    """
+    w, jw, c, h, L, H, m = _box_terms(omega_rad_s, lo, hi)
+    r_c = np.asarray(g, dtype=complex).copy()
+    J = np.zeros((w.size, 4 * m), dtype=complex)
+    rho = np.zeros(w.size)
+    err = 8 * _EPS * np.abs(r_c)
+    K_cols, pairs = [], []
+    for i in range(m):
+        D_c = (c[i, A0] - w * w) + jw * c[i, A1]
+        N_c = c[i, B0] + jw * c[i, B1]
+        T_c = N_c / D_c
+        r_c -= T_c
+        abs_D = np.abs(D_c)
+        dN = np.hypot(h[i, B0], w * h[i, B1])
+        dD = np.hypot(h[i, A0], w * h[i, A1])
+        d_min = denominator_min(w, L[i, A0], H[i, A0], L[i, A1])
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            second = (np.abs(N_c) + dN) * dD * dD / (d_min * abs_D * abs_D)
+            disc = (np.abs(N_c) + dN) * dD / (d_min * abs_D)
+            use_disc = disc < second
+            term = np.where(use_disc, disc, second)
+            term = np.where(dD == 0, 0.0, np.where(d_min > 0, term, np.inf))
+            rho += term * (1.0 + 1e-12)
+            pole_term = N_c / (D_c * D_c)
+            J[:, 4 * i + A1] = np.where(use_disc, 0.0, pole_term * jw)
+            J[:, 4 * i + A0] = np.where(use_disc, 0.0, pole_term)
+            J[:, 4 * i + B1] = -jw / D_c
+            J[:, 4 * i + B0] = -1.0 / D_c
+            # residual r = g - f gains + n d / D_c^2; n d in the normalised coordinates y
+            inv_D2 = np.where(use_disc, 0.0, 1.0 / (D_c * D_c))
+            coefficients = {(B0, A0): h[i, B0] * h[i, A0] + 0j, (B0, A1): jw * h[i, B0] * h[i, A1],
+                            (B1, A0): jw * h[i, B1] * h[i, A0], (B1, A1): -(w * w) * h[i, B1] * h[i, A1]}
+        err += 8 * _EPS * np.abs(T_c) * (1.0 + (c[i, A0] + w * w + w * c[i, A1]) / abs_D)
+        for (p, q), coefficient in coefficients.items():
+            column = coefficient * inv_D2
+            if np.any(column != 0):
+                K_cols.append(column)
+                pairs.append((4 * i + p, 4 * i + q))
+                err += 8 * _EPS * np.abs(column)
+    K = np.array(K_cols).T if K_cols else np.zeros((w.size, 0), dtype=complex)
+    broken = ~np.isfinite(r_c) | np.isnan(rho) | ~np.all(np.isfinite(J), axis=1) | ~np.all(np.isfinite(K), axis=1)
+    J[broken], K[broken] = 0.0, 0.0
+    r_c[broken], rho[broken], err[broken] = 0.0, np.inf, 0.0
+    products = ProductTerms(K, np.array(pairs, dtype=int).reshape(-1, 2)) if K_cols else None
+    return r_c, J, err, rho, products
 
 
 def _product_remainder(centres: list, deviations: list) -> np.ndarray:
@@ -593,6 +675,27 @@ def _mixed_cones(omega, g, E, lo, hi, mult, cones, affine_radius: bool = True, l
     return ProductTerms(np.hstack(K_cols), np.vstack(pairs)), np.hstack(K_slopes)
 
 
+def _second_order_rows(omega, g, E, lo, hi, rows, cones, products, product_slope):
+    """Write the points ``rows`` (those in the divided form) to second order
+    (:func:`second_order_group`) into ``cones = (r_c, J, err, C)`` (in place), their product
+    terms beside ``products`` (the lifted or multiplied points'; zero on each other's rows);
+    returns the merged product terms and their radius slopes (``None`` where none)."""
+    r_c, J, err, C = cones
+    r2, J2, err2, rho2, second = second_order_group(omega, g, lo, hi)
+    r_c[rows], J[rows], err[rows], C[rows] = r2[rows], J2[rows], err2[rows], E[rows] + rho2[rows]
+    if second is None:
+        return products, product_slope
+    used = np.any(second.K[rows] != 0, axis=0)  # a product that no row of ``rows`` uses is left out
+    if not used.any():
+        return products, product_slope
+    second = ProductTerms(second.K[:, used], second.pairs[used])
+    K2 = np.where(rows[:, None], second.K, 0.0)
+    if products is None:
+        return ProductTerms(K2, second.pairs), None if product_slope is None else np.zeros(K2.shape)
+    slope = None if product_slope is None else np.hstack([product_slope, np.zeros(K2.shape)])
+    return ProductTerms(np.hstack([products.K, K2]), np.vstack([products.pairs, second.pairs])), slope
+
+
 def _remainders(omega, lo, hi) -> np.ndarray:
     return linearised_group(omega, np.zeros(np.size(omega), dtype=complex), lo, hi, with_jacobian=False)[3]
 
@@ -771,6 +874,11 @@ class _Search:
             else:
                 products, product_slope = _mixed_cones(omega, g, E, lo, hi, mult, (r_c, J, err, C, slope),
                                                        self.settings.affine_radius, self.settings.lift_pairs)
+        second = divided & (rho > SECOND_ORDER_FLOOR * E) if self.settings.second_order else np.zeros(0, bool)
+        if second.any():
+            r_c, J, err, C = r_c.copy(), J.copy(), err.copy(), C.copy()
+            products, product_slope = _second_order_rows(omega, g, E, lo, hi, second, (r_c, J, err, C),
+                                                         products, product_slope)
         C = np.where(np.isfinite(E), C, np.inf)
         h = 0.5 * (np.asarray(hi, dtype=float) - np.asarray(lo, dtype=float))
         reach = np.abs(r_c) + np.abs(J) @ h + err
