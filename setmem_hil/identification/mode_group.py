@@ -235,6 +235,19 @@ def _box_terms(omega_rad_s, lo, hi):
     return w, 1j * w, c, _split_modes(0.5 * (hi - lo)), _split_modes(lo), _split_modes(hi), c.shape[0]
 
 
+def _mode_at_centre(w, c_mode, h_mode, lo_mode, hi_mode):
+    """One mode over its box: ``D_c, N_c, N_c / D_c, |D_c|`` at the centre, the largest ``|dN|,
+    |dD|`` over the box and ``min_box |D|`` (eq. 3.35)."""
+    D_c = (c_mode[A0] - w * w) + 1j * w * c_mode[A1]
+    N_c = c_mode[B0] + 1j * w * c_mode[B1]
+    dN = np.hypot(h_mode[B0], w * h_mode[B1])
+    dD = np.hypot(h_mode[A0], w * h_mode[A1])
+    d_min = denominator_min(w, lo_mode[A0], hi_mode[A0], lo_mode[A1])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        T_c = N_c / D_c
+    return D_c, N_c, T_c, np.abs(D_c), dN, dD, d_min
+
+
 def linearised_group(omega_rad_s, g, lo, hi, with_jacobian: bool = True):
     """The mean-value form of one box (module docstring), or for a mode at a point where it is
     tighter, the disc form: ``1 / D`` in the disc of centre ``1 / D_c`` and radius
@@ -265,15 +278,9 @@ def linearised_group(omega_rad_s, g, lo, hi, with_jacobian: bool = True):
     rho = np.zeros(w.size)
     err = 8 * _EPS * np.abs(r_c)
     for i in range(m):
-        D_c = (c[i, A0] - w * w) + jw * c[i, A1]
-        N_c = c[i, B0] + jw * c[i, B1]
-        T_c = N_c / D_c
+        D_c, N_c, T_c, abs_D, dN, dD, d_min = _mode_at_centre(w, c[i], h[i], L[i], H[i])
         r_c -= T_c
-        abs_D = np.abs(D_c)
         err += 8 * _EPS * np.abs(T_c) * (1.0 + (c[i, A0] + w * w + w * c[i, A1]) / abs_D)
-        dN = np.hypot(h[i, B0], w * h[i, B1])
-        dD = np.hypot(h[i, A0], w * h[i, A1])
-        d_min = denominator_min(w, L[i, A0], H[i, A0], L[i, A1])
         # A centre pole a hair from a measured line overflows these (inf: the point bounds nothing)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             mean_value = (dN * abs_D + np.abs(N_c) * dD) * dD / (d_min * abs_D * abs_D)
@@ -330,14 +337,8 @@ def second_order_group(omega_rad_s, g, lo, hi):
     err = 8 * _EPS * np.abs(r_c)
     K_cols, pairs = [], []
     for i in range(m):
-        D_c = (c[i, A0] - w * w) + jw * c[i, A1]
-        N_c = c[i, B0] + jw * c[i, B1]
-        T_c = N_c / D_c
+        D_c, N_c, T_c, abs_D, dN, dD, d_min = _mode_at_centre(w, c[i], h[i], L[i], H[i])
         r_c -= T_c
-        abs_D = np.abs(D_c)
-        dN = np.hypot(h[i, B0], w * h[i, B1])
-        dD = np.hypot(h[i, A0], w * h[i, A1])
-        d_min = denominator_min(w, L[i, A0], H[i, A0], L[i, A1])
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             second = (np.abs(N_c) + dN) * dD * dD / (d_min * abs_D * abs_D)
             disc = (np.abs(N_c) + dN) * dD / (d_min * abs_D)
