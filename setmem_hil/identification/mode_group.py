@@ -316,7 +316,7 @@ def second_order_group(omega_rad_s, g, lo, hi):
 
     so ``|R2| <= (|N_c| + |dN|) |dD|^2 / (|D_c|^2 min_box |D|)``: smaller than the mean-value
     remainder of :func:`linearised_group` by about ``|dD| / |D_c|``. Why: a parameter the data fix
-    far more finely than their bound (a far mode's b1, fixed to 1e-4 by 300 intersecting discs)
+    far more finely than their bound (a far mode's b1, fixed to 3e-4 by 300 intersecting discs)
     is widened by any slack in the discs' radii, however small against the bound. Away from a
     close pair's resonance the pair's remainder is mostly ``n d``: its residues' wide boxes (each
     b1, b0 spans its prior; only their sums are fixed) times its poles' (stop 63, the 0.5 % same-sign
