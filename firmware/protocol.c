@@ -2,6 +2,8 @@
 #include "protocol.h"
 
 #include <ctype.h>
+#include <math.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -17,7 +19,10 @@ static size_t say(char *reply, size_t cap, const char *text)
     return fitted(snprintf(reply, cap, "%s", text), cap);
 }
 
-/* Parse exactly `count` numbers from `args`; 0 when a field is missing, malformed or extra. */
+/* Parse exactly `count` finite numbers from `args`; 0 when a field is missing, malformed, extra or
+ * not finite. strtod reads "nan", "inf" and overflows ("1e999") as numbers: every command refuses
+ * them here, before any range check or conversion to an integer (a NaN converted to size_t or an
+ * out-of-range double to uint32_t is undefined behaviour; found with -fsanitize=float-cast-overflow). */
 static int numbers(const char *args, double *out, int count)
 {
     const char *p = args;
@@ -25,7 +30,7 @@ static int numbers(const char *args, double *out, int count)
     int i;
     for (i = 0; i < count; ++i) {
         out[i] = strtod(p, &end);
-        if (end == p)
+        if (end == p || !isfinite(out[i]))
             return 0;
         p = end;
     }
@@ -140,9 +145,17 @@ static size_t settings(setmem_target *t, const char *command, const char *args, 
         return say(reply, cap, "OK");
     }
     if (strcmp(command, "WATCHDOG") == 0) {
-        if (!numbers(args, v, 1) || !(v[0] >= 0.0))
-            return say(reply, cap, "ERR WATCHDOG needs seconds >= 0");
+        /* the ticks are a uint32_t: at most UINT32_MAX samples (about 24 days at 2 kHz); a longer
+         * watchdog is refused, never wrapped to a short one or (UB) to anything at all */
+        const double longest = (double)UINT32_MAX / t->fs_hz;
+        if (!numbers(args, v, 1) || !(v[0] >= 0.0) || !(v[0] <= longest)) {
+            n = snprintf(reply, cap, "ERR WATCHDOG needs seconds from 0 (off) to %.17g", longest);
+            return fitted(n, cap);
+        }
+        if (v[0] > 0.0 && v[0] * t->fs_hz < 1.0)
+            return say(reply, cap, "ERR WATCHDOG shorter than one sample: 0 turns it off");
         t->watchdog_ticks = (uint32_t)(v[0] * t->fs_hz);
+        t->ticks_since_host = 0;
         return say(reply, cap, "OK");
     }
     n = snprintf(reply, cap, "ERR unknown command %.40s", command);
