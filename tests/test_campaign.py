@@ -11,7 +11,7 @@ from setmem_hil.io.journal import Journal
 from setmem_hil.io.procedure import Goal, default_procedure
 from setmem_hil.sim_backends.simulated_beam import SimulatedBeamExperiment
 
-SEED = 2  # the 6.3.2 campaign reaches mu-bar < 1 in a few experiments for this seed
+SEED = 3  # the 6.3.2 campaign reaches mu-bar < 1 in a few experiments for this seed (one added since issue 62 shaves the box; seed 2 now needs none)
 
 
 def procedure(max_experiments=8, mu_target=1.0, seed=SEED):
@@ -142,7 +142,7 @@ def test_interrupted_campaign_resumes_to_exactly_the_uninterrupted_run(complete_
     summary, iterations, rows, _, _ = complete_run
     journal = new_journal(tmp_path)
     # Ctrl-C before the last added dwell (the run's own count: the robust design's path, and so
-    # how many dwells it adds, changes with its numerics; seed 2 now needs one)
+    # how many dwells it adds, changes with its numerics; seed 3 needs one)
     assert len(rows) > 15, "the complete run added no dwell: nothing to interrupt between iterations"
     with pytest.raises(KeyboardInterrupt):
         run_campaign(procedure(), InterruptAt(SEED, len(rows)), journal)

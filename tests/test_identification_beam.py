@@ -65,6 +65,7 @@ def test_result_document_has_contract_keys(results_b1_fixed):
     doc = results_b1_fixed[0][0].to_document()
     assert set(doc) >= {"modes", "conservatism", "iterations"}
     assert set(doc["conservatism"]) == {"embedding_gamma", "mismatch_ratio"}
-    assert [set(m) - {"verified", "unverified_reason", "group"} for m in doc["modes"]] == [set(PARAM_NAMES)] * 3
+    assert [set(m) - {"verified", "unverified_reason", "group", "reach_ratio"} for m in doc["modes"]] == [set(PARAM_NAMES)] * 3
+    assert doc["witness"]["fits"] is True and 0 <= doc["witness"]["misfit"] <= 1  # issue 62: a point checked to fit
     assert [m["group"] for m in doc["modes"]] == [[1], [2], [3]]  # separated modes: each alone (issue 47)
     assert all(isinstance(m["verified"], bool) for m in doc["modes"])

@@ -31,7 +31,7 @@ def first_iteration():
     omega = candidate_frequencies(1, InputDesignSettings(candidates_base=150))
     R = beam.total_bound(omega)
     g = result.model.midpoint.frequency_response(omega)  # certainty equivalence (eq. 4.53)
-    settings = IdentifySettings(max_outer_iterations=EXACT_RESOLVE_OUTER_ITERATIONS)
+    settings = IdentifySettings(max_outer_iterations=EXACT_RESOLVE_OUTER_ITERATIONS, shave=False)  # as the campaign's exact re-solves
     exact_widths = np.full((omega.size,) + result.model.width.shape, np.nan)
     for n in range(omega.size):
         extra = FrequencyData([omega[n]], [g[n]], [R[n]])

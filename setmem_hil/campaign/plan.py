@@ -59,13 +59,17 @@ from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.mu_floor import floor_message, floor_modes
 from setmem_hil.robust.robust_design import FINAL_TUNING
 
-__all__ = ["thesis_plan", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT", "BATCH_EVENT"]
+__all__ = ["thesis_plan", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT", "BATCH_EVENT", "WITNESS_EVENT"]
 
 EXACT_RESOLVE_EVENT = "exact-resolve"
 """Event holding, as JSON, the candidates re-identified exactly at an iteration and their
 improvement (the choice is the best of these; the report's figure 6-14 shows them)."""
 FLOOR_EVENT = "floor"
 """Event of an iteration whose box blocks every compensator (:mod:`setmem_hil.model.mu_floor`)."""
+WITNESS_EVENT = "witness"
+"""Event holding, as JSON, the iteration's witness (issue 62): ``{"k", "fits", "misfit",
+"reach_ratio_max", "shaved_slabs"}``, and a ``warning`` where no parameter point of the box was
+found to fit every point (its modes are then not verified)."""
 UNPRODUCTIVE_REGION_EVENT = "left-out"
 """Event of a frequency region left out of the candidates (:mod:`setmem_hil.design.unproductive_region`)."""
 BOX_UNCHANGED_RTOL = 1e-6
@@ -215,9 +219,23 @@ def _identify(loop: LoopSettings, state: LoopState):
     except InconsistentDataError as exc:
         yield _document(NOTE, {"kind": "inconsistent-data", "message": f"iteration {state.k}: {exc}"}, state.k)
         raise
+    witness = getattr(result, "witness", None)
+    if witness is not None:
+        yield _document(NOTE, {"kind": WITNESS_EVENT, "message": _witness_message(state.k, result)}, state.k)
     model = result.model if state.previous_model is None else result.model.intersect(state.previous_model)
     yield InformModel(model, sensor_models)  # later dwells model their transients with these poles
     return Identified(result, model, sensor_models, data, floor_modes(model))
+
+
+def _witness_message(k: int, result) -> str:
+    """The witness note's message: JSON, with a sentence where no point was found to fit."""
+    ratios = result.reach_ratio
+    doc = {"k": k, "fits": result.witness.fits, "misfit": round(float(result.witness.misfit), 6),
+           "reach_ratio_max": None if ratios is None or not np.isfinite(ratios).any() else round(float(np.nanmax(ratios)), 4),
+           "shaved_slabs": None if result.shaved is None else result.shaved.slabs}
+    if not result.witness.fits:
+        doc["warning"] = f"iteration {k}: no parameter point of the box was found to fit every point: {result.witness.describe_misfit()}"
+    return json.dumps(doc)
 
 
 def _design_and_analyse(loop: LoopSettings, state: LoopState, model) -> tuple[SafeguardOutcome, str]:

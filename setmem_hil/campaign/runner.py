@@ -35,7 +35,7 @@ _REEXPORTED = {
                                        "sensors_document"),
     "setmem_hil.campaign.next_input": ("EXACT_RESOLVE_OUTER_ITERATIONS", "batch_frequencies", "candidate_noise_bound", "dwell_seconds",
                                        "next_frequency", "other_outputs"),
-    "setmem_hil.campaign.plan": ("BATCH_EVENT", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT"),
+    "setmem_hil.campaign.plan": ("BATCH_EVENT", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT", "WITNESS_EVENT"),
     "setmem_hil.campaign.summary": ("IterationSummary",),
     "setmem_hil.errors": ("CampaignReplayError",),
 }

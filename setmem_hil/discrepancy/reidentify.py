@@ -80,7 +80,8 @@ def transform_data(effect: str, value: float, data: FrequencyData, delta: float 
 def _feasible(data: FrequencyData, prior: Prior, cheap: bool = True):
     from setmem_hil.identification.algorithm import IdentifySettings, identify
 
-    settings = IdentifySettings(max_outer_iterations=2, partition=False) if cheap else IdentifySettings()
+    # the cheap checks ask consistency (the witness), not the tightest box: no shaving (issue 62)
+    settings = IdentifySettings(max_outer_iterations=2, partition=False, shave=False) if cheap else IdentifySettings()
     try:
         return True, identify(data, prior, settings=settings), ""
     except (InconsistentDataError, InputFormatError) as exc:

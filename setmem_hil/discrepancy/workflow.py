@@ -224,7 +224,8 @@ def _identify_feasible(data: FrequencyData, prior: Prior, cheap: bool = False):
     """``(feasible, result or None, message)`` of :func:`identify` on ``data``."""
     from setmem_hil.identification.algorithm import IdentifySettings, identify
 
-    settings = IdentifySettings(max_outer_iterations=2, partition=False) if cheap else IdentifySettings()
+    # the cheap checks ask consistency (the witness), not the tightest box: no shaving (issue 62)
+    settings = IdentifySettings(max_outer_iterations=2, partition=False, shave=False) if cheap else IdentifySettings()
     try:
         return True, identify(data, prior, settings=settings), ""
     except InconsistentDataError as exc:

@@ -28,7 +28,7 @@ import numpy as np
 from setmem_hil.identification.embedding import conservatism_ratio, embedding_bound, embedding_residual, redundant_points
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
-from setmem_hil.model.modal_model import A0, A1, B0, B1, IntervalModel
+from setmem_hil.model.modal_model import A0, A1, B0, B1, PARAM_NAMES, IntervalModel
 from setmem_hil.identification.mode_group import GroupSettings, close_groups, identify_group, piece_hulls
 from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 from setmem_hil.identification.one_mode_solver import OneModeProblem
@@ -36,6 +36,9 @@ from setmem_hil.identification.partitioning import PartitionPlan, minimal_partit
 from setmem_hil.model.prior import Prior
 from setmem_hil.identification.residual_terms import bound_residual, residual_midpoint_response, residual_mismatch
 from setmem_hil.identification.residue_bootstrap import bootstrap_residue_bounds
+from setmem_hil.identification.shaving import ShaveReport, inner_extent, proved_empty, reach_ratios, within_cost_rule
+from setmem_hil.identification.shaving import shave as shave_box
+from setmem_hil.identification.witness import Witness, find_witness, residual_response
 
 POLISH_BOXES = 48  # boxes the final all-modes contraction may use (24 left the far mode of the 1 % pair at 5x noise 2.1x the exact set, stop 54; 48: 1.8x)
 # ... and with a mode outside every group, whose bound the pair's b1 cut serves (stop 61: a 0.5 % pair's
@@ -82,6 +85,12 @@ class IdentifySettings:
     # the final contraction's divided-form points to second order (mode_group.second_order_group); None:
     # where a mode is outside every group (measured there: stop 63), not where every mode is grouped
     polish_second_order: bool | None = None
+    # a witness (a point checked to fit every point, :mod:`setmem_hil.identification.witness`) sought
+    # in the final box; without one no mode is verified (issue 62)
+    witness: bool = True
+    # every interval wider than its witnesses' reach shaved to the data's limit
+    # (:mod:`setmem_hil.identification.shaving`, issue 62); needs ``witness``
+    shave: bool = True
 
 
 @dataclass(frozen=True)
@@ -103,6 +112,11 @@ class IdentificationResult:
     notes: tuple[str, ...] = ()  # why gamma exceeds the target, per mode where it does
     residuals: dict = field(default_factory=dict)  # enabled residual terms: name -> (lo, hi)
     groups: tuple[tuple[int, ...], ...] = ()  # 0-based modes identified together (issue 47); others alone
+    witness: Witness | None = None  # the best point found, checked on the model (fits or not); None: not sought
+    # each interval's width over the witnesses' reach after shaving, (n_modes, 4), nan where fixed or
+    # unreached (an upper bound of its width over the exact set's extent); None: no witness fits
+    reach_ratio: np.ndarray | None = None
+    shaved: ShaveReport | None = None  # what shaving did; None: not run
 
     def group_of(self, i: int) -> tuple[int, ...]:
         """The modes (0-based) mode ``i`` was identified with, itself included."""
@@ -121,6 +135,12 @@ class IdentificationResult:
         )
         for i, mode in enumerate(doc["modes"]):
             mode["group"] = [k + 1 for k in self.group_of(i)]
+            if self.reach_ratio is not None:
+                mode["reach_ratio"] = {name: float(r) for name, r in zip(PARAM_NAMES, self.reach_ratio[i]) if np.isfinite(r)}
+        if self.witness is not None:
+            doc["witness"] = self.witness.to_document()
+        if self.shaved is not None:
+            doc["shaving"] = {"slabs": self.shaved.slabs, "proved_empty": self.shaved.emptied, "seconds": round(self.shaved.seconds, 3)}
         return doc
 
 
@@ -374,24 +394,19 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
                 data, lo, hi, res, list(group), prior, counter, group_unverified, GroupSettings(max_boxes=settings.group_boxes))
         iterations += _outer_loop([data], lo, hi, res, prior, settings, counter, optimizers, gammas, plans, last_unverified, ())
     if groups:
-        # every mode together, from the box reached: a contraction that removes the rest of the
-        # split's conservatism (a far mode's box bounded by the pair's mismatch); no deep search.
-        # Then once more from the groups' last leaves (a few hulls along each pair's set), which
-        # keep how a pair's parameters go together; it starts from the first one's box, so it can
-        # only narrow it.
-        grouped = tuple(sorted({k for group in groups for k in group}))
-        pairs = tuple(tuple(group) for group in groups if len(group) == 2)
-        lone_mode = len(grouped) < lo.shape[0]
-        budget = settings.polish_boxes
-        if budget is None:
-            budget = POLISH_BOXES_LONE_MODE if lone_mode else POLISH_BOXES
-        second_order = lone_mode if settings.polish_second_order is None else settings.polish_second_order
-        _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pairs, budget, second_order)
-        pieces = polish_pieces(group_pieces, lo, hi, settings.polish_pieces)
-        if pieces:
-            _polish(data, lo, hi, res, prior, counter, group_unverified, grouped, pairs, budget, second_order, pieces)
+        _polish_every_mode(data, lo, hi, res, prior, counter, group_unverified, groups, group_pieces, settings)
     for i, reason in group_unverified.items():
         last_unverified[i] = tuple(last_unverified[i]) + (reason,)
+    witness = ratios_to_reach = shaved = None
+    if settings.witness:
+        # closely spaced modes were bounded together by the groups and the polish (within 1.17 of the
+        # exact set on the close-mode benchmark, issue 47); their slabs are costly (a pair's
+        # relaxation is loose on coarse boxes: 6 -> 57 s on one test's pairs): shaving is for the
+        # separated modes that the split alone bounded
+        witness, ratios_to_reach, shaved = _witnessed_and_shaved(data, lo, hi, res, settings, shave=settings.shave and not groups)
+        if not witness.fits:
+            last_unverified = [tuple(u) + ("no parameter point of the box was found to fit every point: "
+                                           + witness.describe_misfit(),) for u in last_unverified]
 
     model = IntervalModel(lo, hi)
     mismatch = mode_mismatch_bounds(model, data.omega_rad_s)
@@ -417,7 +432,67 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         notes=tuple(note for note in notes if note),
         residuals={name: (float(a), float(b)) for name, (a, b) in res.items()},
         groups=tuple(tuple(grp) for grp in groups),
+        witness=witness,
+        reach_ratio=ratios_to_reach,
+        shaved=shaved,
     )
+
+
+def _polish_every_mode(data, lo, hi, res, prior, counter, unverified: dict, groups, group_pieces: dict,
+                       settings: IdentifySettings) -> None:
+    """After the groups' rounds: every mode contracted together (:func:`_polish`), in place."""
+    # every mode together, from the box reached: a contraction that removes the rest of the
+    # split's conservatism (a far mode's box bounded by the pair's mismatch); no deep search.
+    # Then once more from the groups' last leaves (a few hulls along each pair's set), which
+    # keep how a pair's parameters go together; it starts from the first one's box, so it can
+    # only narrow it.
+    grouped = tuple(sorted({k for group in groups for k in group}))
+    pairs = tuple(tuple(group) for group in groups if len(group) == 2)
+    lone_mode = len(grouped) < lo.shape[0]
+    budget = settings.polish_boxes
+    if budget is None:
+        budget = POLISH_BOXES_LONE_MODE if lone_mode else POLISH_BOXES
+    second_order = lone_mode if settings.polish_second_order is None else settings.polish_second_order
+    _polish(data, lo, hi, res, prior, counter, unverified, grouped, pairs, budget, second_order)
+    pieces = polish_pieces(group_pieces, lo, hi, settings.polish_pieces)
+    if pieces:
+        _polish(data, lo, hi, res, prior, counter, unverified, grouped, pairs, budget, second_order, pieces)
+
+
+def _witnessed_and_shaved(data: FrequencyData, lo: np.ndarray, hi: np.ndarray, res: dict, settings: IdentifySettings,
+                          shave: bool = True):
+    """A witness of the box (:func:`witness.find_witness`), and where one fits, every interval
+    shaved to the witnesses' reach (:func:`shaving.shave`, in place). Returns ``(witness,
+    reach ratios or None, shave report or None)``.
+
+    Without a witness the whole model's relaxation is asked whether the box is empty
+    (:func:`shaving.proved_empty`): proved, it is an :class:`InconsistentDataError`; not proved, the
+    result is returned unverified. Without ``shave`` (the setting off, or closely spaced modes
+    bounded by their groups) and beyond the shaving's cost rule (:func:`shaving.within_cost_rule`)
+    only the witness is sought. The reach is taken with the residual terms at the witness's
+    values (its points truly fit);
+    the shaving itself sees the data less the terms' midpoints with their mismatch added to the
+    bound (as the polish does), so it stays guaranteed over the terms' whole intervals."""
+    w = data.omega_rad_s
+    witness = find_witness(w, data.response, data.bound, lo, hi, res)
+    g_all, E_all = data.response - residual_midpoint_response(res, w), data.bound + residual_mismatch(res, w)
+    if not witness.fits:
+        if proved_empty(w, g_all, E_all, lo, hi):
+            binding = np.array(witness.binding_omega_rad_s)
+            raise InconsistentDataError(
+                f"modes {', '.join(str(k + 1) for k in range(lo.shape[0]))} (together): no parameters within the prior fit "
+                f"the data within their error bounds, proved for the whole model though each mode alone fits; "
+                f"{witness.describe_misfit()} (check those measurements and bounds, or the model: a mode or effect missing?)",
+                omegas_rad_s=np.sort(binding) if binding.size else w, mode_index=0,
+            )
+        return witness, None, None
+    if not shave or not within_cost_rule(lo, hi, data.bound):
+        return witness, None, None
+    g_witness = data.response - residual_response(witness.residuals, w)
+    inner_lo, inner_hi = inner_extent(w, g_witness, data.bound, lo, hi, witness.x)
+    report = shave_box(w, g_all, E_all, lo, hi, inner_lo, inner_hi)
+    lo[...], hi[...] = report.lower, np.maximum(report.lower, report.upper)
+    return witness, reach_ratios(lo, hi, inner_lo, inner_hi), report
 
 
 def _polish(data, lo, hi, res, prior, counter, unverified, grouped: tuple, pairs: tuple, budget: int,

@@ -57,6 +57,34 @@ def _exact_resolves(events) -> dict:
     return out
 
 
+def _witnesses(events) -> dict:
+    """``k -> witness note`` (issue 62: ``fits``, ``misfit``, ``reach_ratio_max``) from the plan's
+    witness events (none in older journals)."""
+    out = {}
+    for e in events:
+        if e["kind"] == "witness":
+            try:
+                doc = json.loads(e["message"])
+                out[int(doc["k"])] = doc
+            except (ValueError, KeyError, TypeError):
+                continue
+    return out
+
+
+def _shown_event(e) -> list | None:
+    """An events-table row: exact re-solves are figure 6-14's data, not news; a witness note is
+    news only where no point was found to fit (its warning)."""
+    if e["kind"] == "exact-resolve":
+        return None
+    if e["kind"] == "witness":
+        try:
+            warning = json.loads(e["message"]).get("warning")
+        except (ValueError, AttributeError):
+            warning = e["message"]
+        return None if not warning else [e["utc"], e["kind"], warning]
+    return [e["utc"], e["kind"], e["message"]]
+
+
 def figure_iterations(iterations: Sequence[IterationRecord]) -> list[int]:
     """Iterations that get sample-transfer-function and pole-zero figures.
 
@@ -302,7 +330,10 @@ def _intervals_section(its, run, procedure) -> list[str]:
              "identification's conservatism (embedding gamma, mismatch ratio) per mode, and whether it was identified alone or "
              "with the closely spaced modes of its group (docs/closely-spaced-modes.md). For the last iteration, each mode's "
              "widest interval over the linearised exact feasible set's extent (1: at the data's limit; larger: where the "
-             "method is conservative, thesis 3.6).</p>"]
+             "method is conservative, thesis 3.6). Under each table, the iteration's witness (a parameter point checked to fit "
+             "every point) and its widest interval over the witnesses' reach (points checked to fit: an upper bound of its width "
+             "over the exact set's extent; issue 62).</p>"]
+    witnesses = _witnesses(run.events)
     for n, rec in enumerate(its, start=1):
         parts.append(_table(["parameter", "lower bound", "upper bound", "width", "mu-sensitivity"], _interval_rows(rec),
                             f"table-intervals-k{rec.k}",
@@ -316,7 +347,17 @@ def _intervals_section(its, run, procedure) -> list[str]:
                 for row, cell in zip(cons, _exact_ratio_cells(run, rec, procedure)):
                     row.append(cell)
             parts.append(_table(header, cons, f"table-conservatism-k{rec.k}"))
+        if rec.k in witnesses:
+            parts.append(f"<p class='witness' id='witness-k{rec.k}'>{_e(_witness_sentence(witnesses[rec.k]))}</p>")
     return parts
+
+
+def _witness_sentence(doc: dict) -> str:
+    if not doc.get("fits"):
+        return doc.get("warning") or f"No parameter point of the box was found to fit every point (best misfit {doc.get('misfit')})."
+    reach = doc.get("reach_ratio_max")
+    tail = "" if reach is None else f"; widest interval / witnesses' reach {reach:.3f}"
+    return f"Witness: misfit {doc['misfit']:.3f} (at most 1: fits every point){tail}."
 
 
 def _records_section(run, its, out_dir: Path) -> list[str]:
@@ -333,9 +374,8 @@ def _records_section(run, its, out_dir: Path) -> list[str]:
 
     parts.append(verification_section(out_dir))
     parts.append("<h2 id='events'>Events</h2>")
-    shown = [e for e in run.events if e["kind"] != "exact-resolve"]  # data of figure 6-14, not news
-    parts.append(_table(["time (UTC)", "kind", "message"], [[e["utc"], e["kind"], e["message"]] for e in shown], "table-events")
-                 if shown else "<p>None.</p>")
+    shown = [row for row in (_shown_event(e) for e in run.events) if row is not None]
+    parts.append(_table(["time (UTC)", "kind", "message"], shown, "table-events") if shown else "<p>None.</p>")
     parts.append("<h2 id='measurements'>Measurements</h2>")
     mrows = [[r["seq"], r["iteration"], r["role"], _num(r["omega_rad_s"], 6), _num(abs(complex(r["re"], r["im"]))),
               _num(math.degrees(math.atan2(r["im"], r["re"])), 4), _num(r["bound"]), r["utc"]] for r in run.rows]

@@ -2,7 +2,8 @@
 
 Exit 0 on success; 2 on malformed input (the message names file, line or key); 3 when the data
 are inconsistent with the prior (the message names the frequencies; with several outputs also
-the output and the mode). With ``--reject-outliers`` (thesis section 7.2) the fewest points
+the output and the mode), and when no parameter point of the box was found to fit every point
+(RESULT.json is written, its ``witness`` holds the best fit; issue 62). With ``--reject-outliers`` (thesis section 7.2) the fewest points
 needed to regain consistency are dropped and reported (one output so far).
 
 Several ``--data`` (issue 25): one output per file, in the order given; the modes' poles are
@@ -56,7 +57,21 @@ def run(args: argparse.Namespace) -> int:
     dropped = f" ({len(doc['rejected_points'])} rejected)" if doc.get("rejected_points") else ""
     print(f"identified {len(doc['modes'])} mode(s) from {used} points{dropped} in {doc['iterations']} iteration(s): "
           f"{args.out}" + (f"; bounds of mode(s) {unverified} NOT verified (see unverified_reason)" if unverified else ""))
-    return 0
+    return _witness_exit(doc)
+
+
+def _witness_exit(doc: dict) -> int:
+    """Exit 3 when no parameter point of the box was found to fit (issue 62): the box is written
+    (nothing measured is lost) but nothing in it is known to fit; the message names the best fit's
+    misfit and the points that bind it."""
+    witness = doc.get("witness")
+    if witness is None or witness["fits"]:
+        return 0
+    shown = ", ".join(f"{w:.6g}" for w in witness["binding_omega_rad_s"][:6])
+    print(f"error: no parameter point of the identified box was found to fit every point: the best fit "
+          f"({witness['starts']} starts) misses by {witness['misfit']:.3g} times the bound at omega = {shown} rad/s "
+          "(check those measurements and bounds, or the model: a mode or effect missing?)", file=sys.stderr)
+    return 3
 
 
 def _add_exact_ratios(doc: dict, data, prior) -> None:
