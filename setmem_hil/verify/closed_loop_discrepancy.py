@@ -57,7 +57,7 @@ def _fit_one(model, w: np.ndarray, rho: np.ndarray, bounds: tuple[float, float])
 def closed_loop_discrepancy(points, setup) -> dict:
     """``{"effect", "parameters", "residual", "residual_as_modelled", "points"}`` over the step with
     the first point outside (the points of that gain)."""
-    first = next(p for p in points if not p.inside)
+    first = next(p for p in points if p.outside)
     step = [p for p in points if p.gain == first.gain]
     w, rho = _ratios(step, setup)
     as_modelled = float(np.sum(np.abs(rho - 1.0) ** 2))

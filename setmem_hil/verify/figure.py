@@ -30,15 +30,17 @@ def write_figure(path, setup, result) -> None:
         mine = [p for p in result.points if p.gain == gain]
         for p in mine:
             m = p.measured
-            ax.errorbar([m.omega_rad_s], [abs(m.S)], yerr=[[min(m.S_bound, abs(m.S) * 0.999)], [m.S_bound]], fmt="o" if p.inside else "X",
-                        color=color if p.inside else "red", markersize=6 if p.inside else 9, capsize=3)
+            look = dict(fmt="o", color=color, markersize=6) if p.inside else (
+                dict(fmt="X", color="red", markersize=9) if p.outside else dict(fmt="s", color="grey", markersize=6))  # grey: uninformative
+            ax.errorbar([m.omega_rad_s], [abs(m.S)], yerr=[[min(m.S_bound, abs(m.S) * 0.999)], [m.S_bound]], capsize=3, **look)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("frequency (rad/s)")
     ax.set_ylabel("|S| = |u / r|")
-    outside = sum(not p.inside for p in result.points)
+    outside = sum(p.outside for p in result.points)
     ax.set_title(f"closed loop at {setup.fs_hz:g} Hz, {setup.delay_samples} samples delay: "
-                 + ("every point inside its prediction" if not outside else f"{outside} point(s) outside (red X)"))
+                 + ("every informative point inside its prediction" if not outside else f"{outside} point(s) outside (red X)")
+                 + (f"; {sum(not p.informative for p in result.points)} uninformative (grey)" if any(not p.informative for p in result.points) else ""))
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="best")
     fig.tight_layout()

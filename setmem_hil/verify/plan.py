@@ -57,8 +57,16 @@ from setmem_hil.robust.implemented_loop import implemented_mu_bar, implemented_r
 from setmem_hil.robust.validation import closed_loop_matrix
 from setmem_hil.verify.messages import Bypass, Engage, IdentifyTarget, InjectAndRecord, LoadCompensator
 
-__all__ = ["VerifySetup", "VerifiedPoint", "VerifyResult", "NotEngaged", "verification_plan", "chosen_frequencies", "settle_time_s"]
+__all__ = ["VerifySetup", "VerifiedPoint", "VerifyResult", "NotEngaged", "verification_plan", "chosen_frequencies", "settle_time_s",
+           "informative", "INFORMATIVE_SPAN"]
 
+
+INFORMATIVE_SPAN = 10.0
+"""A point's prediction is *informative* when it is bounded and its ``|S|`` spans at most this factor
+(``max <= INFORMATIVE_SPAN * min``, ``min > 0``; issue 63). A prediction of ``0..inf``, or of more
+than a decade, cannot be contradicted by any measurement: such a point is reported as
+uninformative and counts neither as inside nor as outside; ``verified`` needs informative points
+(our rule: a decade, the span a lab reads as a check on a log-magnitude plot)."""
 
 BASELINE_PERIODS = 2.0
 BASELINE_MIN_S = 2.0
@@ -99,14 +107,21 @@ class VerifiedPoint:
     gain: float
     measured: ClosedLoopPoint
     prediction: PredictedSensitivity
-    inside: bool
+    inside: bool  # consistent with an informative prediction (False where the prediction is uninformative)
     weighted_performance: float  # |W2 S| + |W1 g K_impl S| with the measured S
+    informative: bool = True  # the prediction could have been contradicted (:data:`INFORMATIVE_SPAN`)
+
+    @property
+    def outside(self) -> bool:
+        """An informative prediction the measurement contradicts: the model is falsified here."""
+        return self.informative and not self.inside
 
     def to_document(self) -> dict:
         lo, hi = self.prediction.abs_range
         m = self.measured
         return {"omega_rad_s": m.omega_rad_s, "S_re": m.S.real, "S_im": m.S.imag, "S_bound": m.S_bound,
                 "predicted_abs_S_min": lo, "predicted_abs_S_max": hi if math.isfinite(hi) else None, "inside": bool(self.inside),
+                "informative": bool(self.informative),
                 "G_re": m.G.real, "G_im": m.G.imag, "G_bound": m.G_bound, "weighted_performance": self.weighted_performance,
                 "peak_drive": m.peak_drive, "peak_response": m.peak_response}
 
@@ -122,7 +137,11 @@ class VerifyResult:
 
     @property
     def first_outside(self) -> VerifiedPoint | None:
-        return next((p for p in self.points if not p.inside), None)
+        return next((p for p in self.points if p.outside), None)
+
+    def informative_in_every_step(self) -> bool:
+        """Did every gain step measure at least one point whose prediction is informative?"""
+        return bool(self.steps) and all(any(p.get("informative", True) for p in step["points"]) for step in self.steps)
 
 
 def verification_plan(setup: VerifySetup, result: VerifyResult | None = None):
@@ -154,8 +173,9 @@ def verification_plan(setup: VerifySetup, result: VerifyResult | None = None):
                 result.points += points
                 result.steps.append({"gain": gain, "implemented_mu_bar": certified, "certified": kind,
                                      "points": [p.to_document() for p in points]})
-            yield Emit("step", {"gain": gain, "points": len(points), "outside": sum(not p.inside for p in points)})
-            if any(not p.inside for p in points):
+            yield Emit("step", {"gain": gain, "points": len(points), "outside": sum(p.outside for p in points),
+                                "uninformative": sum(not p.informative for p in points)})
+            if any(p.outside for p in points):
                 break
     finally:
         yield Bypass("the verification ended")
@@ -212,10 +232,18 @@ def _measure_step(setup: VerifySetup, gain: float, points: list, baseline_rms: f
         prediction = predicted_sensitivity(setup.model, setup.weights, k, w, setup.calibration_gain, loop_gain=gain)
         # |W2 S| + |W1 K S| with the weights the claimed mu-bar was computed with
         performance = float(setup.weights.w2_magnitude(w)) * abs(point.S) + float(setup.weights.w1_magnitude(w)) * abs(gain * k * point.S)
-        verified = VerifiedPoint(gain, point, prediction, prediction.holds(point.S, point.S_bound), float(performance))
+        useful = informative(prediction)
+        verified = VerifiedPoint(gain, point, prediction, useful and prediction.holds(point.S, point.S_bound), float(performance), useful)
         yield Emit("point", verified.to_document() | {"gain": gain})
         points.append(verified)
         _check_settled(point, gain, setup.settle_s, baseline_rms)
+
+
+def informative(prediction: PredictedSensitivity) -> bool:
+    """Could a measurement contradict this prediction? Bounded, and ``|S|`` within a factor of
+    :data:`INFORMATIVE_SPAN`."""
+    lo, hi = prediction.abs_range
+    return prediction.bounded and lo > 0 and math.isfinite(hi) and hi <= INFORMATIVE_SPAN * lo
 
 
 def _near(omega_rad_s: float) -> str:
@@ -237,7 +265,8 @@ def _check_settled(point: ClosedLoopPoint, gain: float, settle_s: float, baselin
 
 def chosen_frequencies(model: IntervalModel, weights: Weights, controller, fs_hz: float, delay_samples: int, prewarp_rad_s: float,
                        gain=None) -> tuple[float, ...]:
-    """The predicted peak of ``|W2 S|`` (the largest predicted ``|S|`` weighted), every modelled
+    """The predicted peak of ``|W2 S|`` (the largest predicted ``|S|`` weighted, among informative
+    predictions: :func:`informative`), every modelled
     mode's natural frequency (the box's midpoint), and the band's ends (half the lowest mode,
     twice the highest, below 0.4 Nyquist)."""
     modes = model.midpoint.natural_frequencies
@@ -245,9 +274,10 @@ def chosen_frequencies(model: IntervalModel, weights: Weights, controller, fs_hz
     grid = np.geomspace(lo, hi, 400)
     k = implemented_response(controller, fs_hz, delay_samples, prewarp_rad_s, grid)
     weighted = []
-    for w, kw in zip(grid, k):
-        s_max = predicted_sensitivity(model, weights, complex(kw), float(w), gain).abs_range[1]
-        weighted.append(float(weights.w2_magnitude(w)) * s_max if math.isfinite(s_max) else -1.0)
+    for w, kw in zip(grid, k):  # the peak among predictions that can be contradicted (issue 63)
+        prediction = predicted_sensitivity(model, weights, complex(kw), float(w), gain)
+        s_max = prediction.abs_range[1]
+        weighted.append(float(weights.w2_magnitude(w)) * s_max if informative(prediction) else -1.0)
     peak = float(grid[int(np.argmax(weighted))])
     chosen = sorted({round(float(v), 9) for v in (lo, peak, *modes, hi) if lo <= v <= hi})
     return tuple(chosen)

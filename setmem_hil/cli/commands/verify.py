@@ -93,6 +93,11 @@ def run(args: argparse.Namespace) -> int:
               f"(+- {m.S_bound:.2g}) lies outside the predicted {lo:.4g}..{hi:.4g}"
               + (f"; the discrepancy names {doc['discrepancy']['effect']}" if doc.get("discrepancy") else ""), file=sys.stderr)
         return EXIT_OUTSIDE
+    if not doc["verified"]:
+        print(f"setmem-hil: verify: not verified: a gain step measured no point whose prediction could be contradicted "
+              f"(|S| bounded within a factor of 10; {doc['uninformative_points']} uninformative point(s)): choose frequencies "
+              "with informative predictions ([verify] frequencies_rad_s)", file=sys.stderr)
+        return EXIT_OUTSIDE
     print(f"{out / 'verify.json'}: verified: {len(result.points)} points in {len(result.steps)} gain steps inside the prediction; "
           f"measured performance {doc['performance']['measured']:.4g} against the claimed {doc['performance']['claimed']:.4g}")
     return 0
@@ -106,7 +111,8 @@ def _document(result, setup, target_procedure, record) -> dict:
     measured = max((p.weighted_performance for p in result.points if p.gain >= 1.0), default=None)
     first = result.first_outside
     doc = {
-        "verified": bool(result.points) and first is None and len(result.steps) == len(setup.gains),
+        "verified": bool(result.points) and first is None and len(result.steps) == len(setup.gains) and result.informative_in_every_step(),
+        "uninformative_points": sum(not p.informative for p in result.points),
         "iteration": int(record.k),
         "target": {"kind": target_procedure.target.kind, "identity": None if identity is None else identity.text,
                    "fs_hz": setup.fs_hz, "delay_samples": setup.delay_samples,
