@@ -135,6 +135,12 @@ class SafetyLimitError(SetmemError, ValueError):
     """A command that would exceed the procedure's amplitude or frequency limits (never sent)."""
 
 
+class MeasuredLimitError(SafetyLimitError):
+    """A measurement exceeded a safety limit while the output was on (a force sensor declared 10x
+    too sensitive, a response over ``[safety] max_response``): the output was switched off. A rig
+    fault, not malformed input: the CLI exits 4, as for a device fault (issue 63)."""
+
+
 class DataQualityError(SetmemError, RuntimeError):
     """A dwell whose samples are unusable (clipped, NaN, timestamp jumps); it is discarded."""
 

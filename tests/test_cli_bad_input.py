@@ -107,7 +107,7 @@ def test_every_setmem_error_has_an_exit_code_and_a_message():
     expected = {"InputFormatError": 2, "ProcedureError": 2, "SafetyLimitError": 2, "InconsistentDataError": 3,
                 "DeviceError": 4, "DeviceTimeoutError": 4, "FrameError": 4, "DeviceDisconnectedError": 4,
                 "DeviceRejectedError": 4, "ModbusExceptionError": 4, "DeviceIdentityError": 4, "CampaignAborted": 130,
-                "OutputNotConfirmedOffError": 4}
+                "OutputNotConfirmedOffError": 4, "MeasuredLimitError": 4}
     for name, cls in inspect.getmembers(errors, inspect.isclass):
         if not issubclass(cls, errors.SetmemError) or cls is errors.SetmemError:
             continue

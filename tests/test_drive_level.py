@@ -68,9 +68,17 @@ def test_a_force_above_the_trip_switches_the_output_off_first():
     leveller = ForceLeveller(exciter, max_force_n=1.0, force_room=lambda: 0.0, where="test")
     exciter.set_sine(2 * math.pi, 1.0)
     t = np.arange(200) / 100.0
-    with pytest.raises(SafetyLimitError, match="exceeds max_amplitude_n"):
+    with pytest.raises(SafetyLimitError, match="exceeds max_amplitude_n") as caught:
         leveller.force_peak(t, 1.2 * np.sin(2 * math.pi * t))
     assert not source.output
+    # a measurement stopped the run with the output on: a rig fault, exit 4, not malformed input's 2 (issue 63)
+    from setmem_hil.cli.main import EXIT_BAD_INPUT, EXIT_DEVICE, exit_code_and_message
+    from setmem_hil.errors import MeasuredLimitError
+
+    assert isinstance(caught.value, MeasuredLimitError)
+    code, message = exit_code_and_message(caught.value)
+    assert code == EXIT_DEVICE and message.startswith("safety stop: test: measured force")
+    assert exit_code_and_message(SafetyLimitError("2 N outside the limit; nothing was sent"))[0] == EXIT_BAD_INPUT
 
 
 def test_an_output_off_that_cannot_be_read_back_is_said_not_confirmed():

@@ -31,7 +31,7 @@ from typing import Callable
 import numpy as np
 
 from setmem_hil.drivers.instruments.source import SignalSource, switch_output_off
-from setmem_hil.errors import DataQualityError, DeviceRejectedError, SafetyLimitError
+from setmem_hil.errors import DataQualityError, DeviceRejectedError, MeasuredLimitError, SafetyLimitError
 from setmem_hil.estimation.sine_fit import fit_sine
 
 __all__ = ["LevelledExciter", "ForceLeveller", "held_waveform_gain", "level_record_s", "levelling_allowance_s", "FORCE_TRIP",
@@ -268,7 +268,7 @@ class ForceLeveller:
             amplitude = max(self.last_fitted_n, float(np.max(np.abs(force_n))))
         if amplitude > FORCE_TRIP * self.max_force_n:
             self.exciter.stop()
-            raise SafetyLimitError(f"{self.where}: measured force {amplitude:.4g} N exceeds max_amplitude_n "
+            raise MeasuredLimitError(f"{self.where}: measured force {amplitude:.4g} N exceeds max_amplitude_n "
                                    f"{self.max_force_n:g} N by more than 5 %; output switched off")
         return amplitude
 

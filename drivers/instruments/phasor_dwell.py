@@ -48,7 +48,7 @@ from setmem_hil.drivers.clock import Clock
 from setmem_hil.drivers.instruments.lockin import LockIn, LockInOverload, ReferenceUnlocked
 from setmem_hil.drivers.instruments.source import SignalSource, switch_output_off
 from setmem_hil.drivers.safety import check_sine_command
-from setmem_hil.errors import DeviceError, DeviceRejectedError, SafetyLimitError
+from setmem_hil.errors import DeviceError, DeviceRejectedError, MeasuredLimitError, SafetyLimitError
 from setmem_hil.estimation.instrument_terms import to_receptance  # noqa: F401 - also imported from here
 from setmem_hil.estimation.phasor_record import OutputSensor, lock_in_record, output_point, reading_ratios, receptance_scale
 from setmem_hil.estimation.phasor_estimate import exponential_trend, settling_test
@@ -368,7 +368,7 @@ class PhasorDwellExperiment:
         actual = math.sqrt(2.0) * abs(f_v) / self.force_sensor.volt_per_unit * (1.0 + self.force_sensor.calibration_uncertainty)
         if actual > FORCE_LIMIT_MARGIN * self.limits.max_amplitude_n:
             self._output_off()
-            raise SafetyLimitError(f"{self.force.name}: measured force {actual:.4g} N (with its calibration uncertainty) exceeds "
+            raise MeasuredLimitError(f"{self.force.name}: measured force {actual:.4g} N (with its calibration uncertainty) exceeds "
                                    f"max_amplitude_n {self.limits.max_amplitude_n:g} N by more than 5 %; output switched off")
         return f_v
 
@@ -540,7 +540,7 @@ class PhasorDwellExperiment:
         amplitude = math.sqrt(2.0) * abs(r_v) / self.response_sensor.volt_per_unit
         if amplitude > self.max_response:
             self._output_off()
-            raise SafetyLimitError(f"{self.response.name}: response amplitude {amplitude:.4g} at {omega_rad_s:.6g} rad/s exceeds "
+            raise MeasuredLimitError(f"{self.response.name}: response amplitude {amplitude:.4g} at {omega_rad_s:.6g} rad/s exceeds "
                                    f"[safety] max_response {self.max_response:g}; output switched off")
 
     def _ramp_down(self, target: float) -> None:

@@ -26,6 +26,7 @@ from setmem_hil.errors import (
     InputFormatError,
     JournalError,
     RunInterrupted,
+    MeasuredLimitError,
     SafetyLimitError,
     SetmemError,
     SolverError,
@@ -56,6 +57,9 @@ def exit_code_and_message(exc: BaseException, interrupted: str = "interrupted") 
     """
     if isinstance(exc, InconsistentDataError):
         return EXIT_INCONSISTENT, f"data inconsistent with the prior: {exc}"
+    if isinstance(exc, MeasuredLimitError):  # the output was on: a rig fault (exit 4), with what the clean-up confirmed
+        safety = getattr(exc, "safety_note", "")
+        return EXIT_DEVICE, "; ".join(part for part in (f"safety stop: {exc}", safety) if part)
     if isinstance(exc, (InputFormatError, SafetyLimitError)):
         return EXIT_BAD_INPUT, str(exc)
     if isinstance(exc, DeviceError):
