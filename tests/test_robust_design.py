@@ -165,19 +165,26 @@ def test_the_robust_loop_reaches_the_goal_with_few_experiments_and_names_the_flo
     assert summary["experiments_added"] <= 2  # the H2 loop needs 7 on this seed (issue 38)
     rows = summary["iterations"]
     assert all(r["design"] in ("robust", "h2") for r in rows) and rows[-1]["design"] == "robust"
-    assert rows[0]["floor_modes"] == [2, 3] and rows[-1]["floor_modes"] == []
-    # the floor's modes are what the true parameters' box says
+    assert rows[-1]["floor_modes"] == []
+    # the floor's modes are what each iteration's box says (a pure function of it, model/mu_floor.py).
+    # Since issue 62 the box is shaved to the data's limit: the undamped zero-residue plants that the
+    # split's box held for modes 2 and 3 at iteration 1 (named as the floor until stop 63) do not fit
+    # the 15 initial points, and the floor is no longer named where the exact set does not hold it.
     from setmem_hil.io.journal import Journal
+    from setmem_hil.model.modal_model import IntervalModel
+    from setmem_hil.model.mu_floor import floor_modes
 
     with Journal.open(robust_run) as journal:
         records, events = journal.iterations(), journal.events()
     assert [r.floor_modes for r in records] == [tuple(r["floor_modes"]) for r in rows]
-    assert any(e["kind"] == "floor" and "mode 3: the box holds an undamped mode" in e["message"] for e in events)
+    assert [r.floor_modes for r in records] == [floor_modes(IntervalModel(r.lower, r.upper)) for r in records]
+    named = {m for r in records for m in r.floor_modes}
+    assert all(any(e["kind"] == "floor" and f"mode {m}: the box holds an undamped mode" in e["message"] for e in events) for m in named)
     assert main(["export", str(robust_run), "--csv", str(tmp_path / "csv")]) == 0
     with open(tmp_path / "csv" / "iterations.csv", newline="") as fh:
         table = list(csv.DictReader(fh))
     assert [t["design"] for t in table] == [r["design"] for r in rows]
-    assert table[0]["floor_modes"] == "2;3" and table[-1]["floor_modes"] == ""
+    assert [t["floor_modes"] for t in table] == [";".join(str(m) for m in r["floor_modes"]) for r in rows]
 
 
 @pytest.mark.slow

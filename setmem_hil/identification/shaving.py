@@ -54,6 +54,7 @@ SLAB_MODES = 3
 # not proved empty on the first sweep often is on the next (the off-peak beam, seed 1: mode 3's b0
 # 1.14 -> 1.04 of the exact set's inner extent in a second sweep; a finer slab or a 4x budget did not)
 MAX_SWEEPS = 3
+SLAB_GRID = 256  # a slab's width is a whole number of 1/SLAB_GRID of its interval's width (scale invariance)
 # slabs searched per identification at most, the widest intervals first (a count, not a time: the
 # same data give the same box on every machine, and a resumed campaign repeats its run exactly)
 MAX_SLABS = 36
@@ -158,15 +159,20 @@ def _shave_side(omega, g, E, lo, hi, i: int, p: int, side: int, reach: float, se
     searched = emptied = 0
     rows, g_local, E_local = _local_problem(omega, g, E, lo, hi, i, SLAB_MODES)
     at = rows.index(i)
+    # slab widths on a grid of the interval's width: the reach ends where a local search stopped
+    # (a relative rule, 1e-4-ish between unit systems), the grid does not, so the same data in other
+    # units cut the same slabs (a campaign at 314 rad/s took another path without it)
+    step = (hi[i, p] - lo[i, p]) / SLAB_GRID
     for fraction in settings.fractions:
         gap = reach - lo[i, p] if side < 0 else hi[i, p] - reach
-        if gap <= 0:
+        width = np.floor(fraction * gap / step) * step if step > 0 else 0.0
+        if width <= 0:
             break
         slab_lo, slab_hi = lo[rows].copy(), hi[rows].copy()
         if side < 0:
-            slab_hi[at, p] = lo[i, p] + fraction * gap
+            slab_hi[at, p] = lo[i, p] + width
         else:
-            slab_lo[at, p] = hi[i, p] - fraction * gap
+            slab_lo[at, p] = hi[i, p] - width
         searched += 1
         try:
             found = identify_group(omega, g_local, E_local, slab_lo, slab_hi, _slab_settings(len(rows), settings.slab_boxes))
