@@ -53,3 +53,17 @@ def test_an_uninformative_point_counts_neither_inside_nor_outside_and_verified_n
     result.steps[0]["points"].append({"informative": True})
     assert result.informative_in_every_step()
     assert np.isfinite(good.prediction.abs_range[1])
+
+
+def test_every_target_file_key_is_in_the_procedures_page():
+    """docs/procedures.md's table of ``[target]`` / ``[verify]`` keys holds every key of the schema
+    the file is read with (issue 63 item 5: they were in no table)."""
+    from pathlib import Path
+
+    from setmem_hil.io.target_file import SCHEMA
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "procedures.md").read_text(encoding="utf-8")
+    section = page[page.index("## The verification's target file"):]
+    for spec in SCHEMA:
+        where = f"`[{spec.table}]` | `{spec.key}`" if spec.table else f"top level | `{spec.key}`"
+        assert where in section, f"{spec.table}.{spec.key} is not in docs/procedures.md"
