@@ -403,7 +403,7 @@ def identify(data: FrequencyData, prior: Prior, previous: IntervalModel | None =
         # exact set on the close-mode benchmark, issue 47); their slabs are costly (a pair's
         # relaxation is loose on coarse boxes: 6 -> 57 s on one test's pairs): shaving is for the
         # separated modes that the split alone bounded
-        witness, ratios_to_reach, shaved = _witnessed_and_shaved(data, lo, hi, res, settings, shave=settings.shave and not groups)
+        witness, ratios_to_reach, shaved = _witnessed_and_shaved(data, lo, hi, res, shave=settings.shave and not groups)
         if not witness.fits:
             last_unverified = [tuple(u) + ("no parameter point of the box was found to fit every point: "
                                            + witness.describe_misfit(),) for u in last_unverified]
@@ -459,8 +459,7 @@ def _polish_every_mode(data, lo, hi, res, prior, counter, unverified: dict, grou
         _polish(data, lo, hi, res, prior, counter, unverified, grouped, pairs, budget, second_order, pieces)
 
 
-def _witnessed_and_shaved(data: FrequencyData, lo: np.ndarray, hi: np.ndarray, res: dict, settings: IdentifySettings,
-                          shave: bool = True):
+def _witnessed_and_shaved(data: FrequencyData, lo: np.ndarray, hi: np.ndarray, res: dict, shave: bool = True):
     """A witness of the box (:func:`witness.find_witness`), and where one fits, every interval
     shaved to the witnesses' reach (:func:`shaving.shave`, in place). Returns ``(witness,
     reach ratios or None, shave report or None)``.
