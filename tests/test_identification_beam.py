@@ -47,8 +47,16 @@ def test_b1_free_gives_wider_intervals_and_larger_mismatch(results_b1_fixed):
     """Section 6.2.1 vs 6.2.2: ignoring b1 = 0 widens the intervals and raises the mismatch."""
     free = [identify(section_6_2_data(s)[0], thesis_beam_prior(b1_fixed=False)) for s in range(5)]
     fixed = [r for r, _ in results_b1_fixed[:5]]
+    shared = [0, 1, 3]  # a0, a1, b0: b1 is fixed in one of the two
     for f, x in zip(free, fixed):
-        assert np.all(f.model.width[:, [0, 1, 3]] >= x.model.width[:, [0, 1, 3]] * 0.999)
+        # The exact set with b1 free holds the one with b1 = 0, so the free box holds every point
+        # checked to fit with b1 = 0: the fixed run's inner extent (its width over its reach ratio).
+        # Both boxes are outer bounds shaved to within ~1.08 of their sets, so box against box may
+        # differ by that much either way on one interval; the set against the box cannot.
+        inner_fixed = x.model.width[:, shared] / x.reach_ratio[:, shared]
+        assert np.all(f.model.width[:, shared] >= inner_fixed * (1 - 1e-6))
+        # and on the whole the free intervals are wider (the thesis's 6.2.1 against 6.2.2)
+        assert np.exp(np.mean(np.log(f.model.width[:, shared] / x.model.width[:, shared]))) > 1.0
     assert np.mean([f.mismatch_ratio for f in free]) > np.mean([x.mismatch_ratio for x in fixed])
     for s, f in zip(range(5), free):
         assert f.model.contains(section_6_2_data(s)[1].modelled_truth).all()

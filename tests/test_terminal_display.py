@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 from rich.console import Console
@@ -41,7 +42,11 @@ def test_live_display_fits_the_terminal_and_ends_without_a_stale_choice(short_ca
     for frame in frames:
         assert all(len(line) <= width for line in frame)
         assert not any("…" in line for line in frame), frame  # nothing cut off
-    assert any("next 6.246 rad/s (0.9941 Hz)" in line for frame in frames for line in frame)  # both units
+    # the choice as the status line must show it, in both units (4 significant figures; Hz = w/2pi)
+    chosen = [float(info["next_omega"]) for event, info in events if event == "chosen"]
+    assert chosen, "the 2-experiment campaign chose no frequency"
+    expected = f"next {chosen[0]:.4g} rad/s ({chosen[0] / (2 * math.pi):.4g} Hz)"
+    assert any(expected in line for frame in frames for line in frame), expected
     assert not any("next " in line for line in frames[-1]), frames[-1]
     printed = console.export_text()
     assert "iteration 1: 15 points, mu-bar peak" in printed and "finished:" in printed

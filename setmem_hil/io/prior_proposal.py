@@ -51,6 +51,10 @@ def _bands(estimate) -> list[tuple[float, float]]:
             lo = max(lo, math.sqrt(wn[i - 1] * wn[i]) * (1 + 1e-6))
         if i + 1 < len(wn):
             hi = min(hi, math.sqrt(wn[i] * wn[i + 1]) * (1 - 1e-6))
+        repeated = i > 0 and not estimate.modes[i - 1].low_pseudo_mode and wn[i] <= wn[i - 1] * (1 + 1e-6)
+        if repeated or not lo < hi:  # one pole in two brackets, or omega_min > omega_max (issue 62)
+            raise ValueError(f"modes {i} and {i + 1} (counted from 1) were proposed at the same frequency, "
+                             f"{wn[i] / (2 * math.pi):.6g} Hz: try one mode fewer, or write that bracket by hand")
         out.append((lo, hi))
     return out
 

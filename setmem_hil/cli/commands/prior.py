@@ -62,8 +62,11 @@ def run(args: argparse.Namespace) -> int:
     named = [(name, est) for (name, _), est in zip(outputs, estimates)] if len(outputs) > 1 else None
     source = Path(files[0]).name if named is None else " and ".join(name for name, _ in named)
     brackets = _no_wider_than_each_alone(args.residues, outputs, estimates, complex_reason, band, residuals) if named else None
-    write_text_atomic(out, format_prior_proposal(estimates[0], source, residuals, outputs=named, complex_reason=complex_reason,
-                                                 brackets=brackets))
+    try:
+        text = format_prior_proposal(estimates[0], source, residuals, outputs=named, complex_reason=complex_reason, brackets=brackets)
+    except ValueError as exc:
+        raise InputFormatError(", ".join(files), "--modes", str(exc)) from None
+    write_text_atomic(out, text)
     if complex_reason is not None:
         print(f"prior: complex residues (b1 bracketed): {complex_reason}")
     figure = plot_stability_diagram(estimates[0], outputs[0][1], out.with_name(out.stem + "-stability.png"))
