@@ -29,7 +29,7 @@ from typing import Protocol, Sequence
 import numpy as np
 
 from setmem_hil.estimation.analyser_sums import AnalyserSums
-from setmem_hil.errors import DeviceDisconnectedError, DeviceIdentityError, DeviceRejectedError, DeviceTimeoutError
+from setmem_hil.errors import DeviceDisconnectedError, DeviceError, DeviceIdentityError, DeviceRejectedError, DeviceTimeoutError
 
 __all__ = ["LineChannel", "SerialLineChannel", "RealTimeTarget", "TargetIdentity", "TargetState", "AnalyserProgress",
            "compensator_checksum",
@@ -37,6 +37,21 @@ __all__ = ["LineChannel", "SerialLineChannel", "RealTimeTarget", "TargetIdentity
 
 IDENTITY_PREFIX = "SETMEM-HIL,reference-target,"
 BYPASS, ENGAGED, TRIPPED = "BYPASS", "ENGAGED", "TRIPPED"
+
+TRIP_MEANINGS = {
+    "drive_limit": "the drive reached the board's limit: the loop grew",
+    "watchdog": "the host fell silent for longer than the watchdog",
+}
+"""What the firmware's own trip reasons mean (docs/real-time-target.md). Any other reason is the
+board's hardware (an amplifier fault, an over-temperature, an emergency stop): said as such, never
+blamed on the loop (issue 63: ``TRIPPED amplifier_fault`` was reported as "the loop grew")."""
+
+
+def trip_meaning(reason: str) -> str:
+    """A trip's reason as a sentence for the operator."""
+    if reason in TRIP_MEANINGS:
+        return TRIP_MEANINGS[reason]
+    return f"a fault the board reports ({reason or 'no reason given'}), not the loop: check the rig before engaging again"
 
 
 class LineChannel(Protocol):
@@ -259,6 +274,8 @@ class SerialLineChannel:
                 if time.monotonic() > deadline:
                     raise DeviceTimeoutError(f"real-time target {self.url}: no reply to {line.split()[0]} within {self.timeout_s:g} s")
                 reply += self._port.read_until(b"\n")
+        except DeviceError:  # our own timeout is an OSError too: it stays a timeout, not "link lost"
+            raise
         except (serial.SerialException, OSError) as exc:
             raise DeviceDisconnectedError(f"real-time target {self.url}: link lost: {exc}") from exc
         return reply.decode("ascii", errors="replace").rstrip("\r\n")

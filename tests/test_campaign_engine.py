@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from setmem_hil.campaign.engine import STOP, Checkpoint, RunEngine, RunStart
+from setmem_hil.run.engine import STOP, Checkpoint, RunEngine, RunStart
 from setmem_hil.campaign.measurement_service import MeasurementService, register_measurements, stored_iterations
 from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE, Emit, InformModel, Measure, StoredData
 from setmem_hil.campaign.persistence import JournalWriter, RawRecordWriter
@@ -25,6 +25,7 @@ from setmem_hil.io.journal import Journal
 from setmem_hil.model.experiment import Measurement, RawRecord
 
 CAMPAIGN = Path(__file__).resolve().parents[1] / "setmem_hil" / "campaign"
+RUN_LAYER = Path(__file__).resolve().parents[1] / "setmem_hil" / "run"
 
 
 def point(w: float) -> Measurement:
@@ -435,7 +436,7 @@ def test_the_module_that_calls_the_design_step_imports_neither_the_journal_nor_t
 
 
 def test_the_engine_names_no_campaign_concept():
-    text = (CAMPAIGN / "engine.py").read_text(encoding="utf-8")
+    text = (RUN_LAYER / "engine.py").read_text(encoding="utf-8")
     words = set(re.findall(r"[A-Za-z_]+", text.lower()))
     assert not words & {"next_omega", "added", "iteration", "iterations", "campaign", "measure", "measurement", "dwell"}, \
         words & {"next_omega", "added", "iteration", "iterations", "campaign", "measure", "measurement", "dwell"}

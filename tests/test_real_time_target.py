@@ -253,3 +253,55 @@ def test_the_analysers_sums_give_the_fit_the_samples_give():
     assert from_sums.free_response_rms == pytest.approx(from_samples.free_response_rms, rel=1e-6)
     assert sums.peak_drive == pytest.approx(np.max(np.abs(record.u)), rel=1e-12)
     assert sums.peak_response == pytest.approx(np.max(np.abs(record.y)), rel=1e-12)
+
+
+def test_a_silent_board_is_a_timeout_naming_the_command_not_a_lost_link():
+    """Issue 63 item 4: our own timeout is an OSError too; it used to be re-raised as "link lost"."""
+    import os
+
+    from setmem_hil.drivers.real_time_target import SerialLineChannel
+    from setmem_hil.errors import DeviceTimeoutError
+
+    master, slave = os.openpty()  # a port that exists and never answers
+    try:
+        channel = SerialLineChannel(os.ttyname(slave), timeout_s=0.2)
+        with pytest.raises(DeviceTimeoutError, match=r"no reply to ANALYSIS\? within 0.2 s"):
+            channel.exchange("ANALYSIS?")
+        channel.close()
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.parametrize("reason, says, never", [
+    ("amplifier_fault", "a fault the board reports (amplifier_fault), not the loop", "the loop grew"),
+    ("drive_limit", "the drive reached the board's limit: the loop grew", "not the loop"),
+    ("watchdog", "the host fell silent", "the loop grew"),
+])
+def test_a_trip_is_reported_by_its_reason(reason, says, never):
+    """Issue 63 item 4: a hardware trip is not blamed on the loop; the firmware's own reasons
+    (docs/real-time-target.md) are said as what they mean. The service bypasses before saying so."""
+    from setmem_hil.drivers.real_time_target import TRIPPED, TargetState
+    from setmem_hil.verify.messages import InjectAndRecord
+    from setmem_hil.verify.target_service import LoopFault, TargetService
+
+    class TrippedBoard:
+        where = "board under test"
+        bypassed = False
+
+        def state(self):
+            return TargetState(TRIPPED, reason=reason)
+
+        def inject(self, amplitude, omega):
+            pass
+
+        def bypass(self):
+            self.bypassed = True
+
+    board = TrippedBoard()
+    service = TargetService(board, None, fs_hz=1000.0, delay_samples=0, drive_limit=1.0, watchdog_s=1.0,
+                            response_limit=None, measure="analyser", wait=lambda s: None)
+    request = InjectAndRecord(omega_rad_s=17.5, amplitude=0.1, settle_s=1.0, record_s=1.0)
+    with pytest.raises(LoopFault) as caught:
+        service._check(request, 0.0, 0.0)
+    assert says in str(caught.value) and never not in str(caught.value) and board.bypassed

@@ -118,7 +118,7 @@ def test_device_fault_zeroes_the_exciter_and_can_be_resumed(tmp_path, cheap, mon
 
 
 def test_default_run_directory(tmp_path, cheap, monkeypatch, capsys):
-    from setmem_hil.campaign.run_directory import default_run_dir
+    from setmem_hil.run.run_directory import default_run_dir
 
     when = datetime(2026, 11, 21, 23, 5, 9, tzinfo=timezone.utc)
     assert default_run_dir(default_procedure(), when) == Path("runs") / "beam-6.3.2-20261121T230509Z"

@@ -94,8 +94,12 @@ def test_the_loop_as_modelled_is_verified_in_three_certified_steps(small_run, tm
     assert doc["first_outside"] is None and (tmp_path / "out" / "verify.png").stat().st_size > 10_000
     assert len(list((tmp_path / "out" / "records").glob("0*.npz"))) == 12
     assert (tmp_path / "out" / "records" / "baseline.npz").exists() and 0 < doc["baseline_response_rms"] < 1e-4
-    events = [json.loads(line)["event"] for line in (tmp_path / "out" / "journal.jsonl").read_text().splitlines()]
-    assert events[0] == "start" and events[-1] == "stop" and events.count("point") == 12
+    docs = [json.loads(line) for line in (tmp_path / "out" / "journal.jsonl").read_text().splitlines()]
+    events = [d["event"] for d in docs]
+    # as a campaign's journal: the actuator armed before the start, the output confirmed off after the stop
+    assert (docs[0]["event"], docs[0]["kind"]) == ("note", "exciter-armed") and events[1] == "start"
+    assert events.count("point") == 12 and events[-2] == "stop"
+    assert (docs[-1]["kind"], docs[-1]["message"].split(":")[0]) == ("output-off", "confirmed")
 
 
 @pytest.mark.parametrize("emulation, effect", [
@@ -153,7 +157,10 @@ def test_a_structure_without_damping_is_stopped_with_the_target_bypassed(small_r
     assert len(doc["steps"]) == 1 and doc["steps"][0]["gain"] == 0.25 and doc["steps"][0]["points"] and not doc["verified"]
     assert 0 < doc["baseline_response_rms"] < 1e-4  # the emulated sensor's noise (1e-5 rms) with the loop at rest
     events = [json.loads(line) for line in (tmp_path / "out" / "journal.jsonl").read_text().splitlines()]
-    assert events[-1]["event"] == "stop"
+    # the engine's stop, then the run layer's notes: why, and the bypass confirmed (as a campaign's output-off)
+    assert [e["event"] for e in events[-3:]] == ["stop", "note", "note"]
+    assert events[-2]["kind"] == "device-fault" and "did not settle" in events[-2]["message"]
+    assert events[-1]["kind"] == "output-off" and events[-1]["message"].startswith("confirmed")
     assert len(list((tmp_path / "out" / "records").glob("0*.npz"))) == len(doc["steps"][0]["points"])
 
 
@@ -194,6 +201,70 @@ def test_ctrl_c_mid_point_bypasses_the_target_and_keeps_the_records(small_run, t
     assert "bypassed" in err
     assert loops[0].core.command("STATE?") == "BYPASS"  # the firmware itself says so
     assert doc is not None and len(list((tmp_path / "out" / "records").glob("*.npz"))) >= 1
+    assert _last_notes(tmp_path / "out") == [("interrupted", "Ctrl-C"), ("output-off", "confirmed")]
+
+
+def _last_notes(out: Path, count: int = 2) -> list[tuple[str, str]]:
+    """The journal's last notes as (kind, the message's first words): what the run layer wrote."""
+    docs = [json.loads(line) for line in (out / "journal.jsonl").read_text().splitlines()]
+    return [(d["kind"], d["message"].split(":")[0]) for d in docs if d["event"] == "note"][-count:]
+
+
+def test_sigterm_mid_point_is_a_ctrl_c_the_bypass_confirmed_and_journaled(small_run, tmp_path, capsys, monkeypatch):
+    """Issue 63 item 6: SIGTERM (a service manager, ``kill``) ends the verification as Ctrl-C
+    does, the clean-up included: exit 130, the firmware bypassed, the journal's notes as a
+    campaign's (``interrupted``, then ``output-off`` confirmed)."""
+    import os
+    import signal
+
+    from setmem_hil.sim_backends import emulated_target
+
+    loops, original = [], emulated_target.EmulatedClosedLoop.run
+
+    def run(self, n):
+        if self not in loops:
+            loops.append(self)
+        self.calls = getattr(self, "calls", 0) + 1
+        if self.calls == 1000:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return original(self, n)
+
+    monkeypatch.setattr(emulated_target.EmulatedClosedLoop, "run", run)
+    code, doc, err = run_verify(small_run, target_file(tmp_path, verify=FEW), tmp_path / "out", capsys)
+    assert code == 130 and "SIGTERM" in err, err
+    assert loops[0].core.command("STATE?") == "BYPASS"
+    assert _last_notes(tmp_path / "out") == [("interrupted", "SIGTERM"), ("output-off", "confirmed")]
+    assert signal.getsignal(signal.SIGTERM) is not None  # the handler given back
+
+
+def test_a_second_verify_in_the_same_directory_is_refused_while_one_runs(small_run, tmp_path, capsys):
+    from setmem_hil.run.run_directory import directory_lock
+    from setmem_hil.verify.session import VERIFY_LOCK
+
+    out = tmp_path / "out"
+    out.mkdir()
+    with directory_lock(out, VERIFY_LOCK, "busy"):  # what a running verify holds
+        code, doc, err = run_verify(small_run, target_file(tmp_path, verify=FEW), out, capsys)
+    assert code == 2 and "another setmem-hil verify is running in this directory" in err, err
+    assert not (out / "journal.jsonl").exists()  # nothing engaged, nothing written
+
+
+def test_the_campaign_and_verify_leave_through_one_safe_exit():
+    """Issue 63 item 6: the safe-exit path is one function of the run layer, and no plan keeps a
+    copy of the shut-down, the signal deferral or the output-off notes."""
+    from setmem_hil.campaign import journaled_run
+    from setmem_hil.run import safe_exit
+    from setmem_hil.verify import session
+
+    assert journaled_run.stop_safely is safe_exit.stop_safely is session.stop_safely
+    package = REPO / "setmem_hil"
+    callers = sorted(str(p.relative_to(package)) for p in package.rglob("*.py") if "shut_down(" in p.read_text(encoding="utf-8"))
+    assert callers == ["run/rig_safety.py", "run/safe_exit.py"], callers  # defined, and called once
+    for plan in ("campaign", "verify"):
+        for p in (package / plan).glob("*.py"):
+            text = p.read_text(encoding="utf-8")
+            assert "sigint_deferred()" not in text.replace("with sigint_deferred():\n        store.close()", ""), p
+            assert "OUTPUT_OFF_EVENT" not in text and "signal.signal(" not in text, p
 
 
 def test_the_runs_report_shows_the_verification_and_validate_refuses_a_slow_target(small_run, tmp_path, capsys):
@@ -284,8 +355,12 @@ def test_a_board_that_loses_power_mid_dwell_exits_4_and_keeps_what_was_measured(
         stop.set()
         watcher.join()
     assert code == 4, err
-    assert "no reply" in err or "link lost" in err, err
+    headline = err.split(";")[0]
+    # the command that went unanswered first, not the clean-up's BYPASS after it (issue 63 item 4)
+    assert "no reply to" in headline and "BYPASS" not in headline and "link lost" not in headline, err
     assert "switch the drive off at the amplifier" in err  # the bypass could not be confirmed: said so
+    assert _last_notes(tmp_path / "out") == [("device-fault", headline.split("device fault: ")[-1].split(":")[0]),
+                                            ("output-off", "NOT confirmed")]
     assert doc is not None and not doc["verified"] and any(s["points"] for s in doc["steps"])
 
 

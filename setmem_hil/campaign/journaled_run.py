@@ -4,7 +4,7 @@
 ``campaign``, a resume and the sweep task), so every procedure setting means the same everywhere:
 the runner (:mod:`setmem_hil.campaign.runner`) plus the standard subscribers of
 :mod:`setmem_hil.campaign.observers` plus whatever display the caller adds (terminal progress,
-live view). :func:`run_with_journal` adds rig safety (:mod:`setmem_hil.campaign.rig_safety`):
+live view). :func:`run_with_journal` adds rig safety (:mod:`setmem_hil.run.rig_safety`):
 Ctrl-C (or SIGTERM) stops cleanly: the exciter is commanded to zero, the journal is closed, the
 message says how to resume, and ``KeyboardInterrupt`` propagates (exit 130 in the CLI). SIGKILL
 or a power cut cannot be caught; the journal still holds every completed measurement.
@@ -21,17 +21,16 @@ from rich.console import Console
 
 from setmem_hil.campaign.observers import Observer, broadcast, standard_observers
 from setmem_hil.campaign.persistence import JournalWriter
-from setmem_hil.campaign.rig_safety import (
-    Terminated,
+from setmem_hil.run.rig_safety import (
     arm_exciter,
     journal_identities,
-    shut_down,
     sigint_deferred,
     sigterm_as_interrupt,
     stored_count,
     unconfirmed_output_off,
 )
-from setmem_hil.campaign.run_directory import SUMMARY_FILENAME
+from setmem_hil.run.safe_exit import stop_reason, stop_safely
+from setmem_hil.run.run_directory import SUMMARY_FILENAME
 from setmem_hil.errors import CampaignAborted, DeviceError, InconsistentDataError, InputFormatError, RunInterrupted
 from setmem_hil.io.atomic_file import write_json_atomic
 from setmem_hil.io.procedure import Procedure
@@ -99,33 +98,29 @@ def _run_campaign_in(procedure: Procedure, store: JournalWriter, run_dir: Path, 
                                              continue_stored=continue_stored, control=control)
         doc = summary.to_document()
     except KeyboardInterrupt as exc:
-        why = "SIGTERM: stopped by a signal" if isinstance(exc, Terminated) else "Ctrl-C: stopped by the operator"
-        with sigint_deferred():
-            safety, _ = shut_down(experiment, store, "interrupted", why)
+        stop = stop_safely(experiment, store, exc)
         # one line says what was made safe, what is kept and how to go on (the CLI prints it)
-        raise RunInterrupted(f"interrupted ({why.split(':')[0]}); {safety}, journal closed with "
+        raise RunInterrupted(f"interrupted ({stop_reason(exc)[1].split(':')[0]}); {stop.safety}, journal closed with "
                              f"{_closed_with(store)} measurements; {resume}") from exc
     except CampaignAborted as exc:
-        with sigint_deferred():
-            safety, _ = shut_down(experiment, store, "aborted", f"aborted: {exc}")
-        raise CampaignAborted(f"aborted ({exc}); {safety}, journal closed with {_closed_with(store)} measurements; {resume}") from exc
+        stop = stop_safely(experiment, store, exc)
+        raise CampaignAborted(f"aborted ({exc}); {stop.safety}, journal closed with {_closed_with(store)} measurements; {resume}") from exc
     except DeviceError as exc:
-        with sigint_deferred():
-            safety, _ = shut_down(experiment, store, "device-fault", str(exc))
-        exc.safety_note = safety  # the first fault stays the message; what the clean-up achieved follows it
+        stop = stop_safely(experiment, store, exc)
+        exc.safety_note = stop.safety  # the first fault stays the message; what the clean-up achieved follows it
         exc.resume_hint = f"journal closed with {_closed_with(store)} measurements; after fixing the rig {resume}"
         raise
     except BaseException as exc:
-        with sigint_deferred():
-            safety, _ = shut_down(experiment, store, "error", f"{type(exc).__name__}: {exc}")
+        stop = stop_safely(experiment, store, exc)
         if isinstance(exc, Exception):
             fix = " --procedure FIXED.toml" if isinstance(exc, (InconsistentDataError, InputFormatError)) else ""
-            exc.resume_hint = (f"{safety}, journal closed with {_closed_with(store)} measurements; continue with "
+            exc.resume_hint = (f"{stop.safety}, journal closed with {_closed_with(store)} measurements; continue with "
                                f"`setmem-hil run --resume {run_dir}{fix}`")
         raise
+    stop = stop_safely(experiment, store, None)
     with sigint_deferred():
-        safety, close_error = shut_down(experiment, store, None, "")
         store.close()
+    safety, close_error = stop.safety, stop.close_error
     write_json_atomic(doc, run_dir / SUMMARY_FILENAME)
     console.print(f"summary: {run_dir / SUMMARY_FILENAME}" + ("" if quiet_report_hint else f" (report: setmem-hil report {run_dir})"),
                   highlight=False)

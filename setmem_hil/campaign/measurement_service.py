@@ -31,7 +31,7 @@ import math
 from contextlib import contextmanager
 from typing import Any, Protocol
 
-from setmem_hil.campaign.engine import RunEngine
+from setmem_hil.run.engine import RunEngine
 from setmem_hil.campaign.messages import NOTE, Continuation, InformModel, Measure, StoredData
 from setmem_hil.errors import CampaignReplayError, DeviceError
 from setmem_hil.model.experiment import (

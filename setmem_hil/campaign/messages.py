@@ -2,7 +2,7 @@
 
 A plan is a generator: it ``yield``\\ s a request and receives the engine's reply as the value of
 the ``yield`` expression. The plan decides *what* to do; the engine
-(:class:`setmem_hil.campaign.engine.RunEngine`) performs it: its own requests (:class:`Emit`,
+(:class:`setmem_hil.run.engine.RunEngine`) performs it: its own requests (:class:`Emit`,
 :class:`Checkpoint`) and the campaign's, registered by
 :func:`setmem_hil.campaign.measurement_service.register_measurements` (a stored measurement or a
 new dwell, the raw records and the journal behind it).
@@ -23,7 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from setmem_hil.campaign.engine import NOTE, Checkpoint, Emit
+from setmem_hil.run.engine import NOTE, Checkpoint, Emit
 from setmem_hil.model.experiment import Measurement
 
 __all__ = ["Checkpoint", "Continuation", "Emit", "InformModel", "Measure", "StoredData", "ITERATION_RECORD", "NOTE"]

@@ -7,7 +7,7 @@ linearly in ``log omega`` (of ``log R`` when all are positive), held constant ou
 measured range.
 
 The experiment is only *read* here (its predicted bound and dwell plan); every measurement goes
-through the engine (:mod:`setmem_hil.campaign.engine`).
+through the engine (:mod:`setmem_hil.run.engine`).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The run's stores as subscribers of the engine (:mod:`setmem_hil.campaign.engine`).
+"""The run's stores as subscribers of the engine (:mod:`setmem_hil.run.engine`).
 
 :class:`RawRecordWriter` writes every ``raw-record`` document to ``RUN_DIR/raw.h5``
 (:mod:`setmem_hil.io.raw_store`); :class:`JournalWriter` writes the journal from the documents
@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from setmem_hil.campaign.engine import START, STOP
+from setmem_hil.run.engine import START, STOP
 from setmem_hil.campaign.messages import ITERATION_RECORD, NOTE
 from setmem_hil.io.journal import IterationRecord, Journal, journal_path
 from setmem_hil.io.raw_store import RawStore

@@ -1,7 +1,7 @@
 """Thesis Algorithm 5.1 as a plan: the iterative identification / control / experiment loop.
 
 :func:`thesis_plan` is a generator of requests (:mod:`setmem_hil.campaign.messages`) that an
-engine performs (:class:`setmem_hil.campaign.engine.RunEngine`); it holds no journal, replay,
+engine performs (:class:`setmem_hil.run.engine.RunEngine`); it holds no journal, replay,
 resume or live-view code. It measures the procedure's initial frequencies, then repeats:
 
 2. identify the parameter intervals from all data so far, never loosening the previous bounds
@@ -25,7 +25,7 @@ experiment (:class:`~setmem_hil.campaign.messages.InformModel`), so later dwells
 transients with the narrowed poles. A replay repeats the same identifications in the same order:
 the experiment is in the same state at the first new dwell as in an uninterrupted run.
 
-**Pause points.** The plan declares them (:class:`~setmem_hil.campaign.engine.Checkpoint`): before
+**Pause points.** The plan declares them (:class:`~setmem_hil.run.engine.Checkpoint`): before
 every dwell, and before a multisine record. The engine runs the plan's numerics with
 single-threaded BLAS (its ``compute``). Nothing the loop chooses depends on the wall clock or a
 global RNG.

@@ -13,11 +13,11 @@ from rich.console import Console
 
 from setmem_hil import __version__
 from setmem_hil.campaign.journaled_run import Display, ExperimentOpener, RunOutcome, run_with_journal
-from setmem_hil.campaign.engine import NOTE
+from setmem_hil.run.engine import NOTE
 from setmem_hil.campaign.observers import Observer
 from setmem_hil.campaign.persistence import JournalWriter
 from setmem_hil.campaign.preflight import preflight
-from setmem_hil.campaign.run_directory import SUMMARY_FILENAME, run_lock
+from setmem_hil.run.run_directory import SUMMARY_FILENAME, run_lock
 from setmem_hil.errors import InputFormatError
 from setmem_hil.io.atomic_file import write_json_atomic
 from setmem_hil.io.journal import Journal

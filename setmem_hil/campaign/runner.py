@@ -1,5 +1,5 @@
 """Run a campaign: thesis Algorithm 5.1 (:mod:`setmem_hil.campaign.plan`) on the run engine
-(:mod:`setmem_hil.campaign.engine`), stored by its subscribers (:mod:`setmem_hil.campaign.persistence`).
+(:mod:`setmem_hil.run.engine`), stored by its subscribers (:mod:`setmem_hil.campaign.persistence`).
 
 **Journal and resume (REPLAY).** Every measurement is written to the journal as soon as it is
 taken (its raw record to ``raw.h5`` just before), every iteration's bounds, mu-bar,
@@ -20,7 +20,7 @@ import os
 from dataclasses import replace
 from typing import Callable
 
-from setmem_hil.campaign.engine import Emit, RunEngine, RunStart
+from setmem_hil.run.engine import Emit, RunEngine, RunStart
 from setmem_hil.campaign.measurement_service import MeasurementService, register_measurements, stored_iterations
 from setmem_hil.campaign.persistence import IterationClock, JournalWriter, RawRecordWriter
 from setmem_hil.campaign.summary import CampaignSummary

@@ -3,9 +3,9 @@
 :func:`start_run` creates a run directory with a new journal and runs the campaign
 (:mod:`setmem_hil.campaign.journaled_run`: the runner, the standard subscribers, rig safety);
 :func:`setmem_hil.campaign.resume.resume_run` continues a stopped one from its journal. The
-directory, its lock and its files: :mod:`setmem_hil.campaign.run_directory`; the checks before
+directory, its lock and its files: :mod:`setmem_hil.run.run_directory`; the checks before
 the first dwell: :mod:`setmem_hil.campaign.preflight`; signals and the exciter on every exit:
-:mod:`setmem_hil.campaign.rig_safety`. The names callers import from here are re-exported.
+:mod:`setmem_hil.run.rig_safety`. The names callers import from here are re-exported.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from setmem_hil.campaign.observers import Observer
 from setmem_hil.campaign.persistence import JournalWriter
 from setmem_hil.campaign.preflight import preflight
 from setmem_hil.campaign.resume import resume_run
-from setmem_hil.campaign.rig_safety import unconfirmed_output_off
-from setmem_hil.campaign.run_directory import (
+from setmem_hil.run.rig_safety import unconfirmed_output_off
+from setmem_hil.run.run_directory import (
     PROCEDURE_COPY,
     SUMMARY_FILENAME,
     default_run_dir,

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
-from setmem_hil.campaign.run_directory import directory_lock
+from setmem_hil.run.run_directory import directory_lock
 from setmem_hil.errors import InputFormatError
 from setmem_hil.os_support import kill_process
 from setmem_hil.io.procedure import DESIGN_METHODS, STRATEGIES, Procedure

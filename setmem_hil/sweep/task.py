@@ -93,7 +93,7 @@ def sweep_campaign(procedure: Procedure, seed: int, strategy: str, out_dir: str,
         partial directory is then removed).
     """
     from setmem_hil import __version__
-    from setmem_hil.campaign.engine import NOTE
+    from setmem_hil.run.engine import NOTE
     from setmem_hil.campaign.journaled_run import run_journaled_campaign
     from setmem_hil.campaign.persistence import JournalWriter
     from setmem_hil.numerics.blas_threads import blas_one_thread

@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from setmem_hil.campaign.engine import Checkpoint, Emit
+from setmem_hil.run.engine import Checkpoint, Emit
 from setmem_hil.errors import DeviceError
 from setmem_hil.estimation.analyser_sums import AnalyserSums, closed_loop_point_from_sums
 from setmem_hil.estimation.closed_loop_point import ClosedLoopPoint, closed_loop_point

@@ -26,8 +26,8 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from setmem_hil.campaign.engine import RunEngine
-from setmem_hil.drivers.real_time_target import TRIPPED, RealTimeTarget
+from setmem_hil.run.engine import RunEngine
+from setmem_hil.drivers.real_time_target import TRIPPED, RealTimeTarget, trip_meaning
 from setmem_hil.errors import DeviceError, DeviceIdentityError, DeviceTimeoutError
 from setmem_hil.verify.messages import Bypass, Engage, IdentifyTarget, InjectAndRecord, LoadCompensator
 
@@ -155,7 +155,7 @@ class TargetService:
         if state.mode == TRIPPED:
             self._make_safe()
             raise LoopFault(f"{self.target.where}: the target tripped ({state.reason}) {where}, "
-                            f"peak drive {peak_drive:.3g}: the loop grew; bypassed")
+                            f"peak drive {peak_drive:.3g}: {trip_meaning(state.reason)}; bypassed")
         if self.response_limit is not None and peak_response > self.response_limit:
             self._make_safe()
             raise LoopFault(f"the response reached {peak_response:.3g} {where}, past the limit {self.response_limit:g}: "

@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         procedure = load_procedure(args.procedure)
         if args.check:
             from setmem_hil.campaign.preflight import preflight
-            from setmem_hil.campaign.run_directory import describe_procedure
+            from setmem_hil.run.run_directory import describe_procedure
 
             preflight(procedure)
             describe_procedure(procedure, console)
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
                     console.print(f"warning: {warning}", highlight=False, markup=False)
             console.print(f"{args.procedure}: OK", highlight=False)
             return 0
-        from setmem_hil.campaign.run_directory import default_run_dir
+        from setmem_hil.run.run_directory import default_run_dir
 
         out = Path(args.out) if args.out else default_run_dir(procedure)
         with live_view(args, out) as live:

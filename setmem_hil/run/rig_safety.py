@@ -26,7 +26,7 @@ from typing import Any, Callable, Iterator
 
 from rich.console import Console
 
-from setmem_hil.campaign.engine import NOTE
+from setmem_hil.run.engine import NOTE
 from setmem_hil.errors import SetmemError
 from setmem_hil.io.journal import Journal
 
@@ -167,11 +167,12 @@ def output_safety(experiment: Any, close_error: BaseException | None) -> tuple[s
     if isinstance(close_error, OutputNotConfirmedOffError):
         return " ".join(str(close_error).split()), False
     if isinstance(experiment, OutputConfirmingExperiment):
+        # an actuator may say its safe state in its own words (the real-time target: bypassed)
         if experiment.output_confirmed_off:
-            return f"output of {experiment.exciter} confirmed off", True
+            return getattr(experiment, "safe_sentence", f"output of {experiment.exciter} confirmed off"), True
         cause = f" ({' '.join(str(close_error).split())})" if close_error is not None else ""
-        return (f"the output of {experiment.exciter} could not be confirmed off{cause}: it may still be on: "
-                "switch it off at the instrument or at the amplifier"), False
+        advice = getattr(experiment, "unsafe_advice", "switch it off at the instrument or at the amplifier")
+        return f"the output of {experiment.exciter} could not be confirmed off{cause}: it may still be on: {advice}", False
     if close_error is not None:
         return (f"the exciter could not be commanded to zero ({' '.join(str(close_error).split())}): "
                 "switch it off at the instrument or at the amplifier"), None
