@@ -25,9 +25,16 @@ PROCEDURE = REPO / "procedures" / "instruments_scope_emulated_311.toml"
 POSITIONS = (1.0, 0.7, 0.4)  # channels 2, 3, 4
 
 
+SYNC_ON_EXT = REPO / "procedures" / "instruments_scope_emulated_311_sync.toml"
+
+
 @pytest.mark.slow
-def test_the_311_rad_s_scope_multisine_campaign_exits_0_with_every_truth_inside(tmp_path):
-    assert main(["run", str(PROCEDURE), "--out", str(tmp_path / "run"), "--quiet"]) == 0
+@pytest.mark.parametrize("procedure", [PROCEDURE, SYNC_ON_EXT], ids=["force-trigger", "33500b-sync-on-ext"])
+def test_the_311_rad_s_scope_multisine_campaign_exits_0_with_every_truth_inside(tmp_path, procedure):
+    """Issue 63 item 7, the second procedure: the 33500B's Sync on the scope's EXT input, pulsing
+    once per arbitrary-waveform period as its guide says (the emulated bench's sync). Before, every
+    multisine record failed "no trigger on its EXT input within 2.08 s"."""
+    assert main(["run", str(procedure), "--out", str(tmp_path / "run"), "--quiet"]) == 0
     assert main(["reprocess", str(tmp_path / "run")]) == 0  # issue 39: the multisine records recompute to the journal's points
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["reached_goal"] and summary["final_mu_peak"] < 1.0

@@ -47,10 +47,11 @@ def small_run(tmp_path_factory) -> Path:
     return run_dir
 
 
-def target_file(tmp_path: Path, emulation: str = "", verify: str = "", fs_hz: float = 1000.0) -> Path:
+def target_file(tmp_path: Path, emulation: str = "", verify: str = "", fs_hz: float = 1000.0, target: str = "") -> Path:
     text = SHIPPED.read_text().replace("fs_hz = 1000.0", f"fs_hz = {fs_hz}")
-    overridden = {line.split("=")[0].strip() for line in (emulation + "\n" + verify).splitlines() if "=" in line}
+    overridden = {line.split("=")[0].strip() for line in (emulation + "\n" + verify + "\n" + target).splitlines() if "=" in line}
     text = "\n".join(line for line in text.splitlines() if line.split("=")[0].strip() not in overridden) + "\n"
+    text = text.replace("[target]\n", "[target]\n" + target + "\n")
     text = text.replace("[target.emulation]\n", "[target.emulation]\n" + emulation + "\n")
     text = text.replace("[verify]\n", "[verify]\n" + verify + "\n")
     path = tmp_path / "target.toml"
@@ -112,6 +113,34 @@ def test_a_hidden_effect_puts_a_point_outside_and_is_named(small_run, tmp_path, 
     assert code == 3, err
     assert not doc["verified"] and doc["first_outside"] is not None and "rad/s" in err
     assert doc["discrepancy"]["effect"] == effect, doc["discrepancy"]["fits"]
+    assert doc["discrepancy"]["where"] == "compensator"  # the recorder reads the drive after the DAC
+
+
+@pytest.mark.parametrize("emulation, effect, parameter, truth", [
+    ("extra_delay_samples = 60", "time_delay", "delay_s", 0.060),  # the DAC's pipeline: 60 ms, about 1 rad at 17.5 rad/s
+    ("dac_gain = 1.3", "loop_gain", "gain", 1.3),  # the amplifier's gain
+    ("antialias_corner_hz = 2.8", "first_order_lag", "corner_rad_s", 2 * np.pi * 2.8),  # before the ADC, at the peak
+])
+def test_an_effect_on_the_analogue_side_is_named_at_the_plants_terminals(small_run, tmp_path, capsys, emulation, effect,
+                                                                        parameter, truth):
+    """Issue 63 item 1: the board's own analyser sums the drive before the DAC and the sensor
+    after the ADC, so the effect leaves K_eff the firmware's and lands in the measured G: named
+    from G over the box's G, its parameter within 10 % of the emulation's truth."""
+    out = tmp_path / "out"
+    code, doc, err = run_verify(small_run, target_file(tmp_path, emulation=emulation, verify=FEW, target='measure = "analyser"'), out, capsys)
+    assert code == 3, err
+    found = doc["discrepancy"]
+    assert (found["effect"], found["where"]) == (effect, "plant_terminals"), (found["fits"], found["terminal_fits"])
+    assert found["parameters"][parameter] == pytest.approx(truth, rel=0.10), found["parameters"]
+    assert found["side"] == "actuator or sensor"  # no force channel on the board: the side is not told
+
+
+def test_the_analogue_clean_loop_on_the_boards_analyser_is_verified_with_every_point_informative(small_run, tmp_path, capsys):
+    code, doc, err = run_verify(small_run, target_file(tmp_path, verify=FEW, target='measure = "analyser"'), tmp_path / "out", capsys)
+    assert code == 0, err
+    points = [p for s in doc["steps"] for p in s["points"]]
+    assert doc["verified"] and all(p["inside"] for p in points)
+    assert not doc.get("uninformative_points")
 
 
 def test_a_sample_rate_that_costs_the_margin_is_refused_before_anything_moves(small_run, tmp_path, capsys):

@@ -136,6 +136,12 @@ class ArbitraryWaveform:
     # it has taken the upload in, so no later query meets a reply that is still on its way
     complete_query: str = ""
     upload_bytes_per_s: float = 1e5  # the slowest rate an instrument takes an upload in (the wait's timeout)
+    # what the generator's sync output does while an arbitrary waveform plays: "period" (one
+    # pulse per waveform period, rising at its first point: the 33500B, its guide's SYNC and
+    # MARKer pages) or "record" (a pulse a record may start on). With "period" a record cannot
+    # wait for the sync (the waveform is the record plus its levelling, tens of seconds): the
+    # oscilloscope triggers multisine records on the force channel (issue 63 item 7)
+    sync: str = "period"
 
 
 @dataclass(frozen=True)
@@ -352,7 +358,7 @@ _TABLE_KEYS = {
     "scope-trigger-sources": {"ext", "channel"},
     "arbitrary": {"clear", "upload", "select", "sample_rate", "function_query", "function_expect", "sine", "max_points",
                   "sample_rate_limits", "name", "data", "codes", "byte_order", "block", "package_points", "package_flags",
-                  "byte_order_command", "complete_query", "upload_bytes_per_s"},
+                  "byte_order_command", "complete_query", "upload_bytes_per_s", "sync"},
 }
 
 
@@ -515,6 +521,9 @@ def _arbitrary(top: _Reader) -> ArbitraryWaveform:
     fields = {"ch", "name", "value"} | ({"values"} if data == "ascii" else {"flag", "points", "bytes"})
     rate = a.pair("sample_rate_limits", (0.0, math.inf))
     max_points = a.integer("max_points", None, 8, 2**31)
+    sync = a.string("sync", "period")
+    if sync not in ("period", "record"):
+        raise a.error(f"sync: \"period\" (one sync pulse per waveform period) or \"record\" (a pulse a record may start on), found {sync!r}")
     binary = _binary_upload(a, max_points) if data == "binary" else {}
     return ArbitraryWaveform(
         clear=a.template("clear", fields, ""), upload=a.template("upload", fields), select=a.template("select", fields),
@@ -522,7 +531,7 @@ def _arbitrary(top: _Reader) -> ArbitraryWaveform:
         function_expect=a.regex("function_expect"), sine=a.template("sine", fields),
         max_points=max_points, sample_rate_limits=rate, name=a.string("name", "SETMEM"), data=data,
         complete_query=a.template("complete_query", fields, ""), upload_bytes_per_s=a.number("upload_bytes_per_s", 1e5, positive=True),
-        **binary)
+        sync=sync, **binary)
 
 
 def _binary_upload(a: _Reader, max_points: int) -> dict:

@@ -193,6 +193,7 @@ class ScopeSensor:
     # -- records -----------------------------------------------------------------------------------
     def _record(self, duration_s: float, min_rate_hz: float = 0.0) -> ScopeRecord:
         """One record; a clipped channel moves up a scale and the record is taken again."""
+        self.scope.use_trigger(*self._trigger_for_record())
         for step in range(MAX_RANGE_STEPS + 1):
             try:
                 record = self.scope.record(duration_s, min_rate_hz)
@@ -206,6 +207,17 @@ class ScopeSensor:
                     raise
                 log.info("%s: channel %d clipped; now %g V/div", self.scope.where, exc.channel, self.scope.scales_v[exc.channel])
         raise AssertionError("unreachable")  # pragma: no cover (the last step re-raises)
+
+    def _trigger_for_record(self) -> tuple[str, float]:
+        """The sync (as wired) for a sine; for an arbitrary waveform whose generator pulses its
+        sync once per waveform period (``[arbitrary] sync = "period"``: the 33500B), the force
+        channel's rising zero crossing: the sync's next pulse is up to a whole waveform away
+        (26 s for an 881,852-point record), far past any record's wait. Where in the waveform
+        the record starts is found from the clock either way (:meth:`_force_of`)."""
+        arbitrary = getattr(getattr(self.exciter.source, "profile", None), "arbitrary", None)
+        if self.exciter.arbitrary is not None and arbitrary is not None and arbitrary.sync == "period":
+            return f"ch{self.force.number}", 0.0
+        return self.scope.trigger_source, self.scope.trigger_level_v
 
     def acquire(self, duration_s: float) -> SampleBlock:
         """A record of ``duration_s`` (at most the scope's longest: a window planned longer, at

@@ -111,6 +111,7 @@ class ScpiScope(ScpiInstrument):
         if bad:
             raise DeviceRejectedError("instrument", f"{self.where}: channel {bad[0]} does not exist on a {profile.model} (channels {list(profile.channels)})")
         self.channels, self.trigger_source, self.trigger_level_v, self.clock = tuple(channels), trigger_source, trigger_level_v, clock
+        self._trigger_now: tuple[str, float] | None = None  # what the scope triggers on now (use_trigger)
         self.scales_v = {c: profile.vertical_scales_v[-1] for c in channels}  # every record starts on the largest scale
         self.time_scale_s = 0.0
         self.points = 0
@@ -126,11 +127,20 @@ class ScpiScope(ScpiInstrument):
         if self.trigger_channel is not None and self.trigger_channel not in self.channels:
             self._command("channel_on", ch=self.trigger_channel)
             self.set_vertical_scale(self.trigger_channel, self._scale_for(abs(self.trigger_level_v) * 4 + 1e-3))
-        source = (self.profile.trigger_sources["ext"] if self.trigger_channel is None
-                  else render(self.profile.trigger_sources["channel"], ch=self.trigger_channel))
-        self._command("trigger", source=source, value=self.trigger_level_v)
+        self._trigger_now = None
+        self.use_trigger(self.trigger_source, self.trigger_level_v)
         if "waveform_setup" in self.profile.commands:
             self._command("waveform_setup")
+
+    def use_trigger(self, source: str, level_v: float) -> None:
+        """Trigger the next records on ``source`` (``"ext"`` or ``"chN"``) at ``level_v``, rising;
+        sent only when it changes (a multisine record on the force channel, a sine on the sync)."""
+        if self._trigger_now == (source, level_v):
+            return
+        command = (self.profile.trigger_sources["ext"] if source == "ext"
+                   else render(self.profile.trigger_sources["channel"], ch=int(source[2:])))
+        self._command("trigger", source=command, value=level_v)
+        self._trigger_now = (source, level_v)
 
     def reconnect(self) -> None:
         """A fresh session, then the whole setup sent again before the next record: after a
@@ -292,7 +302,8 @@ class ScpiScope(ScpiInstrument):
             if self._is_done(reply):
                 return
             if self.clock.now() - start > timeout:
-                source = "its EXT input" if self.trigger_channel is None else f"channel {self.trigger_channel}"
+                now = self._trigger_now[0] if self._trigger_now else self.trigger_source
+                source = "its EXT input" if now == "ext" else f"channel {now[2:]}"
                 raise DeviceRejectedError("no trigger", f"{self.where}: no trigger on {source} within {timeout:.3g} s "
                                                         f"({self.profile.commands['done_query']!r} answered {reply!r}): is the "
                                                         "generator's sync output wired to it and switched on?")

@@ -13,6 +13,23 @@ the implementation is right; the effects the open-loop discrepancy workflow name
 
 Each is fitted to ``rho`` over the step's points by least squares; the smallest residual names
 the effect, when it explains clearly more than ``rho = 1`` does.
+
+**At the plant's terminals** (issue 63 item 1). A board's analyser sums the drive *before* its DAC
+and the sensor *after* its ADC, so an effect on the analogue side (the amplifier's gain or
+bandwidth, the converters' latency, an anti-alias filter) leaves ``K_eff`` the firmware's own
+(``rho = 1``) and lands in the measured ``G``: ``G_meas = a(jw) G``. So the same three effects are
+also fitted to ``gamma = G_meas / G_box`` (``G_box``: the centre of the box's disc of ``G`` at each
+point, :func:`~setmem_hil.robust.closed_loop_prediction.plant_disc`). Both ratios are compared in
+units of their own uncertainty (``gamma``: the disc's radius plus the measured ``G``'s bound,
+over ``|G_box|``; ``rho``: the measured ``S``'s and ``G``'s bounds, to first order): the side whose
+as-modelled ratio (1) is further off, by more than its uncertainty on the whole (a normalised sum
+of squares over the number of points), is where the effect is named, with ``where``
+``"compensator"`` or ``"plant_terminals"``.
+
+What cannot be told apart without a force channel: an actuator-side effect (the DAC, the
+amplifier) and a sensor-side one (the ADC's filter) both multiply ``G``; ``gamma`` names the
+effect and its parameter, not its side. Our choice: where the target's record has no force
+channel (the shipped firmware's analyser has none) ``side`` is ``"actuator or sensor"``.
 """
 
 from __future__ import annotations
@@ -31,20 +48,45 @@ EXPLAINS = 0.25
 """An effect is named when its residual is below this fraction of the residual of ``rho = 1``."""
 
 
-def _ratios(points, setup) -> tuple[np.ndarray, np.ndarray]:
+def _ratios(points, setup) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(w, rho, sigma)``: ``rho = K_eff / K_impl`` and its relative uncertainty to first order
+    (``d(1 - 1/S) = dS / S^2``, over ``|1 - 1/S|``; and ``G``'s relative bound)."""
     w = np.array([p.measured.omega_rad_s for p in points])
     k = implemented_response(setup.controller, setup.fs_hz, setup.delay_samples, setup.prewarp_rad_s, w)
     S = np.array([p.measured.S for p in points])
     G = np.array([p.measured.G for p in points])
     gains = np.array([p.gain for p in points])
-    return w, (1.0 - 1.0 / S) / (gains * G * k)
+    sigma = (np.array([p.measured.S_bound for p in points]) / np.maximum(np.abs(S) * np.abs(S - 1.0), 1e-300)
+             + np.array([p.measured.G_bound for p in points]) / np.maximum(np.abs(G), 1e-300))
+    # the implementation's own model is good to about a sample's phase (where within the sample
+    # the held drive acts: measured rho = 1 + j 0.5 w Ts on the clean emulated loop), so rho is
+    # not weighed tighter than that
+    return w, (1.0 - 1.0 / S) / (gains * G * k), np.maximum(sigma, np.maximum(SIGMA_FLOOR, w / setup.fs_hz))
 
 
-def _fit_one(model, w: np.ndarray, rho: np.ndarray, bounds: tuple[float, float]) -> tuple[float, float]:
-    """Least squares over one parameter: a fine grid first (a delay's residual has a minimum at
-    every phase wrap), then a bounded search between the best grid point's neighbours."""
+def _plant_ratios(points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(w, gamma, sigma)``: the measured ``G`` over the centre of the box's disc, where the box
+    bounds ``G`` (points where a mode's denominator can vanish are left out), and its relative
+    uncertainty (the disc's radius plus the measured bound, over the centre)."""
+    kept = [p for p in points if p.prediction.plant is not None and np.isfinite(p.prediction.plant.radius)
+            and abs(p.prediction.plant.center) > 0]
+    w = np.array([p.measured.omega_rad_s for p in kept])
+    centre = np.array([p.prediction.plant.center for p in kept], dtype=complex)
+    gamma = np.array([p.measured.G for p in kept], dtype=complex) / centre if kept else np.zeros(0, dtype=complex)
+    sigma = np.array([(p.prediction.plant.radius + p.measured.G_bound) / abs(p.prediction.plant.center) for p in kept])
+    return w, gamma, np.maximum(sigma, SIGMA_FLOOR)
+
+
+SIGMA_FLOOR = 1e-3
+"""The smallest relative uncertainty a ratio is weighed with (0.1 %): a point measured to 1e-6
+must not outweigh every other."""
+
+
+def _fit_one(model, w: np.ndarray, ratio: np.ndarray, sigma: np.ndarray, bounds: tuple[float, float]) -> tuple[float, float]:
+    """Weighted least squares over one parameter: a fine grid first (a delay's residual has a
+    minimum at every phase wrap), then a bounded search between the best grid point's neighbours."""
     def residual(x: float) -> float:
-        return float(np.sum(np.abs(rho - model(w, x)) ** 2))
+        return float(np.sum(np.abs((ratio - model(w, x)) / sigma) ** 2))
 
     grid = np.linspace(bounds[0], bounds[1], 4001)
     values = np.array([residual(x) for x in grid])
@@ -54,28 +96,49 @@ def _fit_one(model, w: np.ndarray, rho: np.ndarray, bounds: tuple[float, float])
     return (float(res.x), float(res.fun)) if res.fun <= values[i] else (float(grid[i]), float(values[i]))
 
 
-def closed_loop_discrepancy(points, setup) -> dict:
-    """``{"effect", "parameters", "residual", "residual_as_modelled", "points"}`` over the step with
-    the first point outside (the points of that gain)."""
-    first = next(p for p in points if p.outside)
-    step = [p for p in points if p.gain == first.gain]
-    w, rho = _ratios(step, setup)
-    as_modelled = float(np.sum(np.abs(rho - 1.0) ** 2))
-    w_max = float(np.max(w))
-    fits = {
+def _effect_models(w_max: float) -> dict:
+    return {
         "time_delay": (lambda ww, tau: np.exp(-1j * ww * tau), (0.0, 10.0 * math.pi / w_max), "delay_s"),
         "first_order_lag": (lambda ww, lw: 1.0 / (1.0 + 1j * ww / math.exp(lw)), (math.log(0.01 * w_max), math.log(1e4 * w_max)),
                             "corner_rad_s"),
         "loop_gain": (lambda ww, g: np.full(ww.shape, g, dtype=complex), (0.01, 100.0), "gain"),
     }
+
+
+def _fits(w: np.ndarray, ratio: np.ndarray, sigma: np.ndarray) -> dict:
+    """Each effect fitted to ``ratio``: ``{name: (residual, {parameter: value})}``."""
     results = {}
-    for name, (model, bounds, label) in fits.items():
-        x, residual = _fit_one(model, w, rho, bounds)
-        value = math.exp(x) if name == "first_order_lag" else x
-        results[name] = (residual, {label: value})
-    best = min(results, key=lambda name: results[name][0])
-    named = results[best][0] < EXPLAINS * as_modelled
-    return {"effect": best if named else "unexplained", "parameters": results[best][1] if named else {},
-            "residual": results[best][0], "residual_as_modelled": as_modelled,
-            "fits": {name: {"residual": r, **params} for name, (r, params) in results.items()},
-            "points": [{"omega_rad_s": float(ww), "rho_re": float(r.real), "rho_im": float(r.imag)} for ww, r in zip(w, rho)]}
+    for name, (model, bounds, label) in _effect_models(float(np.max(w))).items():
+        x, residual = _fit_one(model, w, ratio, sigma, bounds)
+        results[name] = (residual, {label: math.exp(x) if name == "first_order_lag" else x})
+    return results
+
+
+def closed_loop_discrepancy(points, setup) -> dict:
+    """``{"effect", "parameters", "where", "side", "residual", "residual_as_modelled", "fits",
+    "terminal_fits", "points"}`` over the step with the first point outside (the points of that
+    gain); see the module docstring for the two ratios and the rule."""
+    first = next(p for p in points if p.outside)
+    step = [p for p in points if p.gain == first.gain]
+    w, rho, rho_sigma = _ratios(step, setup)
+    compensator = {"as_modelled": float(np.sum(np.abs((rho - 1.0) / rho_sigma) ** 2)), "n": w.size, "fits": _fits(w, rho, rho_sigma)}
+    wg, gamma, gamma_sigma = _plant_ratios(step)
+    terminals = {"as_modelled": float(np.sum(np.abs((gamma - 1.0) / gamma_sigma) ** 2)), "n": wg.size,
+                 "fits": _fits(wg, gamma, gamma_sigma) if wg.size >= 2 else {}}
+    # the side whose as-modelled ratio is further off, in units of its own uncertainty per point
+    off = {side: (d["as_modelled"] / d["n"] if d["n"] and d["fits"] else 0.0) for side, d in
+           (("compensator", compensator), ("plant_terminals", terminals))}
+    where = max(off, key=off.get)
+    chosen = compensator if where == "compensator" else terminals
+    best = min(chosen["fits"], key=lambda name: chosen["fits"][name][0])
+    residual = chosen["fits"][best][0]
+    named = off[where] > 1.0 and residual < EXPLAINS * chosen["as_modelled"]
+    return {"effect": best if named else "unexplained", "parameters": chosen["fits"][best][1] if named else {},
+            "where": where if named else None,
+            "side": ("the compensator's path (inside the target)" if where == "compensator" else "actuator or sensor") if named else None,
+            "residual": residual, "residual_as_modelled": chosen["as_modelled"],
+            "fits": {name: {"residual": r, **params} for name, (r, params) in compensator["fits"].items()},
+            "terminal_fits": {name: {"residual": r, **params} for name, (r, params) in terminals["fits"].items()},
+            "points": [{"omega_rad_s": float(ww), "rho_re": float(r.real), "rho_im": float(r.imag)} for ww, r in zip(w, rho)],
+            "terminal_points": [{"omega_rad_s": float(ww), "gamma_re": float(g.real), "gamma_im": float(g.imag)}
+                                for ww, g in zip(wg, gamma)]}

@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         m, (lo, hi) = first.measured, first.prediction.abs_range
         print(f"setmem-hil: verify: at {m.omega_rad_s:.6g} rad/s (gain {first.gain:g}) the measured |S| = {abs(m.S):.4g} "
               f"(+- {m.S_bound:.2g}) lies outside the predicted {lo:.4g}..{hi:.4g}"
-              + (f"; the discrepancy names {doc['discrepancy']['effect']}" if doc.get("discrepancy") else ""), file=sys.stderr)
+              + _named(doc.get("discrepancy")), file=sys.stderr)
         return EXIT_OUTSIDE
     if not doc["verified"]:
         print(f"setmem-hil: verify: not verified: a gain step measured no point whose prediction could be contradicted "
@@ -128,3 +128,16 @@ def _document(result, setup, target_procedure, record) -> dict:
     if first is not None:
         doc["discrepancy"] = closed_loop_discrepancy(result.points, setup)
     return json.loads(json.dumps(doc, default=float))
+
+
+def _named(discrepancy: dict | None) -> str:
+    """``; the discrepancy names loop_gain (gain 1.296) at the plant's terminals (actuator or sensor)``."""
+    if not discrepancy:
+        return ""
+    if discrepancy["effect"] == "unexplained":
+        return "; the discrepancy names no effect (unexplained)"
+    values = ", ".join(f"{k.replace('_', ' ')} {v:.4g}" for k, v in discrepancy["parameters"].items())
+    where = {"compensator": "in the compensator's path", "plant_terminals": "at the plant's terminals"}.get(discrepancy.get("where"), "")
+    side = f" ({discrepancy['side']})" if discrepancy.get("where") == "plant_terminals" and discrepancy.get("side") else ""
+    return f"; the discrepancy names {discrepancy['effect']} ({values}) {where}{side}"
+
