@@ -444,19 +444,7 @@ def estimate_common_modes(datas: list[FrequencyData], n_modes: int, band_rad_s: 
             in_band.append(hidden)
         for w, z in in_band:
             trials.append(([LOW_MODE_FRACTION * lo] + w, [0.1] + z, True) if low else (w, z, False))
-    candidates = []
-    for wn, zeta, low in trials:
-        fits = [_fit_residues(band, np.asarray(wn), np.asarray(zeta), residuals) for band in bands]
-        # ranked with the terms the prior will have: where the band needs a mass line and none is
-        # asked for, the low pseudo-mode is it (the hammer band: a low pseudo-mode and its three
-        # dominant modes, not four in-band poles with nothing below the band)
-        typical = float(np.mean([f[1] for f in fits]))
-        per_output = []
-        for coef, _, worst in fits:
-            b0, fitted = coef[: len(wn)], dict(zip(residuals, (float(c) for c in coef[len(wn):])))
-            modes = tuple(ModeEstimate(float(a), float(z), float(b), low and i == 0) for i, (a, z, b) in enumerate(zip(wn, zeta, b0)))
-            per_output.append((worst, modes, fitted))
-        candidates.append((typical, per_output))
+    candidates = [_scored(bands, wn, zeta, low, residuals) for wn, zeta, low in trials]
     if not candidates:
         raise ValueError(f"no {n_modes} resonances found in [{lo:g}, {hi:g}] rad/s")
     _, per_output = min(candidates, key=lambda c: c[0])
@@ -466,6 +454,20 @@ def estimate_common_modes(datas: list[FrequencyData], n_modes: int, band_rad_s: 
         orders=orders, pole_omegas=tuple(2 * np.pi * np.asarray(p, dtype=float) for p in model.pole_freq),
         pole_zetas=tuple(np.asarray(z, dtype=float) for z in model.pole_xi), residuals=fitted, stable=tuple(columns or ()),
     ) for residual, modes, fitted in per_output]
+
+
+def _scored(bands: list[FrequencyData], wn: list, zeta: list, low: bool, residuals: tuple[str, ...]):
+    """``(typical, per_output)``: one candidate's residues fitted per output, ranked by the mean of
+    the outputs' median normalised residuals, with the terms the prior will have: where the band
+    needs a mass line and none is asked for, the low pseudo-mode is it (the hammer band: a low
+    pseudo-mode and its three dominant modes, not four in-band poles with nothing below the band)."""
+    fits = [_fit_residues(band, np.asarray(wn), np.asarray(zeta), residuals) for band in bands]
+    per_output = []
+    for coef, _, worst in fits:
+        b0, fitted = coef[: len(wn)], dict(zip(residuals, (float(c) for c in coef[len(wn):])))
+        modes = tuple(ModeEstimate(float(a), float(z), float(b), low and i == 0) for i, (a, z, b) in enumerate(zip(wn, zeta, b0)))
+        per_output.append((worst, modes, fitted))
+    return float(np.mean([f[1] for f in fits])), per_output
 
 
 def with_complex_residues(datas: list[FrequencyData], estimates: list[ModalEstimate]) -> list[ModalEstimate]:
