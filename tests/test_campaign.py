@@ -138,6 +138,7 @@ def test_the_journal_is_written_from_the_documents_alone(complete_run, tmp_path)
         store.close()
 
 
+@pytest.mark.slow  # 3 min on two cores; tests/test_resume.py holds the same property in the default tier
 def test_interrupted_campaign_resumes_to_exactly_the_uninterrupted_run(complete_run, tmp_path):
     summary, iterations, rows, _, _ = complete_run
     journal = new_journal(tmp_path)

@@ -196,6 +196,7 @@ def _cheap(signal: str, per_iteration: int = 2, kind: str = "sim"):
     return parse_procedure_text(text)
 
 
+@pytest.mark.slow  # two campaigns end to end (85 s); the batching's parts are unit-tested here
 def test_campaign_measures_initial_points_and_each_batch_in_one_record(monkeypatch):
     H.install_fast_analysis(monkeypatch)
     p = _cheap("multisine")
