@@ -5,6 +5,7 @@ alarm; an effect hidden on top of the same data must still be named.
 """
 
 import numpy as np
+import pytest
 
 from setmem_hil.discrepancy.workflow import check_discrepancy, discrepancy_from_prior
 from setmem_hil.model.frequency_data import FrequencyData
@@ -29,6 +30,7 @@ def test_identified_model_on_thesis_beam_gives_no_false_alarm():
     assert doc["effects"] == [] and doc["disagreement_bands"] == []
 
 
+@pytest.mark.slow  # a campaign with discrepancy checks end to end (28 s)
 def test_lag_hidden_in_eight_mode_beam_is_named():
     beam = SimulatedBeamExperiment(seed=3, unmodelled_dynamics=True)
     w = hidden_effect_omegas()

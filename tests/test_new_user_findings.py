@@ -45,6 +45,7 @@ def test_a_journal_damaged_in_the_middle_is_exit_2_naming_the_file(finished_run,
         assert len(err.splitlines()) == 1 and str(journal) in err and "damaged" in err, err
 
 
+@pytest.mark.slow  # its fixture is a whole fast campaign (26 s); the slow tests of this file share it
 def test_report_of_a_missing_directory_names_it_not_the_parents_journal(finished_run, capsys):
     """Before: `report RUN/typo` wrote the report of RUN's journal (exit 0)."""
     missing = finished_run / "typo"

@@ -51,7 +51,7 @@ def _strip(rows):
 
 @pytest.mark.parametrize("interrupts", [
     (3, 13, 1, 1),   # during the initial dwells, the first added dwell, right after each replay
-    (15, 2),         # the last initial dwell, then the second added one
+    pytest.param((15, 2), marks=pytest.mark.slow),  # the last initial dwell, then the second added one (17 s)
     (16,),           # the first added dwell only
 ], ids=["four-stops", "two-stops", "one-stop"])
 def test_interrupted_and_resumed_equals_uninterrupted(tmp_path, monkeypatch, capsys, interrupts):

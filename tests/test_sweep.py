@@ -382,6 +382,7 @@ def _rounded(obj, digits: int = 9):
     return obj
 
 
+@pytest.mark.slow  # a Dask sweep of whole campaigns (22 s)
 def test_a_sweep_over_designs_runs_each_design_and_reports_it(tmp_path, monkeypatch):
     """Issue 46: ``--designs h2,robust`` is an axis like ``--strategies``. Each run is the
     campaign of that design (its journal and summary say so, the truth: the design each

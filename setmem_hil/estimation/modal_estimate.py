@@ -176,8 +176,8 @@ def _with_hidden_mode(bands: list[FrequencyData], peak_data: FrequencyData, wn: 
     its own half-power bandwidth; its third peak, 3712 Hz, is an artefact at 0.3 of a decade's
     prominence). Every line of the band not within a damping ratio's reach of a kept pole is
     tried at two dampings (the kept modes' median and three times it), residues and residual
-    terms by weighted least squares; the best (smallest median normalised residual over the
-    outputs) is refined within half the gap to its neighbours. The caller keeps it only if it
+    terms by weighted least squares; the best (smallest sum of squared normalised residuals over
+    the outputs, the fit's own objective) is polished off the line grid. The caller keeps it only if it
     fits the data better than the peaks do (the same criterion as every candidate)."""
     if len(wn) < 2:
         return None
@@ -192,18 +192,38 @@ def _with_hidden_mode(bands: list[FrequencyData], peak_data: FrequencyData, wn: 
     clear = np.ones(grid.size, dtype=bool)
     for w, z in zip(kept_w, kept_z):
         clear &= np.abs(grid - w) > max(2 * z * w, spacing)
-    best = None
-    for w in grid[clear]:
-        for z in (typical, 3 * typical):
-            poles, damping = np.asarray(kept_w + [float(w)]), np.asarray(kept_z + [z])
-            score = _rms_misfit(bands, poles, damping)
-            if best is None or score < best[0]:
-                best = (score, float(w), z)
-    if best is None:
+    trial_w = np.repeat(grid[clear], 2)
+    trial_z = np.tile([typical, 3 * typical], int(clear.sum()))
+    if trial_w.size == 0:
         return None
-    w_best, z_best = _polished_hidden_pole(bands, kept_w, kept_z, best[1], best[2], spacing)
+    k = int(np.argmin(_scan_sum_of_squares(bands, np.asarray(kept_w), np.asarray(kept_z), trial_w, trial_z)))
+    w_best, z_best = _polished_hidden_pole(bands, kept_w, kept_z, float(trial_w[k]), float(trial_z[k]), spacing)
     order = np.argsort(kept_w + [w_best])
     return [(kept_w + [w_best])[k] for k in order], [(kept_z + [z_best])[k] for k in order]
+
+
+def _scan_sum_of_squares(bands: list[FrequencyData], kept_w: np.ndarray, kept_z: np.ndarray,
+                         trial_w: np.ndarray, trial_z: np.ndarray) -> np.ndarray:
+    """The weighted least-squares residual (sum over outputs of ``|G - fit|^2 / bound^2``) with the
+    kept poles, ``SCORING_RESIDUALS`` and one more pole at each ``(trial_w, trial_z)``, for every
+    trial at once: the kept columns' orthonormal basis ``Q`` is computed once, and one more column
+    ``c`` lowers the residual ``r0`` by ``(q . r0)^2``, ``q`` the unit part of ``c`` outside ``Q``
+    (the same numbers as a least-squares solve per trial, in one matrix product)."""
+    total = np.zeros(trial_w.size)
+    for band in bands:
+        weight = 1.0 / np.maximum(band.bound, 1e-300)
+        kept = _columns(band, kept_w, kept_z, SCORING_RESIDUALS) * weight[:, None]
+        q, _ = np.linalg.qr(np.vstack([kept.real, kept.imag]))
+        b = np.concatenate([(band.response * weight).real, (band.response * weight).imag])
+        r0 = b - q @ (q.T @ b)
+        s = 1j * band.omega_rad_s
+        trial = weight[:, None] / (s[:, None] ** 2 + 2 * trial_z[None, :] * trial_w[None, :] * s[:, None] + trial_w[None, :] ** 2)
+        c = np.vstack([trial.real, trial.imag])
+        c -= q @ (q.T @ c)
+        norms = np.linalg.norm(c, axis=0)
+        projection = np.where(norms > 0, (c.T @ r0) / np.maximum(norms, 1e-300), 0.0)
+        total += float(r0 @ r0) - projection ** 2
+    return total
 
 
 def _rms_misfit(bands: list[FrequencyData], poles: np.ndarray, damping: np.ndarray) -> float:
