@@ -145,6 +145,7 @@ def check_case(seed: int) -> dict:
     return {"certified": n_cert, "flagged": n_flag, "tight": n_tight, "rel_width": rel_width}
 
 
+@pytest.mark.slow  # a soak over random extreme problems (24 s)
 def test_certified_bounds_on_random_extreme_problems():
     stats = [check_case(seed) for seed in range(N_CASES)]
     certified = sum(s["certified"] for s in stats)

@@ -122,6 +122,7 @@ def test_batch_of_two_frequencies_per_iteration(tmp_path):
     assert len(batch_events) == len([k for k, ws in per_iteration.items() if len(ws) == 2])
 
 
+@pytest.mark.slow  # two input designs over the whole candidate grid (14 s)
 def test_per_rig_second_ranking_is_invariant_to_a_uniform_cost_and_follows_a_penalty():
     """Dividing every candidate's improvement by the same cost changes nothing; making the
     thesis's choice (and its neighbours) expensive moves the choice away from it."""

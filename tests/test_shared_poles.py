@@ -171,6 +171,7 @@ REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 
 
 @pytest.mark.skipif(not REALDATA.is_dir(), reason=f"real data sets not present at {REALDATA}")
+@pytest.mark.slow  # prior and identify on 2 x 384 real lines, six modes (25 s)
 def test_real_beam_points_1_and_2_prior_then_identify(tmp_path, capsys):
     """The public free-free beam, points 1 and 2 (relaxed bound): a common prior (complex residues:
     the real-residue estimate misses point 2 by 1.8 x the bound), then the joint identification:
@@ -287,6 +288,7 @@ def test_each_outputs_brackets_in_a_joint_prior_are_no_wider_than_its_own_propos
 
 
 @pytest.mark.skipif(not REALDATA.is_dir(), reason=f"real data sets not present at {REALDATA}")
+@pytest.mark.slow  # three identifications of 384 real lines (23 s)
 def test_real_beam_points_1_and_2_joint_intervals_no_wider_than_either_point_alone(tmp_path):
     """Issue 40, item 8, done-when: `prior` then `identify` with points 1 and 2 give shared
     frequency intervals no wider than point 1 alone and point 2 alone, each with the prior
