@@ -11,6 +11,7 @@ a C compiler for the header, and ``scipy.io.loadmat`` for the .mat file.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import json
 import math
 import shutil
@@ -31,13 +32,15 @@ from setmem_hil.robust.controller_forms import frequency_response, statespace_fr
 
 REPO = Path(__file__).resolve().parents[1]
 FS = 1000.0
+_shared_spec = importlib.util.spec_from_file_location("_shared_runs", Path(__file__).with_name("_shared_runs.py"))
+shared_runs = importlib.util.module_from_spec(_shared_spec)
+_shared_spec.loader.exec_module(shared_runs)
 
 
 @pytest.fixture(scope="module")
 def demo_run_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("controller") / "run"
-    assert main(["run", str(REPO / "procedures" / "beam_6_3_2.toml"), "--out", str(out), "--quiet"]) == 0
-    return out
+    """The demo's own run, made once per session in a fresh process (tests/_shared_runs.py)."""
+    return shared_runs.demo_run(tmp_path_factory, tmp_path_factory.mktemp("controller") / "run")
 
 
 @pytest.fixture(scope="module", params=["one-iteration", pytest.param("demo", marks=pytest.mark.slow)])

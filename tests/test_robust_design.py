@@ -34,6 +34,9 @@ REPO = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("_campaign_helpers", Path(__file__).with_name("_campaign_helpers.py"))
 H = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(H)
+_shared_spec = importlib.util.spec_from_file_location("_shared_runs", Path(__file__).with_name("_shared_runs.py"))
+shared_runs = importlib.util.module_from_spec(_shared_spec)
+_shared_spec.loader.exec_module(shared_runs)
 
 
 def _box(relative_half_width: float, floor_mode: int | None = None) -> IntervalModel:
@@ -153,9 +156,8 @@ def test_the_tuning_never_returns_a_worse_compensator_than_its_best_start():
 
 @pytest.fixture(scope="module")
 def robust_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("robust") / "run"
-    assert main(["run", str(REPO / "procedures" / "beam_6_3_2.toml"), "--out", str(out), "--quiet"]) == 0
-    return out
+    """The demo's own run, made once per session in a fresh process (tests/_shared_runs.py)."""
+    return shared_runs.demo_run(tmp_path_factory, tmp_path_factory.mktemp("robust") / "run")
 
 
 @pytest.mark.slow
@@ -202,24 +204,47 @@ def test_the_delivered_robust_compensator_passes_validate(robust_run, tmp_path):
     assert "Delivered compensator" in page and "robust design" in page
 
 
-@pytest.mark.slow
-def test_a_robust_run_interrupted_and_resumed_equals_the_uninterrupted_one(robust_run, tmp_path, monkeypatch):
-    """The tuning's effort is counted, never timed: a resume replays the same choices."""
-    from setmem_hil.campaign.session import start_run, resume_run
-    from setmem_hil.experiment_factory import open_experiment
-    from setmem_hil.io.journal import Journal
-    from setmem_hil.io.procedure_file import load_procedure
+# Interrupted on the first added experiment's dwell (the 16th: 15 initial points), then resumed;
+# in a fresh process like the reference run (tests/_shared_runs.py says why).
+_INTERRUPT_THEN_RESUME = """
+import importlib.util, sys
+from pathlib import Path
+spec = importlib.util.spec_from_file_location("_campaign_helpers", sys.argv[1])
+H = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(H)
+from setmem_hil.campaign.session import start_run, resume_run
+from setmem_hil.experiment_factory import open_experiment
+from setmem_hil.io.procedure_file import load_procedure
+out = Path(sys.argv[3])
+opener = lambda p, s: H.InterruptingExperiment(open_experiment(p, s), interrupt_at=16)
+try:
+    start_run(load_procedure(sys.argv[2]), out, opener=opener, display=None)
+except BaseException as stopped:
+    print("stopped by", type(stopped).__name__)
+else:
+    sys.exit("the run was not interrupted")
+resume_run(out, opener=open_experiment)
+"""
 
-    procedure = load_procedure(REPO / "procedures" / "beam_6_3_2.toml")
+
+@pytest.mark.slow
+def test_a_robust_run_interrupted_and_resumed_equals_the_uninterrupted_one(robust_run, tmp_path):
+    """The tuning's effort is counted, never timed: a resume replays the same choices."""
+    import subprocess
+    import sys
+
+    from setmem_hil.io.journal import Journal
+
     out = tmp_path / "run"
-    opener = lambda p, s: H.InterruptingExperiment(open_experiment(p, s), interrupt_at=17)  # noqa: E731
-    with pytest.raises(BaseException):
-        start_run(procedure, out, opener=opener, display=None)
-    resume_run(out, opener=open_experiment)
+    done = subprocess.run([sys.executable, "-c", _INTERRUPT_THEN_RESUME, str(Path(H.__file__)),
+                           str(REPO / "procedures" / "beam_6_3_2.toml"), str(out)],
+                          capture_output=True, text=True, timeout=900, cwd=REPO)
+    assert done.returncode == 0 and "stopped by RunInterrupted" in done.stdout, done.stdout[-1000:] + done.stderr[-2000:]
     with Journal.open(out) as a, Journal.open(robust_run) as b:
         got, want = a.iterations(), b.iterations()
         assert [(m["omega_rad_s"], m["re"], m["im"]) for m in a.measurement_rows()] == \
                [(m["omega_rad_s"], m["re"], m["im"]) for m in b.measurement_rows()]
+    assert len(want) >= 2  # the interruption fell inside the run, not after it
     assert [(r.k, r.next_omega, r.mu_peak, r.design) for r in got] == [(r.k, r.next_omega, r.mu_peak, r.design) for r in want]
 
 
