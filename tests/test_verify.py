@@ -14,6 +14,7 @@ the slow tier.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
@@ -27,6 +28,9 @@ pytestmark = pytest.mark.skipif(compiler() is None, reason="no C compiler (cc or
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "procedures" / "closed_loop_emulated.toml"
+_shared_spec = importlib.util.spec_from_file_location("_shared_runs", Path(__file__).with_name("_shared_runs.py"))
+shared_runs = importlib.util.module_from_spec(_shared_spec)
+_shared_spec.loader.exec_module(shared_runs)
 
 
 def _synthetic():
@@ -101,6 +105,47 @@ def test_the_loop_as_modelled_is_verified_in_three_certified_steps(small_run, tm
     assert (docs[0]["event"], docs[0]["kind"]) == ("note", "exciter-armed") and events[1] == "start"
     assert events.count("point") == 12 and events[-2] == "stop"
     assert (docs[-1]["kind"], docs[-1]["message"].split(":")[0]) == ("output-off", "confirmed")
+    _stored_as_a_campaign_stores(tmp_path / "out", points)
+
+
+def _stored_as_a_campaign_stores(out: Path, points: list[dict]) -> None:
+    """Issue 63 item 6: the campaign's kind of journal (journal.sqlite: the notes as events of
+    their own kind, every document as JSON) and of raw records (raw.h5: seq 0 the rig at rest,
+    then one per point), each point's S recomputed here from its stored record."""
+    from setmem_hil.io.journal import Journal
+    from setmem_hil.io.raw_store import read_raw_records
+
+    with Journal.open(out) as journal:
+        events = journal.events()
+    kinds = [e["kind"] for e in events]
+    assert kinds[:2] == ["exciter-armed", "run-start"] and kinds[-2] == "run-stop" and kinds.count("point") == len(points)
+    assert events[-1]["kind"] == "output-off" and events[-1]["message"].startswith("confirmed")
+    stored = [json.loads(e["message"]) for e in events if e["kind"] == "point"]
+    records = {r.seqs[0]: r.record for r in read_raw_records(out)}
+    assert sorted(records) == list(range(len(points) + 1)) and records[0].attrs["label"] == "baseline"
+    for seq, doc in enumerate(stored, start=1):
+        assert doc["omega_rad_s"] == pytest.approx(records[seq].attrs["omega_rad_s"])
+        assert complex(doc["S_re"], doc["S_im"]) == pytest.approx(_sensitivity_from(records[seq]), rel=1e-6, abs=1e-9)
+
+
+def _sensitivity_from(record) -> complex:
+    """S = u / r at the record's frequency, written out here from what was stored: the fit
+    x ~ a sin + b cos + c (phasor b - j a) from the analyser's sums (the normal equations with
+    the reference's Gram matrix) or from the recorded samples."""
+    w = float(record.attrs["omega_rad_s"])
+    d = record.datasets
+    if "sums_u" in d:
+        ss, sc, s, cc, c = np.asarray(d["sums_reference"], dtype=float)
+        gram = np.array([[ss, sc, s], [sc, cc, c], [s, c, float(d["count"])]])
+        phasor = {}
+        for x in ("u", "r"):
+            a, b, _ = np.linalg.solve(gram, np.asarray(d[f"sums_{x}"], dtype=float)[:3])
+            phasor[x] = complex(b, -a)
+        return phasor["u"] / phasor["r"]
+    t = np.asarray(d["t_s"])
+    basis = np.column_stack([np.cos(w * t), np.sin(w * t), np.ones_like(t)])
+    (uc, us, _), (rc, rs, _) = (np.linalg.lstsq(basis, np.asarray(d[x]), rcond=None)[0] for x in ("u", "r"))
+    return complex(uc, -us) / complex(rc, -rs)
 
 
 @pytest.mark.parametrize("emulation, effect", [
@@ -162,10 +207,10 @@ def test_a_fault_exits_4_with_the_target_bypassed_and_what_was_measured_kept(sma
 
 
 @pytest.mark.slow
-def test_the_demos_compensator_is_verified_on_the_shipped_emulated_target(tmp_path, capsys):
-    """The issue's first 'done when': the demo's run, the shipped procedure, its own frequencies."""
-    run_dir = tmp_path / "demo"
-    assert main(["run", str(REPO / "procedures" / "beam_6_3_2.toml"), "--out", str(run_dir), "--quiet"]) == 0
+def test_the_demos_compensator_is_verified_on_the_shipped_emulated_target(tmp_path_factory, tmp_path, capsys):
+    """The issue's first 'done when': the demo's run (as a user makes it, tests/_shared_runs.py),
+    the shipped procedure, its own frequencies."""
+    run_dir = shared_runs.demo_run(tmp_path_factory, tmp_path / "demo")
     code, doc, err = run_verify(run_dir, SHIPPED, tmp_path / "out", capsys)
     assert code == 0, err
     assert doc["verified"] and len(doc["steps"]) == 3 and doc["target"]["checksum_read_back"]
@@ -234,9 +279,16 @@ def test_ctrl_c_mid_point_bypasses_the_target_and_keeps_the_records(small_run, t
 
 
 def _last_notes(out: Path, count: int = 2) -> list[tuple[str, str]]:
-    """The journal's last notes as (kind, the message's first words): what the run layer wrote."""
+    """The journal's last notes as (kind, the message's first words): what the run layer wrote,
+    the same in the campaign's kind of journal (journal.sqlite) as in journal.jsonl."""
+    from setmem_hil.io.journal import Journal
+
     docs = [json.loads(line) for line in (out / "journal.jsonl").read_text().splitlines()]
-    return [(d["kind"], d["message"].split(":")[0]) for d in docs if d["event"] == "note"][-count:]
+    notes = [(d["kind"], d["message"].split(":")[0]) for d in docs if d["event"] == "note"][-count:]
+    with Journal.open(out) as journal:
+        stored = [(e["kind"], e["message"].split(":")[0]) for e in journal.events()][-count:]
+    assert stored == notes, (stored, notes)
+    return notes
 
 
 def test_sigterm_mid_point_is_a_ctrl_c_the_bypass_confirmed_and_journaled(small_run, tmp_path, capsys, monkeypatch):
@@ -427,3 +479,18 @@ def test_an_analyser_that_does_not_advance_is_a_fault_with_the_target_left_bypas
     with pytest.raises(DeviceTimeoutError, match="did not advance"):
         service.inject_and_record(None, InjectAndRecord(6.0, 0.05, 1.0, 2.0))
     assert all(core.tick(0.0) == 0.0 for _ in range(50)) and core.command("STATE?") == "BYPASS"  # the injection off
+
+
+def test_the_report_reads_the_plans_document_and_refuses_a_file_that_is_not_one(tmp_path):
+    """Issue 63 item 6: the report's section reads verify.json through the document's reader,
+    which names the file and the keys it lacks instead of failing with a KeyError mid-report."""
+    from setmem_hil.errors import InputFormatError
+    from setmem_hil.io.verification_file import REQUIRED_KEYS, read_verification
+    from setmem_hil.report.verification_section import verification_section
+
+    assert read_verification(tmp_path) is None and "Not verified on a target yet" in verification_section(tmp_path)
+    (tmp_path / "verify.json").write_text(json.dumps({"verified": True, "steps": []}))
+    with pytest.raises(InputFormatError) as caught:
+        verification_section(tmp_path)
+    message = str(caught.value)
+    assert "verify.json" in message and all(k in message for k in REQUIRED_KEYS if k not in ("verified", "steps"))

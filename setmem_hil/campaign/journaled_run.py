@@ -29,7 +29,7 @@ from setmem_hil.run.rig_safety import (
     stored_count,
     unconfirmed_output_off,
 )
-from setmem_hil.run.safe_exit import stop_reason, stop_safely
+from setmem_hil.run.safe_exit import interrupted_by, stop_safely
 from setmem_hil.run.run_directory import SUMMARY_FILENAME
 from setmem_hil.errors import CampaignAborted, DeviceError, InconsistentDataError, InputFormatError, RunInterrupted
 from setmem_hil.io.atomic_file import write_json_atomic
@@ -100,7 +100,7 @@ def _run_campaign_in(procedure: Procedure, store: JournalWriter, run_dir: Path, 
     except KeyboardInterrupt as exc:
         stop = stop_safely(experiment, store, exc)
         # one line says what was made safe, what is kept and how to go on (the CLI prints it)
-        raise RunInterrupted(f"interrupted ({stop_reason(exc)[1].split(':')[0]}); {stop.safety}, journal closed with "
+        raise RunInterrupted(f"interrupted ({interrupted_by(exc)}); {stop.safety}, journal closed with "
                              f"{_closed_with(store)} measurements; {resume}") from exc
     except CampaignAborted as exc:
         stop = stop_safely(experiment, store, exc)

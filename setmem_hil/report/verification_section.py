@@ -1,15 +1,15 @@
-"""The report's section on the closed loop measured on the real-time target (``setmem-hil verify``
-writes its ``verify.json`` into the run directory as well as into its own)."""
+"""The report's section on the closed loop measured on the real-time target: it reads the
+verification's document (:mod:`setmem_hil.io.verification_file`, ``verify.json``, which ``setmem-hil
+verify`` writes into the run directory as well as into its own) and lays it out."""
 
 from __future__ import annotations
 
 import html
-import json
 from pathlib import Path
 
-__all__ = ["VERIFICATION_FILENAME", "verification_section"]
+from setmem_hil.io.verification_file import VERIFICATION_FILENAME, read_verification
 
-VERIFICATION_FILENAME = "verify.json"
+__all__ = ["VERIFICATION_FILENAME", "verification_section"]
 
 
 def _n(x, digits: int = 4) -> str:
@@ -18,11 +18,10 @@ def _n(x, digits: int = 4) -> str:
 
 def verification_section(out_dir: Path) -> str:
     head = "<h2 id='verification'>The closed loop on the real-time target</h2>"
-    path = Path(out_dir) / VERIFICATION_FILENAME
-    if not path.is_file():
+    doc = read_verification(out_dir)
+    if doc is None:
         return head + "<p>Not verified on a target yet: <code>setmem-hil verify RUN_DIR --procedure TARGET.toml --out DIR</code> " \
                       "engages the compensator in steps and checks the measured loop against the box.</p>"
-    doc = json.loads(path.read_text(encoding="utf-8"))
     target = doc["target"]
     rows = [("verified", "yes" if doc["verified"] else "NO"), ("target", html.escape(str(target.get("identity")))),
             ("sample rate, delay", f"{_n(target['fs_hz'])} Hz, {target['delay_samples']} samples"),

@@ -18,7 +18,7 @@ from typing import Any
 from setmem_hil.errors import CampaignAborted, DeviceError
 from setmem_hil.run.rig_safety import Store, Terminated, shut_down, sigint_deferred
 
-__all__ = ["SafeExit", "first_fault", "stop_reason", "stop_safely"]
+__all__ = ["SafeExit", "first_fault", "interrupted_by", "stop_reason", "stop_safely"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +41,11 @@ def stop_reason(failure: BaseException | None) -> tuple[str | None, str]:
     if isinstance(failure, DeviceError):
         return "device-fault", str(first_fault(failure))
     return "error", f"{type(failure).__name__}: {failure}"
+
+
+def interrupted_by(interrupt: KeyboardInterrupt) -> str:
+    """``Ctrl-C`` or ``SIGTERM``: what stopped a run, for the operator's one line."""
+    return stop_reason(interrupt)[1].split(":")[0]
 
 
 def first_fault(failure: BaseException) -> BaseException:

@@ -1,10 +1,13 @@
 """One verification run: the target opened, the plan on the run engine, its stores, and the
 target made safe on every exit (issue 45).
 
-The stores are subscribers as for a campaign: :class:`JsonLinesJournal` appends every document
-to ``DIR/journal.jsonl`` (flushed and synced as written: a power cut loses nothing measured) and
-:class:`RecordWriter` writes each point's record to ``DIR/records/<seq>.npz`` before the point's
-document. However the run ends (the plan's own ``finally`` bypasses the target; then the run
+The stores are subscribers as for a campaign, and of the campaign's kind (issue 63 item 6):
+:class:`VerificationJournal` commits every document to ``DIR/journal.sqlite`` (the campaign's
+journal: its notes as the same events, every other document as an event holding it as JSON) and
+:class:`RawLoopRecords` writes each point's record to ``DIR/raw.h5`` (the campaign's raw store:
+``raw/<seq>.h5``, seq 0 the rig at rest) before the point's document. The earlier files stay for
+their readers: :class:`JsonLinesJournal` appends every document to ``DIR/journal.jsonl`` (flushed
+and synced as written) and :class:`RecordWriter` writes ``DIR/records/<seq>.npz``. However the run ends (the plan's own ``finally`` bypasses the target; then the run
 layer's one safe exit, :func:`setmem_hil.run.safe_exit.stop_safely`, again), the generator is
 turned off and the target's bypass confirmed by read back, and the journal notes why the run
 stopped and ``output-off`` (``confirmed`` / ``NOT confirmed``) exactly as a campaign's journal
@@ -21,16 +24,25 @@ from typing import Any
 
 import numpy as np
 
-from setmem_hil.run.engine import NOTE, RunEngine, RunStart
+from setmem_hil.io.journal import Journal, journal_path
+from setmem_hil.io.raw_store import RawStore
+from setmem_hil.model.experiment import RawRecord
+from setmem_hil.run.engine import NOTE, START, STOP, RunEngine, RunStart
 from setmem_hil.run.rig_safety import EXCITER_ARMED_EVENT, sigterm_as_interrupt
 from setmem_hil.run.run_directory import directory_lock
-from setmem_hil.run.safe_exit import first_fault, stop_reason, stop_safely
+from setmem_hil.run.safe_exit import first_fault, interrupted_by, stop_safely
 from setmem_hil.drivers.real_time_target import BYPASS
 from setmem_hil.errors import DeviceError, InputFormatError, RunInterrupted
 from setmem_hil.verify.plan import NotEngaged, VerifyResult, VerifySetup, verification_plan
 from setmem_hil.verify.target_service import TargetService, register_target_commands
 
-__all__ = ["JsonLinesJournal", "RecordWriter", "TargetActuator", "VERIFY_LOCK", "run_verification"]
+__all__ = ["JsonLinesJournal", "RecordWriter", "VerificationJournal", "RawLoopRecords", "TargetActuator", "VERIFY_LOCK",
+           "run_verification", "RAW_KIND_ANALYSER", "RAW_KIND_SAMPLES"]
+
+RAW_KIND_ANALYSER = "closed-loop-analyser-sums"
+"""A point measured by the target's analyser: its sums (``sums_r``, ``sums_u``, ``sums_y``, ...)."""
+RAW_KIND_SAMPLES = "closed-loop-samples"
+"""A point recorded by the rig: ``t_s``, ``r``, ``u``, ``y`` as read."""
 
 
 class JsonLinesJournal:
@@ -81,6 +93,57 @@ class RecordWriter:
         os.replace(tmp, self.folder / f"{name}.npz")
 
 
+class VerificationJournal:
+    """The verification's documents in the campaign's journal (``DIR/journal.sqlite``): created
+    from the target procedure on the first verification in ``DIR``, appended to by later ones.
+    Notes (``exciter-armed``, ``interrupted``, ``output-off``, ...) are stored as the campaign
+    stores them, events of their own kind; ``start`` / ``stop`` as ``run-start`` / ``run-stop``;
+    every other document as an event of its name holding the document as JSON (a record's
+    samples go to the raw store, not here)."""
+
+    def __init__(self, out: Path, target_procedure):
+        from setmem_hil import __version__
+
+        if journal_path(out).exists():
+            self.journal = Journal.open(out)
+        else:
+            self.journal = Journal.create(out, procedure_text=target_procedure.source_text, procedure_name=target_procedure.name,
+                                          seed=0, software_version=__version__, backend=f"target:{target_procedure.target.kind}",
+                                          strategy="closed-loop-verification")
+
+    def __call__(self, event: str, **info: Any) -> None:
+        if event == NOTE:
+            self.journal.add_event(str(info["kind"]), str(info["message"]))
+            return
+        kind = {START: "run-start", STOP: "run-stop"}.get(event, event)
+        shown = {k: v for k, v in info.items() if k != "record"}
+        self.journal.add_event(kind, json.dumps(shown, sort_keys=True, default=_jsonable))
+
+    def close(self) -> None:
+        self.journal.close()
+
+
+class RawLoopRecords:
+    """Each point's record in the campaign's raw store (``DIR/raw.h5``, :mod:`setmem_hil.io.raw_store`),
+    named by the point's seq (the rig at rest before engaging: seq 0, attribute ``label``)."""
+
+    def __init__(self, out: Path):
+        self.store = RawStore(out)
+
+    def __call__(self, event: str, **info: Any) -> None:
+        if event != "loop-record":
+            return
+        record = info["record"]
+        attrs = {"omega_rad_s": float(info["omega_rad_s"])}
+        if info.get("file_name") and not str(info["file_name"]).isdigit():
+            attrs["label"] = str(info["file_name"])
+        if hasattr(record, "as_arrays"):  # the target's analyser: its sums are what was measured
+            raw = RawRecord(RAW_KIND_ANALYSER, {k: np.asarray(v) for k, v in record.as_arrays().items()}, attrs)
+        else:
+            raw = RawRecord(RAW_KIND_SAMPLES, {"t_s": record.t_s, "r": record.r, "u": record.u, "y": record.y}, attrs)
+        self.store.write((int(info["seq"]),), raw)
+
+
 def _progress(quiet: bool):
     def show(event: str, **info: Any) -> None:
         if quiet:
@@ -95,6 +158,21 @@ def _progress(quiet: bool):
                   f"predicted {lo:.4g}..{hi if hi is not None else float('inf'):.4g}: {'inside' if info['inside'] else 'OUTSIDE'}",
                   flush=True)
     return show
+
+
+class _Journals:
+    """Both journals as one subscriber (the safe exit writes its notes to it once)."""
+
+    def __init__(self, *journals):
+        self.journals = journals
+
+    def __call__(self, event: str, **info: Any) -> None:
+        for journal in self.journals:
+            journal(event, **info)
+
+    def close(self) -> None:
+        for journal in self.journals:
+            journal.close()
 
 
 VERIFY_LOCK = ".verify.lock"
@@ -146,9 +224,9 @@ def _verify_in(setup: VerifySetup, target_procedure, procedure, run_dir: str, ou
                             watchdog_s=t.watchdog_s, response_limit=target_procedure.verify.response_limit, measure=t.measure,
                             wait=opened.wait)
     actuator = TargetActuator(service)
-    journal = JsonLinesJournal(out / "journal.jsonl")
+    journal = _Journals(JsonLinesJournal(out / "journal.jsonl"), VerificationJournal(out, target_procedure))
     journal(NOTE, kind=EXCITER_ARMED_EVENT, message=f"{actuator.exciter}: the loop may be engaged from here")
-    engine = RunEngine([RecordWriter(out / "records"), journal, _progress(quiet)], safe_state="the target bypassed")
+    engine = RunEngine([RawLoopRecords(out), RecordWriter(out / "records"), journal, _progress(quiet)], safe_state="the target bypassed")
     register_target_commands(engine, service)
     result, caught = VerifyResult(), None
     try:
@@ -175,7 +253,7 @@ def _reported(caught: BaseException | None, safety: str) -> BaseException | None
     if isinstance(caught, NotEngaged):
         return InputFormatError("setmem-hil verify", "", f"{caught}; {safety}")
     if isinstance(caught, KeyboardInterrupt):
-        return RunInterrupted(f"interrupted ({stop_reason(caught)[1].split(':')[0]}); {safety}")
+        return RunInterrupted(f"interrupted ({interrupted_by(caught)}); {safety}")
     failure = first_fault(caught)
     failure.safety_note = safety
     return failure

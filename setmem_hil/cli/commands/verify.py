@@ -6,12 +6,13 @@ engaged (the implemented mu-bar with the target's sections, delay and hold), mea
 loop by injecting sines at the summing junction, and checks every point against the box's
 guaranteed prediction (:mod:`setmem_hil.verify.plan`, a plan on the run engine).
 
-Output: ``DIR/verify.json`` (``verified``, ``target``, ``implemented_mu_bar``, ``steps[]`` with
-their ``points[]``, ``performance``, ``first_outside``, ``discrepancy``, ``figure``; also copied
+Output: ``DIR/verify.json`` (the plan's document, :mod:`setmem_hil.verify.document`; also copied
 to ``RUN_DIR/verify.json``, which the run's report shows), ``DIR/verify.png`` (the
-predicted band of ``|S|`` and the measured points), ``DIR/journal.jsonl`` (every document, one
-JSON line each, flushed as written) and ``DIR/records/`` (each point's injection, drive and
-response, ``<seq>.npz``; the rig at rest before engaging, ``baseline.npz``).
+predicted band of ``|S|`` and the measured points), ``DIR/journal.sqlite`` and ``DIR/raw.h5``
+(the campaign's kinds of journal and raw store, :mod:`setmem_hil.verify.session`), and for their
+earlier readers ``DIR/journal.jsonl`` (every document, one JSON line each, flushed as written) and
+``DIR/records/`` (each point's injection, drive and response, ``<seq>.npz``; the rig at rest
+before engaging, ``baseline.npz``).
 
 Exit codes: 0 every point inside its prediction; 3 a point outside (named); 4 a target or
 instrument fault, or a loop that grew or did not settle (the target bypassed and the generator off, confirmed);
@@ -22,7 +23,6 @@ is named); 130 interrupted (bypassed, confirmed).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -42,7 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="the campaign's run directory (holds journal.sqlite)")
     p.add_argument("--procedure", required=True, metavar="TARGET.toml", help="the target and the measurement ([target], [verify])")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (verify.json, verify.png, journal.jsonl, records/)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (verify.json, verify.png, journal.sqlite, raw.h5, journal.jsonl, records/)")
     p.add_argument("--iteration", type=int, metavar="K", help="the compensator of iteration K (default: the last)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
@@ -74,16 +74,16 @@ def run(args: argparse.Namespace) -> int:
     from setmem_hil.verify.session import run_verification
 
     result, failure = run_verification(setup, target_procedure, procedure, args.run_dir, out, quiet=args.quiet)
-    doc = _document(result, setup, target_procedure, record)
-    from setmem_hil.io.atomic_file import write_json_atomic
+    from setmem_hil.io.verification_file import write_verification
+    from setmem_hil.verify.document import verification_document
 
+    doc = verification_document(result, setup, target_procedure, record)
     if result.points:
         from setmem_hil.verify.figure import write_figure
 
         write_figure(out / "verify.png", setup, result)
         doc["figure"] = str((out / "verify.png").resolve())
-    write_json_atomic(doc, out / "verify.json")
-    write_json_atomic(doc, Path(args.run_dir) / "verify.json")  # the run's report shows the latest verification
+    write_verification(doc, out, args.run_dir)  # and the run's copy: its report shows the latest verification
     if failure is not None:
         raise failure
     first = result.first_outside
@@ -101,33 +101,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"{out / 'verify.json'}: verified: {len(result.points)} points in {len(result.steps)} gain steps inside the prediction; "
           f"measured performance {doc['performance']['measured']:.4g} against the claimed {doc['performance']['claimed']:.4g}")
     return 0
-
-
-def _document(result, setup, target_procedure, record) -> dict:
-    from setmem_hil.verify.closed_loop_discrepancy import closed_loop_discrepancy
-
-    identity = result.identity
-    # the performance is claimed for the full gain only (a fraction of it rejects less)
-    measured = max((p.weighted_performance for p in result.points if p.gain >= 1.0), default=None)
-    first = result.first_outside
-    doc = {
-        "verified": bool(result.points) and first is None and len(result.steps) == len(setup.gains) and result.informative_in_every_step(),
-        "uninformative_points": sum(not p.informative for p in result.points),
-        "iteration": int(record.k),
-        "target": {"kind": target_procedure.target.kind, "identity": None if identity is None else identity.text,
-                   "fs_hz": setup.fs_hz, "delay_samples": setup.delay_samples,
-                   "checksum_read_back": None if result.checksum is None else f"{result.checksum:08X}"},
-        "implemented_mu_bar": None if not math.isfinite(result.implemented_mu_bar) else result.implemented_mu_bar,
-        "continuous_mu_bar": float(record.mu_peak),
-        "baseline_response_rms": None if not math.isfinite(result.baseline_rms) else result.baseline_rms,
-        "steps": result.steps,
-        "performance": {"measured": measured, "claimed": None if not math.isfinite(result.implemented_mu_bar) else result.implemented_mu_bar},
-        "first_outside": None if first is None else first.to_document() | {"gain": first.gain},
-        "discrepancy": None,
-    }
-    if first is not None:
-        doc["discrepancy"] = closed_loop_discrepancy(result.points, setup)
-    return json.loads(json.dumps(doc, default=float))
 
 
 def _named(discrepancy: dict | None) -> str:
