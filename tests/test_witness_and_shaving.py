@@ -128,3 +128,43 @@ def test_best_residuals_match_a_brute_force_grid():
     brute = min(worst(a, b) for a in grid_l[::4] for b in grid_u[::4])
     assert worst(found["lower"], found["upper"]) <= brute + 1e-6
     assert bounds["lower"][0] <= found["lower"] <= bounds["lower"][1] and bounds["upper"][0] <= found["upper"] <= bounds["upper"][1]
+
+
+def test_each_iterations_ratio_per_mode_reaches_the_report_table_and_figure(beam_case, tmp_path):
+    """Issue 62 item 6: per iteration and mode, the widest interval over the witnesses' reach, in
+    the campaign's witness note (the same numbers as RESULT.json's ``modes[i].reach_ratio``), in the
+    conservatism table of every iteration and in a figure. At least 1: the witnesses lie in the box."""
+    import json
+    import re
+
+    from setmem_hil.campaign.plan import _witness_message
+    from setmem_hil.io.journal import IterationRecord, Journal
+    from setmem_hil.model.experiment import Measurement
+    from setmem_hil.report.document import EXACT_RATIO_FIGURE, write_report
+
+    data, _, _, result, _ = beam_case
+    note = json.loads(_witness_message(1, result))
+    from_file = [max(mode["reach_ratio"].values()) for mode in result.to_document()["modes"]]
+    assert note["reach_ratio_per_mode"] == pytest.approx(from_file, abs=1e-4)
+    assert all(1.0 - 1e-9 <= r <= 1.1 for r in note["reach_ratio_per_mode"])
+
+    run = tmp_path / "run"
+    j = Journal.create(run / "journal.sqlite", procedure_text="", procedure_name="t", seed=1, software_version="t", backend="sim", strategy="mu")
+    for omega, g, e in zip(data.omega_rad_s, data.response, data.bound):
+        j.add_measurement(Measurement(float(omega), complex(g), float(e)), iteration=0, role="initial")
+    w = np.geomspace(0.1, 100, 20)
+    j.add_iteration(IterationRecord(k=1, n_points=data.omega_rad_s.size, lower=result.model.lower, upper=result.model.upper,
+                                    mu_peak=1.2, mu_peak_omega=4.0, mu_lower_peak=1.0, omega=w, mu=np.ones_like(w), sensitivities={},
+                                    next_omega=None, candidate_omega=np.zeros(0), estimated_improvement=np.zeros(0),
+                                    controller_order=6, safeguard="new-design", wall_s=1.0,
+                                    embedding_gamma=np.ones(3), mismatch_ratio=np.zeros(3)))
+    j.add_event("witness", json.dumps(note))
+    j.close()
+    page = write_report(run).read_text()
+    table = page[page.index("table-conservatism-k1"):]
+    table = table[: table.index("</table>")]
+    assert "widest interval / witnesses&#x27; reach" in table or "widest interval / witnesses' reach" in table
+    shown = [float(c) for c in re.findall(r"<td>([0-9]\.[0-9]{3})</td>", table)]
+    for r in note["reach_ratio_per_mode"]:
+        assert any(abs(c - r) < 6e-4 for c in shown), (r, shown)
+    assert f'src="{EXACT_RATIO_FIGURE}"' in page and (run / EXACT_RATIO_FIGURE).read_bytes()[:4] == b"\x89PNG"

@@ -68,7 +68,7 @@ FLOOR_EVENT = "floor"
 """Event of an iteration whose box blocks every compensator (:mod:`setmem_hil.model.mu_floor`)."""
 WITNESS_EVENT = "witness"
 """Event holding, as JSON, the iteration's witness (issue 62): ``{"k", "fits", "misfit",
-"reach_ratio_max", "shaved_slabs"}``, and a ``warning`` where no parameter point of the box was
+"reach_ratio_max", "reach_ratio_per_mode", "shaved_slabs"}``, and a ``warning`` where no parameter point of the box was
 found to fit every point (its modes are then not verified)."""
 UNPRODUCTIVE_REGION_EVENT = "left-out"
 """Event of a frequency region left out of the candidates (:mod:`setmem_hil.design.unproductive_region`)."""
@@ -232,10 +232,20 @@ def _witness_message(k: int, result) -> str:
     ratios = result.reach_ratio
     doc = {"k": k, "fits": result.witness.fits, "misfit": round(float(result.witness.misfit), 6),
            "reach_ratio_max": None if ratios is None or not np.isfinite(ratios).any() else round(float(np.nanmax(ratios)), 4),
+           "reach_ratio_per_mode": _per_mode_widest(ratios),
            "shaved_slabs": None if result.shaved is None else result.shaved.slabs}
     if not result.witness.fits:
         doc["warning"] = f"iteration {k}: no parameter point of the box was found to fit every point: {result.witness.describe_misfit()}"
     return json.dumps(doc)
+
+
+def _per_mode_widest(ratios) -> list | None:
+    """Each mode's widest interval over the witnesses' reach (None for a mode with no finite
+    ratio: every parameter fixed). An upper bound of the ratio to the exact set (issue 62 item 6)."""
+    if ratios is None:
+        return None
+    rows = np.atleast_2d(np.asarray(ratios, dtype=float))
+    return [None if not np.isfinite(row).any() else round(float(np.nanmax(row)), 4) for row in rows]
 
 
 def _design_and_analyse(loop: LoopSettings, state: LoopState, model) -> tuple[SafeguardOutcome, str]:

@@ -41,6 +41,8 @@ FIGURE_FILES = {
     "improvement": "fig_improvement.png",
     "intervals": "fig_intervals.png",
 }
+EXACT_RATIO_FIGURE = "fig_exact_ratio.png"
+"""Drawn where the journal holds witness notes with per-mode ratios (runs since issue 62 item 6)."""
 
 
 def _exact_resolves(events) -> dict:
@@ -187,7 +189,7 @@ def write_report(run_dir: str | os.PathLike) -> Path:
     for row in run.rows:
         rig_by_iteration[int(row["iteration"])] = rig_by_iteration.get(int(row["iteration"]), 0.0) + float(row.get("rig_s") or 0.0)
     parts = [_run_section(run, target, rig_by_iteration), *_progress_section(its, target, run, rig_by_iteration, out_dir),
-             *_uncertainty_section(its, run, out_dir), *_intervals_section(its, run, procedure)]
+             *_uncertainty_section(its, run, out_dir), *_intervals_section(its, run, procedure, out_dir)]
     if its and its[-1].outputs:
         parts += _sensors_section(its[-1])
     parts += _records_section(run, its, out_dir)
@@ -322,7 +324,7 @@ def _exact_ratio_cells(run, rec: IterationRecord, procedure) -> list[str]:
     return cells
 
 
-def _intervals_section(its, run, procedure) -> list[str]:
+def _intervals_section(its, run, procedure, out_dir: Path | None = None) -> list[str]:
     """Appendix B's tables per iteration: bounds, widths, mu-sensitivities, and the conservatism per mode."""
     parts = ["<h2 id='intervals'>Parameter intervals and mu-sensitivities</h2>",
              "<p>Per iteration, as in the thesis's appendix B: the lower and upper bound of each parameter of "
@@ -342,6 +344,11 @@ def _intervals_section(its, run, procedure) -> list[str]:
                 for i, (g, m) in enumerate(zip(np.atleast_1d(rec.embedding_gamma), np.atleast_1d(rec.mismatch_ratio)))]
         if cons:
             header = ["mode", "embedding gamma", "mismatch ratio", "identified"]
+            reach = witnesses.get(rec.k, {}).get("reach_ratio_per_mode")
+            if reach is not None and len(reach) == len(cons):
+                header.append("widest interval / witnesses' reach")
+                for row, r in zip(cons, reach):
+                    row.append("-" if r is None else f"{r:.3f}")
             if n == len(its):
                 header.append("widest interval / exact set")
                 for row, cell in zip(cons, _exact_ratio_cells(run, rec, procedure)):
@@ -349,7 +356,23 @@ def _intervals_section(its, run, procedure) -> list[str]:
             parts.append(_table(header, cons, f"table-conservatism-k{rec.k}"))
         if rec.k in witnesses:
             parts.append(f"<p class='witness' id='witness-k{rec.k}'>{_e(_witness_sentence(witnesses[rec.k]))}</p>")
+    parts += _exact_ratio_figure(its, witnesses, out_dir)
     return parts
+
+
+def _exact_ratio_figure(its, witnesses: dict, out_dir: Path | None) -> list[str]:
+    """Each mode's widest interval over the witnesses' reach, per iteration (issue 62 item 6):
+    the figure where a reader sees whether the box sits at the data's limit (1) or above it."""
+    per_k = {k: doc.get("reach_ratio_per_mode") for k, doc in witnesses.items() if doc.get("reach_ratio_per_mode")}
+    if out_dir is None or not per_k:
+        return []
+    from setmem_hil.report import figures as figs
+
+    figs.exact_ratio_figure(per_k, out_dir / EXACT_RATIO_FIGURE)
+    return [_figure(EXACT_RATIO_FIGURE, "Each mode's widest interval over the witnesses' reach, per iteration: "
+                    "the reach is spanned by parameter points checked to fit every measured point, so the ratio is an "
+                    "upper bound of the box's width over the exact feasible set's (1: the box is at the data's limit; "
+                    "issue 62's goal: within 1.1).", "fig-exact-ratio")]
 
 
 def _witness_sentence(doc: dict) -> str:

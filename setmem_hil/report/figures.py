@@ -37,6 +37,7 @@ __all__ = [
     "mu_vs_frequency_figure",
     "mu_peak_figure",
     "improvement_figure",
+    "exact_ratio_figure",
 ]
 
 # Thesis Table 6-6: offsets x of (a1, a0, b0) for modes 1-3; a parameter's value is
@@ -300,3 +301,33 @@ def interval_figure(iterations: Sequence[IterationRecord], path: Path) -> Path:
                 ax.set_xlabel("iteration k", fontsize=8)
     fig.suptitle("parameter intervals per iteration (guaranteed bounds)", fontsize=10)
     return _save(fig, path, wspace=0.45, hspace=0.45, left=0.09, top=0.93)
+
+
+EXACT_RATIO_GOAL = 1.1
+"""Issue 62's target: every interval within 1.1x of the exact feasible set's extent."""
+
+
+def exact_ratio_figure(per_iteration: dict[int, Sequence[float | None]], path: Path) -> Path:
+    """Each mode's widest interval over the witnesses' reach, per iteration (issue 62 item 6).
+
+    ``per_iteration`` maps ``k`` to one ratio per mode (None: nothing free to compare). The reach
+    is spanned by parameter points checked to fit every point (an inner bound of the exact set),
+    so each ratio is an upper bound of the box's width over the exact set's.
+    """
+    fig = Figure(figsize=(8.0, 4.5))
+    ax = fig.subplots()
+    ks = sorted(per_iteration)
+    n_modes = max(len(per_iteration[k]) for k in ks)
+    for i in range(n_modes):
+        y = np.array([np.nan if i >= len(per_iteration[k]) or per_iteration[k][i] is None else per_iteration[k][i] for k in ks], dtype=float)
+        if np.isfinite(y).any():
+            ax.plot(ks, y, "o-", color=f"C{i % 10}", label=f"mode {i + 1}")
+    ax.axhline(1.0, color="k", lw=1, label="the data's limit (1)")
+    ax.axhline(EXACT_RATIO_GOAL, color="k", ls="--", lw=1, label=f"goal {EXACT_RATIO_GOAL:g}")
+    ax.set_xlabel("iteration k")
+    ax.set_ylabel("widest interval / witnesses' reach")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_title("how far each mode's box sits above the exact feasible set (upper bound)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
