@@ -110,6 +110,22 @@ def test_separated_modes_are_never_grouped_and_close_ones_are():
     assert close_groups(huge[:2, :8], np.ones(8), owner[:8], np.array([810.0, 851.0]), np.full(2, 0.0114)) == []
 
 
+@pytest.mark.parametrize("centres, want", [
+    ([100.0, 103.0, 103.6, 106.0], [(1, 2)]),  # the plate's case: a close pair in the middle of a linked chain
+    ([100.0, 100.5, 103.0, 103.4], [(0, 1), (2, 3)]),  # two pairs: each kept whole
+    ([100.0, 100.4, 103.0, 106.0, 106.3], [(0, 1), (3, 4)]),  # the middle mode alone, its neighbours' pairs closer
+    ([103.6, 100.0, 106.0, 103.0], [(0, 3)]),  # not given in frequency order: 103.0 and 103.6 are the pair
+])
+def test_a_chain_of_linked_modes_is_grouped_closest_pair_first(centres, want):
+    """Issue 62 item 3: grouping by closeness, not by order. Every neighbour linked (mismatch above
+    the bound everywhere, all within the overlap distance); groups of two: the closest pairs win.
+    Truth: the pairs written down from the centres by hand."""
+    n = len(centres)
+    owner = np.repeat(np.arange(n), 4)
+    groups = close_groups(np.full((n, 4 * n), 10.0), np.ones(4 * n), owner, np.array(centres), np.full(n, 0.05))
+    assert groups == want
+
+
 def _nonlinear_extreme(data, x0, lower, upper, p, sign):
     """SLSQP from the truth towards one parameter's extreme of the exact feasible set."""
     free = (upper > lower).reshape(-1)

@@ -166,7 +166,7 @@ class GroupResult:
 GROUP_MISMATCH_RATIO = 1.0  # a neighbour's worst-case mismatch above the data's bound in a mode's band
 OVERLAP_BANDWIDTHS = 3.0  # neighbours closer than this many of their widest admissible half-power bandwidths
 MAX_GROUP_SEPARATION = 0.25  # ... and never further apart than this in ln(frequency) (a prior's zeta_max of 0.5)
-MAX_GROUP_SIZE = 2  # the search's dimension is 4 per mode: longer chains are cut into consecutive groups
+MAX_GROUP_SIZE = 2  # the search's dimension is 4 per mode: longer chains are cut, the closest pairs first
 
 
 def close_groups(mismatch: np.ndarray, bound: np.ndarray, owner: np.ndarray, centres: np.ndarray,
@@ -210,17 +210,24 @@ def close_groups(mismatch: np.ndarray, bound: np.ndarray, owner: np.ndarray, cen
             if pts.any():
                 ratio = max(ratio, float(np.max(mismatch[b, pts] / bound[pts])))
         linked.append(ratio > GROUP_MISMATCH_RATIO)
-    groups, current = [], [order[0]] if order else []
-    for k, link in zip(order[1:], linked):
-        if link and len(current) < MAX_GROUP_SIZE:
-            current.append(k)
-        else:
-            if len(current) > 1:
-                groups.append(tuple(sorted(current)))
-            current = [k]
-    if len(current) > 1:
-        groups.append(tuple(sorted(current)))
-    return groups
+    return _closest_first(order, linked, centres)
+
+
+def _closest_first(order: list[int], linked: list[bool], centres: np.ndarray) -> list[tuple[int, ...]]:
+    """Linked neighbours joined closest pair first, a group never above ``MAX_GROUP_SIZE``
+    (issue 62 item 3: grouping by closeness, not by order). Walking a chain in frequency order cut
+    a real pair: with 2-3, 3-4 and 4-5 linked and 3-4 the closest, it made (2, 3) and (4, 5).
+    Links join neighbours only, so every group stays a run of consecutive modes."""
+    group_of = {m: [m] for m in order}
+    links = sorted((float(np.log(centres[order[j + 1]] / centres[order[j]])), j) for j, link in enumerate(linked) if link)
+    for _, j in links:
+        a, b = group_of[order[j]], group_of[order[j + 1]]
+        if a is not b and len(a) + len(b) <= MAX_GROUP_SIZE:
+            a.extend(b)
+            for m in b:
+                group_of[m] = a
+    groups = {id(g): g for g in group_of.values() if len(g) > 1}
+    return sorted((tuple(sorted(g)) for g in groups.values()), key=lambda g: centres[g[0]])
 
 
 def _split_modes(x: np.ndarray) -> np.ndarray:
