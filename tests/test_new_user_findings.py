@@ -28,6 +28,18 @@ def finished_run(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory) -> Path:
+    """A one-iteration run made in a second (tests/_synthetic_run.py): for the tests that need a
+    journal with a compensator, not a campaign's history."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_synthetic_run", Path(__file__).with_name("_synthetic_run.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.one_iteration_run(tmp_path_factory.mktemp("findings-quick") / "run")[0]
+
+
 @pytest.mark.slow
 def test_a_journal_damaged_in_the_middle_is_exit_2_naming_the_file(finished_run, tmp_path, capsys):
     """Before: exit 1 "internal error (DatabaseError: database disk image is malformed)"."""
@@ -82,14 +94,14 @@ def test_shipped_procedures_are_not_taken_for_hz(capsys):
     assert "look like Hz" not in capsys.readouterr().err
 
 
-def test_controller_c_without_fs_prints_its_prefix_once(finished_run, tmp_path, capsys):
+def test_controller_c_without_fs_prints_its_prefix_once(quick_run, tmp_path, capsys):
     """Before: "setmem-hil: setmem-hil controller: --format c needs --fs HZ"."""
-    assert main(["controller", str(finished_run), "--format", "c", "--out", str(tmp_path / "k.h")]) == 2
+    assert main(["controller", str(quick_run), "--format", "c", "--out", str(tmp_path / "k.h")]) == 2
     err = capsys.readouterr().err.strip()
     assert err == "setmem-hil: controller: --format c needs --fs HZ (the sections are discrete)", err
 
 
-def test_iteration_axes_have_whole_number_ticks(finished_run, tmp_path, monkeypatch):
+def test_iteration_axes_have_whole_number_ticks(quick_run, tmp_path, monkeypatch):
     """Before: the interval figure's iteration axis read 1.00, 1.25, 1.50, ... (matplotlib's
     default locator on a handful of iterations)."""
     from setmem_hil.io.journal import read_snapshot
@@ -97,7 +109,10 @@ def test_iteration_axes_have_whole_number_ticks(finished_run, tmp_path, monkeypa
 
     saved = []
     monkeypatch.setattr(figures, "_save", lambda fig, path, **adjust: saved.append(fig) or path)
-    iterations = read_snapshot(finished_run).iterations[:2]
+    import dataclasses
+
+    first = read_snapshot(quick_run).iterations[0]
+    iterations = [first, dataclasses.replace(first, k=2, mu_peak=0.9 * first.mu_peak)]  # two: matplotlib's default ticks 1.00, 1.25, ...
     figures.interval_figure(iterations, tmp_path / "intervals.png")
     figures.mu_peak_figure(iterations, 1.0, tmp_path / "peak.png")
     for fig in saved:

@@ -221,13 +221,18 @@ def mu_peak_figure(iterations: Sequence[IterationRecord], mu_target: float, path
         if rec.next_omega is not None and math.isfinite(y):
             ax.annotate(f"{rec.next_omega:.4g}", (rec.k, y), textcoords="offset points", xytext=(0, -14), ha="center", fontsize=8)
     ax.axhline(mu_target, color="k", ls="--", lw=1, label=f"goal {mu_target:g}")
+    _per_iteration_axes(ax, "peak mu-bar", "peak mu-bar per iteration; labels: next frequency (rad/s) (figure 6-12)")
+    return _save(fig, path)
+
+
+def _per_iteration_axes(ax, ylabel: str, title: str) -> None:
+    """Labels, whole-number iteration ticks, grid and legend of a plot against the iteration k."""
     ax.set_xlabel("iteration k")
-    ax.set_ylabel("peak mu-bar")
+    ax.set_ylabel(ylabel)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_title("peak mu-bar per iteration; labels: next frequency (rad/s) (figure 6-12)")
+    ax.set_title(title)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
-    return _save(fig, path)
 
 
 def improvement_figure(iterations: Sequence[IterationRecord], path: Path, exact: dict | None = None) -> Path:
@@ -324,10 +329,5 @@ def exact_ratio_figure(per_iteration: dict[int, Sequence[float | None]], path: P
             ax.plot(ks, y, "o-", color=f"C{i % 10}", label=f"mode {i + 1}")
     ax.axhline(1.0, color="k", lw=1, label="the data's limit (1)")
     ax.axhline(EXACT_RATIO_GOAL, color="k", ls="--", lw=1, label=f"goal {EXACT_RATIO_GOAL:g}")
-    ax.set_xlabel("iteration k")
-    ax.set_ylabel("widest interval / witnesses' reach")
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_title("how far each mode's box sits above the exact feasible set (upper bound)")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
+    _per_iteration_axes(ax, "widest interval / witnesses' reach", "how far each mode's box sits above the exact feasible set (upper bound)")
     return _save(fig, path)
