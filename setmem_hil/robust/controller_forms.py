@@ -50,29 +50,9 @@ class ZerosPolesGain:
 
 
 def frequency_response(sys: control.StateSpace, omega_rad_s: np.ndarray) -> np.ndarray:
-    """``C (x I - A)^-1 B + D`` at ``x = j w`` (continuous) or ``exp(j w Ts)`` (discrete).
-
-    A continuous single-input single-output system is evaluated here from one complex Schur form
-    ``A = Q T Q^H``: ``(j w I - T) z = Q^H B`` is a triangular system, solved by back-substitution
-    for every frequency at once (backward stable, as a solve per frequency). The implemented
-    loop's envelope asks for up to 51,200 frequencies per analysis, where python-control's
-    evaluation (one slycot call per frequency) took 1.1 s of a 4.7 s analysis. Other systems:
-    python-control's evaluation."""
+    """``C (x I - A)^-1 B + D`` at ``x = j w`` (continuous) or ``exp(j w Ts)`` (discrete): python-control's evaluation."""
     w = np.atleast_1d(np.asarray(omega_rad_s, dtype=float))
-    if not sys.isctime(strict=True) or sys.ninputs != 1 or sys.noutputs != 1:
-        return np.asarray(control.frequency_response(sys, w).complex, dtype=complex).reshape(w.size)
-    A, B, C, D = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
-    n = A.shape[0]
-    if n == 0:
-        return np.full(w.size, complex(D[0, 0]))
-    T, Q = scipy.linalg.schur(A, output="complex")
-    b = Q.conj().T @ B[:, 0]
-    c = C[0] @ Q
-    jw = 1j * w
-    z = np.empty((n, w.size), dtype=complex)
-    for i in range(n - 1, -1, -1):  # row i: (j w - T_ii) z_i - sum_{j > i} T_ij z_j = b_i
-        z[i] = (b[i] + T[i, i + 1:] @ z[i + 1:]) / (jw - T[i, i])
-    return c @ z + D[0, 0]
+    return np.asarray(control.frequency_response(sys, w).complex, dtype=complex).reshape(w.size)
 
 
 def _response_at(sys: control.StateSpace, x: complex) -> complex:
