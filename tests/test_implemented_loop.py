@@ -6,6 +6,7 @@ loop of the true structure."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -128,6 +129,32 @@ def test_the_required_sample_rate_is_where_the_implemented_guarantee_starts(thes
     below = il.implemented_mu_bar(model, THESIS_WEIGHTS, analysis.controller, fs / 1.06, 1, analysis.mu_peak_omega)
     assert at.guaranteed_mu_bar < 1.0 <= below.guaranteed_mu_bar
 
+
+
+@pytest.mark.parametrize("top_certified", [True, False])
+def test_the_required_rate_is_found_when_the_highest_rate_is_not_certified(monkeypatch, top_certified):
+    """Stop 67's CI: the demo's loop at 64x the rate asked had a grid estimate of 0.749 but its band
+    certificate ran out of budget, and the search called every rate insufficient while 1,280 Hz
+    held. A loop whose guarantee starts at 1,000 Hz and whose top is certified or not: the same rate."""
+    def loop(model, weights, controller, fs, delay, prewarp, gain=None):
+        guaranteed = 0.9 if (1000.0 <= fs < 2000.0 or (fs >= 2000.0 and top_certified)) else math.inf
+        return SimpleNamespace(mu_bar=0.75 if fs >= 1000.0 else 1.2, guaranteed_mu_bar=guaranteed)
+
+    monkeypatch.setattr(il, "implemented_mu_bar", loop)
+    found = il.required_sample_rate(None, None, None, 2, 17.7, 40.0)
+    assert 1000.0 <= found <= 1000.0 * 1.05
+
+
+def test_no_rate_is_proposed_when_the_highest_rates_estimate_misses_the_goal(monkeypatch):
+    asked = []
+
+    def loop(model, weights, controller, fs, delay, prewarp, gain=None):
+        asked.append(fs)
+        return SimpleNamespace(mu_bar=1.01, guaranteed_mu_bar=math.inf)
+
+    monkeypatch.setattr(il, "implemented_mu_bar", loop)
+    assert il.required_sample_rate(None, None, None, 2, 17.7, 40.0) is None
+    assert asked == [64 * 40.0]  # one analysis: the estimate is never above the certified level
 
 # -- the band certificate of the implemented loop: the target's lag as a bounded complex block ----
 def _upper_lft(M: np.ndarray, k: int, delta: np.ndarray) -> np.ndarray:
