@@ -494,3 +494,27 @@ def test_the_report_reads_the_plans_document_and_refuses_a_file_that_is_not_one(
         verification_section(tmp_path)
     message = str(caught.value)
     assert "verify.json" in message and all(k in message for k in REQUIRED_KEYS if k not in ("verified", "steps"))
+
+
+def test_a_second_verify_in_the_same_directory_keeps_every_record_of_the_first(small_run, tmp_path, capsys):
+    """A lab verifies again after a fix, into the same directory: the journal appends, and the raw
+    records of the first verification are kept byte for byte (they were overwritten, seq 0..n, at
+    stop 66); the second's are numbered after them, its rig at rest labelled as the first's."""
+    from setmem_hil.io.journal import Journal
+    from setmem_hil.io.raw_store import read_raw_records
+
+    out = tmp_path / "out"
+    procedure = target_file(tmp_path, verify="frequencies_rad_s = [4.0, 17.5]\nperiods = 8\ngains = [1.0]")
+    assert run_verify(small_run, procedure, out, capsys)[0] == 0
+    first = {p.name: p.read_bytes() for p in (out / "raw").glob("*.h5")}
+    first_npz = {p.name: p.read_bytes() for p in (out / "records").glob("*.npz")}
+    assert len(first) == 3 and len(first_npz) == 3  # the rig at rest and two points
+    assert run_verify(small_run, procedure, out, capsys)[0] == 0
+    assert all((out / "raw" / name).read_bytes() == data for name, data in first.items())
+    assert all((out / "records" / name).read_bytes() == data for name, data in first_npz.items())
+    records = {r.seqs[0]: r.record for r in read_raw_records(out)}
+    assert sorted(records) == list(range(6))
+    assert [s for s, r in records.items() if r.attrs.get("label") == "baseline"] == [0, 3]
+    assert len(list((out / "records").glob("*.npz"))) == 6
+    with Journal.open(out) as journal:
+        assert [e["kind"] for e in journal.events()].count("run-start") == 2

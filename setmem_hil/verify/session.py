@@ -37,7 +37,7 @@ from setmem_hil.verify.plan import NotEngaged, VerifyResult, VerifySetup, verifi
 from setmem_hil.verify.target_service import TargetService, register_target_commands
 
 __all__ = ["JsonLinesJournal", "RecordWriter", "VerificationJournal", "RawLoopRecords", "TargetActuator", "VERIFY_LOCK",
-           "run_verification", "RAW_KIND_ANALYSER", "RAW_KIND_SAMPLES"]
+           "run_verification", "next_free_seq", "RAW_KIND_ANALYSER", "RAW_KIND_SAMPLES"]
 
 RAW_KIND_ANALYSER = "closed-loop-analyser-sums"
 """A point measured by the target's analyser: its sums (``sums_r``, ``sums_u``, ``sums_y``, ...)."""
@@ -125,7 +125,8 @@ class VerificationJournal:
 
 class RawLoopRecords:
     """Each point's record in the campaign's raw store (``DIR/raw.h5``, :mod:`setmem_hil.io.raw_store`),
-    named by the point's seq (the rig at rest before engaging: seq 0, attribute ``label``)."""
+    named by the point's seq (the rig at rest before engaging: the verification's first seq, attribute
+    ``label``; a later verification in the same directory numbers after the earlier's, :func:`next_free_seq`)."""
 
     def __init__(self, out: Path):
         self.store = RawStore(out)
@@ -135,8 +136,8 @@ class RawLoopRecords:
             return
         record = info["record"]
         attrs = {"omega_rad_s": float(info["omega_rad_s"])}
-        if info.get("file_name") and not str(info["file_name"]).isdigit():
-            attrs["label"] = str(info["file_name"])
+        if info.get("label"):
+            attrs["label"] = str(info["label"])
         if hasattr(record, "as_arrays"):  # the target's analyser: its sums are what was measured
             raw = RawRecord(RAW_KIND_ANALYSER, {k: np.asarray(v) for k, v in record.as_arrays().items()}, attrs)
         else:
@@ -173,6 +174,16 @@ class _Journals:
     def close(self) -> None:
         for journal in self.journals:
             journal.close()
+
+def next_free_seq(out: Path) -> int:
+    """The first seq no earlier verification in ``out`` used (in the raw store or ``records/``): 0
+    in a new directory. A second ``verify`` into the same directory appends its records after the
+    first's instead of overwriting them (the journal already appends)."""
+    from setmem_hil.io.raw_store import RAW_FOLDER
+
+    used = [int(p.stem) for p in (out / RAW_FOLDER).glob("*.h5") if p.stem.isdigit()]
+    used += [int(p.stem.rsplit("-", 1)[-1]) for p in (out / "records").glob("*.npz") if p.stem.rsplit("-", 1)[-1].isdigit()]
+    return max(used) + 1 if used else 0
 
 
 VERIFY_LOCK = ".verify.lock"
@@ -222,7 +233,7 @@ def _verify_in(setup: VerifySetup, target_procedure, procedure, run_dir: str, ou
     t = target_procedure.target
     service = TargetService(opened.target, opened.rig, fs_hz=t.fs_hz, delay_samples=t.delay_samples, drive_limit=t.drive_limit,
                             watchdog_s=t.watchdog_s, response_limit=target_procedure.verify.response_limit, measure=t.measure,
-                            wait=opened.wait)
+                            wait=opened.wait, first_seq=next_free_seq(out))
     actuator = TargetActuator(service)
     journal = _Journals(JsonLinesJournal(out / "journal.jsonl"), VerificationJournal(out, target_procedure))
     journal(NOTE, kind=EXCITER_ARMED_EVENT, message=f"{actuator.exciter}: the loop may be engaged from here")

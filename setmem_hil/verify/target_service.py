@@ -58,13 +58,15 @@ class TargetService:
 
     def __init__(self, target: RealTimeTarget, rig: LoopRig | None, *, fs_hz: float, delay_samples: int, drive_limit: float,
                  watchdog_s: float, response_limit: float | None = None, measure: str = "recorder",
-                 wait: Callable[[float], object] = time.sleep):
+                 wait: Callable[[float], object] = time.sleep, first_seq: int = 0):
         if measure == "recorder" and rig is None:
             raise ValueError("measure = 'recorder' needs a rig")
         self.target, self.rig, self.measure, self.wait = target, rig, measure, wait
         self.fs_hz, self.delay_samples, self.drive_limit = float(fs_hz), int(delay_samples), float(drive_limit)
         self.watchdog_s, self.response_limit = float(watchdog_s), response_limit
-        self.records = 0
+        # a directory's seqs are never reused: a second verification there numbers its records after
+        # the first's (the rig at rest: first_seq, then each point), so nothing stored is overwritten
+        self.first_seq, self.records = int(first_seq), int(first_seq)
 
     def identify(self, engine: RunEngine, request: IdentifyTarget):
         identity = self.target.identity()
@@ -87,7 +89,9 @@ class TargetService:
         record = self._analysed(request) if self.measure == "analyser" else self._recorded(request)
         if not request.label:
             self.records += 1
-        engine.emit("loop-record", seq=self.records, file_name=request.label or f"{self.records:04d}", omega_rad_s=request.omega_rad_s,
+        label = request.label and (request.label if self.first_seq == 0 else f"{request.label}-{self.records:04d}")
+        engine.emit("loop-record", seq=self.records, file_name=label or f"{self.records:04d}", label=request.label or None,
+                    omega_rad_s=request.omega_rad_s,
                     record=record)
         return record
 

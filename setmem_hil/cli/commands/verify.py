@@ -12,7 +12,9 @@ predicted band of ``|S|`` and the measured points), ``DIR/journal.sqlite`` and `
 (the campaign's kinds of journal and raw store, :mod:`setmem_hil.verify.session`), and for their
 earlier readers ``DIR/journal.jsonl`` (every document, one JSON line each, flushed as written) and
 ``DIR/records/`` (each point's injection, drive and response, ``<seq>.npz``; the rig at rest
-before engaging, ``baseline.npz``).
+before engaging, ``baseline.npz``). A later ``verify`` into the same directory appends: its journal
+entries follow the earlier ones and its records are numbered after theirs (its rig at rest
+``baseline-<seq>.npz``); nothing stored is overwritten.
 
 Exit codes: 0 every point inside its prediction; 3 a point outside (named); 4 a target or
 instrument fault, or a loop that grew or did not settle (the target bypassed and the generator off, confirmed);
