@@ -242,7 +242,21 @@ class RealTimeTarget:
                 raise DeviceIdentityError(f"{self.where}: SUMS? {name} answered {reply[:60]!r}, not {size} numbers")
             rows[name] = values
         return AnalyserSums(float(omega_rad_s), float(fs_hz), progress.first_n, progress.count, rows["R"], rows["U"], rows["Y"],
-                            rows["REF"], progress.peak_drive, progress.peak_response)
+                            rows["REF"], progress.peak_drive, progress.peak_response, self._force_sums())
+
+    def _force_sums(self) -> tuple[float, float, float, float] | None:
+        """``SUMS? F``: the force channel's sums, None when the board has none (it answers ``ERR``:
+        ``no force channel`` from this firmware, an unknown name from an older one)."""
+        reply = self.channel.exchange("SUMS? F").strip()  # an ERR here is an answer, not a fault
+        if reply.startswith("ERR"):
+            return None
+        try:
+            values = tuple(float(v) for v in reply.split())
+        except ValueError:
+            values = ()
+        if len(values) != 4 or not all(math.isfinite(v) for v in values):
+            raise DeviceIdentityError(f"{self.where}: SUMS? F answered {reply[:60]!r}, not 4 numbers")
+        return values
 
     def ping(self) -> None:
         self._ok("PING")

@@ -35,7 +35,11 @@ void setmem_firmware_init(void)
 
 void setmem_firmware_sample(void)
 {
-    hal_write_drive(setmem_target_tick(&target, hal_read_sensor()));
+    double y = hal_read_sensor();
+#ifdef SETMEM_HAL_FORCE
+    setmem_target_force_sample(&target, hal_read_force());
+#endif
+    hal_write_drive(setmem_target_tick(&target, y));
 }
 
 static void answer(void)

@@ -204,7 +204,7 @@ static size_t analysis(const setmem_target *t, char *reply, size_t cap)
 
 static size_t sums(const setmem_target *t, const char *args, char *reply, size_t cap)
 {
-    const char *names = "RUY";
+    const char *names = "RUYF";
     const double *v;
     while (isspace((unsigned char)*args))
         ++args;
@@ -215,7 +215,9 @@ static size_t sums(const setmem_target *t, const char *args, char *reply, size_t
         return fitted(snprintf(reply, cap, "%.17g %.17g %.17g %.17g %.17g", v[0], v[1], v[2], v[3], v[4]), cap);
     }
     if (args[0] == '\0' || args[1] != '\0' || strchr(names, toupper((unsigned char)args[0])) == 0)
-        return say(reply, cap, "ERR SUMS? needs R, U, Y or REF");
+        return say(reply, cap, "ERR SUMS? needs R, U, Y, F or REF");
+    if (toupper((unsigned char)args[0]) == 'F' && !t->has_force)
+        return say(reply, cap, "ERR no force channel on this board");
     v = t->analyser.signal[strchr(names, toupper((unsigned char)args[0])) - names];
     return fitted(snprintf(reply, cap, "%.17g %.17g %.17g %.17g", v[0], v[1], v[2], v[3]), cap);
 }

@@ -24,7 +24,7 @@
 
 #include "target_core.h"
 
-#define SETMEM_FIRMWARE_VERSION "1.0"
+#define SETMEM_FIRMWARE_VERSION "1.1" /* 1.1: the force channel (setmem_target_force_sample, SUMS? F) */
 #define SETMEM_PROTOCOL_LINE_MAX 256
 
 /* Handle one command line; the reply (no newline) goes to reply[0..cap). Returns its length. */

@@ -59,7 +59,7 @@ void setmem_target_analyse(setmem_target *t, uint64_t settle, uint64_t count)
 static void analyse_sample(setmem_target *t, double r, double u, double y, uint64_t n)
 {
     setmem_analyser *a = &t->analyser;
-    const double values[3] = {r, u, y};
+    const double values[4] = {r, u, y, t->has_force ? t->force : 0.0};
     double phase, s, c;
     int i;
     if (a->state == SETMEM_ANALYSER_IDLE || a->state == SETMEM_ANALYSER_DONE)
@@ -79,7 +79,7 @@ static void analyse_sample(setmem_target *t, double r, double u, double y, uint6
     phase = t->inject_omega_rad_s * (double)n / t->fs_hz;
     s = sin(phase);
     c = cos(phase);
-    for (i = 0; i < 3; ++i) {
+    for (i = 0; i < 4; ++i) {
         a->signal[i][SETMEM_SUM_SIN] += values[i] * s;
         a->signal[i][SETMEM_SUM_COS] += values[i] * c;
         a->signal[i][SETMEM_SUM_PLAIN] += values[i];
@@ -113,6 +113,12 @@ static double delayed(setmem_target *t, double value)
     out = t->delay_line[(t->delay_pos + size - t->delay_samples) % size];
     t->delay_pos = (t->delay_pos + 1) % size;
     return out;
+}
+
+void setmem_target_force_sample(setmem_target *t, double f)
+{
+    t->has_force = 1;
+    t->force = f;
 }
 
 double setmem_target_tick(setmem_target *t, double y)

@@ -33,7 +33,7 @@ typedef enum {
     SETMEM_ANALYSER_DONE = 3
 } setmem_analyser_state;
 
-/* The analyser's sums: per signal (r, u, y) v*sin, v*cos, v, v*v; then the reference's
+/* The analyser's sums: per signal (r, u, y, f) v*sin, v*cos, v, v*v; then the reference's
  * sin*sin, sin*cos, sin, cos*cos, cos (the phase is the injection's: omega * n / fs). */
 enum { SETMEM_SUM_SIN = 0, SETMEM_SUM_COS = 1, SETMEM_SUM_PLAIN = 2, SETMEM_SUM_SQUARE = 3, SETMEM_SIGNAL_SUMS = 4 };
 enum { SETMEM_REF_SS = 0, SETMEM_REF_SC = 1, SETMEM_REF_S = 2, SETMEM_REF_CC = 3, SETMEM_REF_C = 4, SETMEM_REF_SUMS = 5 };
@@ -42,7 +42,7 @@ typedef struct {
     setmem_analyser_state state;
     uint64_t settle_left, count, done;
     uint64_t first_n; /* the injection's sample index of the first summed sample */
-    double signal[3][SETMEM_SIGNAL_SUMS]; /* r, u, y */
+    double signal[4][SETMEM_SIGNAL_SUMS]; /* r, u, y, f (f: the force channel, zero without one) */
     double reference[SETMEM_REF_SUMS];
     double peak_drive, peak_sensor; /* since ANALYSE, settling included */
 } setmem_analyser;
@@ -78,6 +78,11 @@ typedef struct {
     uint64_t inject_n;
     setmem_analyser analyser;
 
+    /* the board's second ADC, when it has one: the force at the structure's input, sampled at the
+     * same instant as the sensor (setmem_target_force_sample, before each tick) */
+    int has_force;
+    double force;
+
     /* timing and the watchdog: the host must speak every watchdog_ticks samples */
     double fs_hz;
     uint32_t watchdog_ticks, ticks_since_host;
@@ -90,6 +95,12 @@ void setmem_target_init(setmem_target *t, double fs_hz, unsigned delay_samples);
 
 /* One sample: the sensor sample y in, the drive sample out (see the header comment). */
 double setmem_target_tick(setmem_target *t, double y);
+
+/* A board with a force channel (a second ADC reading the force transducer at the structure's
+ * input) calls this before each setmem_target_tick with that sample: the analyser sums it as
+ * signal F (SUMS? F), so the host can tell the actuator's side of the plant from the sensor's.
+ * The force does not enter the loop. A board without one never calls it (SUMS? F refused). */
+void setmem_target_force_sample(setmem_target *t, double f);
 
 /* The compensator alone, one sample, no delay, gain or limit (what sosfilt computes). */
 double setmem_target_filter(setmem_target *t, double y);

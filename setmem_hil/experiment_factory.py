@@ -283,7 +283,8 @@ def open_target(target_procedure, procedure: Procedure, seed: int = 1) -> Opened
         raise ProcedureError(str(target_procedure.name), "[target] kind", "\"emulated\" needs a run on a simulated structure")
     e = t.emulation
     loop = EmulatedClosedLoop(structure, t.fs_hz, t.delay_samples,
-                              TargetEmulation(e.extra_delay_samples, e.dac_gain, e.antialias_corner_hz, e.drop_link_after_lines, e.undamped),
+                              TargetEmulation(e.extra_delay_samples, e.dac_gain, e.antialias_corner_hz, e.drop_link_after_lines, e.undamped,
+                                              force_channel=e.force_channel),
                               noise_rms=e.noise_rms, seed=seed)
     target = RealTimeTarget(loop.channel(), f"emulated target ({t.fs_hz:g} Hz)")
     if t.measure == "analyser":  # the target injects and sums; the rig's own generator and recorder stay unused

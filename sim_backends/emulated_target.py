@@ -6,6 +6,11 @@
     v[k]        = firmware tick(y_target[k])       (the C core: sections, gain, its delay, limit, trip)
     u[k]        = dac_gain * v[k - extra] + r[k]   (hidden: more delay, a wrong DAC gain; r: the generator)
     x[k+1]      = Ad x[k] + Bd u[k]                (the structure, exact for a drive held over each sample)
+    f[k]        = u[k - 1] + noise                 (with force_channel: the board's second ADC, read with y)
+
+The hidden effects sit where a rig has them: the extra delay and the DAC gain on the actuator's
+side (between the firmware's drive and the force the structure feels), the anti-alias lag on the
+sensor's (between the structure's response and the firmware's ADC; not on the force channel).
 
 (the loop runs in C, ``sim_backends/sil_loop.c``, with the core: the same steps) and records
 what a DAQ beside the rig would: the generator's injection ``r`` (summed into the
@@ -43,6 +48,7 @@ class TargetEmulation:
     antialias_corner_hz: float | None = None  # a first-order lag before the target's ADC
     drop_link_after_lines: int | None = None  # the serial link dies after this many command lines
     undamped: bool = False  # the structure's damping removed (a loop made unstable)
+    force_channel: bool = False  # the board's second ADC reads the force at the structure's input (SUMS? F)
 
 
 @dataclass(frozen=True)
@@ -93,6 +99,7 @@ class EmulatedClosedLoop:
         self._Ad, self._Bd, self._C, self._lag = held_discretisation(structure, self.fs_hz, emulation.antialias_corner_hz)
         self._x = np.zeros(self._Ad.shape[0])
         self._pipeline = np.zeros(int(emulation.extra_delay_samples))
+        self._held_force = np.zeros(1) if emulation.force_channel else None
         self._generator = (0.0, 0.0)
         self._n = 0
 
@@ -113,7 +120,10 @@ class EmulatedClosedLoop:
         t0, n = self.time_s, int(n_samples)
         r = a * np.sin(w * (self._n + np.arange(n)) / self.fs_hz) if a else np.zeros(n)
         noise = self._rng.standard_normal(n) * self.noise_rms if self.noise_rms else np.zeros(n)
-        u, y = self.core.run_loop(n, self._Ad, self._Bd, self._C, self._lag, self._x, r, noise, self.emulation.dac_gain, self._pipeline)
+        # the force ADC's own noise, as the sensor's (drawn after it: a run without a force channel is unchanged)
+        force_noise = self._rng.standard_normal(n) * self.noise_rms if self.noise_rms and self._held_force is not None else None
+        u, y = self.core.run_loop(n, self._Ad, self._Bd, self._C, self._lag, self._x, r, noise, self.emulation.dac_gain, self._pipeline,
+                                  self._held_force, force_noise)
         self._n += n
         return LoopRecord(self.fs_hz, t0, r, u, y)
 

@@ -90,13 +90,15 @@ def _library() -> ctypes.CDLL:
     lib.setmem_target_init.argtypes = (ctypes.c_void_p, ctypes.c_double, ctypes.c_uint)
     lib.setmem_target_tick.argtypes = (ctypes.c_void_p, ctypes.c_double)
     lib.setmem_target_tick.restype = ctypes.c_double
+    lib.setmem_target_force_sample.argtypes = (ctypes.c_void_p, ctypes.c_double)
+    lib.setmem_target_force_sample.restype = None
     lib.setmem_target_filter.argtypes = (ctypes.c_void_p, ctypes.c_double)
     lib.setmem_target_filter.restype = ctypes.c_double
     lib.setmem_protocol_handle.argtypes = (ctypes.c_void_p, ctypes.c_char_p, ctypes.c_char_p, ctypes.c_size_t)
     lib.setmem_protocol_handle.restype = ctypes.c_size_t
     double_p = ctypes.POINTER(ctypes.c_double)
     lib.sil_run.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_size_t, double_p, double_p, double_p, ctypes.c_int, double_p,
-                            double_p, double_p, ctypes.c_double, ctypes.c_size_t, double_p, double_p, double_p)
+                            double_p, double_p, ctypes.c_double, ctypes.c_size_t, double_p, ctypes.c_int, double_p, double_p, double_p, double_p)
     lib.sil_run.restype = ctypes.c_int
     return lib
 
@@ -114,22 +116,31 @@ class FirmwareCore:
         """One sample: the sensor sample in, the drive sample out (``setmem_target_tick``)."""
         return self._lib.setmem_target_tick(self._state, float(y))
 
+    def force_sample(self, f: float) -> None:
+        """The force channel's sample, before the next tick (``setmem_target_force_sample``)."""
+        self._lib.setmem_target_force_sample(self._state, float(f))
+
     def filter(self, y: float) -> float:
         """The compensator alone, one sample (``setmem_target_filter``)."""
         return self._lib.setmem_target_filter(self._state, float(y))
 
     def run_loop(self, n: int, Ad: np.ndarray, Bd: np.ndarray, C: np.ndarray, lagged: bool, x: np.ndarray, r: np.ndarray,
-                 noise: np.ndarray, dac_gain: float, pipeline: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                 noise: np.ndarray, dac_gain: float, pipeline: np.ndarray, held_force: np.ndarray | None = None,
+                 force_noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``n`` samples of the closed loop in C (``sim_backends/sil_loop.c``); ``x`` and
-        ``pipeline`` are updated in place; returns ``(u, y)``."""
+        ``pipeline`` are updated in place; returns ``(u, y)``. ``held_force`` (one element,
+        updated in place): the board has a force channel, which reads the drive held since the
+        previous sample (None: no force channel), plus ``force_noise`` (its ADC's noise, per sample)."""
         def ptr(a: np.ndarray):
             return a.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
 
         Ad, Bd, C = (np.ascontiguousarray(a, dtype=float) for a in (Ad, Bd, C))
         r, noise = np.ascontiguousarray(r, dtype=float), np.ascontiguousarray(noise, dtype=float)
         u, y = np.empty(n), np.empty(n)
+        force_noise = np.zeros(n) if force_noise is None else np.ascontiguousarray(force_noise, dtype=float)
         status = self._lib.sil_run(self._state, n, x.size, ptr(Ad), ptr(Bd), ptr(C), int(lagged), ptr(x), ptr(r), ptr(noise),
-                                   float(dac_gain), pipeline.size, ptr(pipeline), ptr(u), ptr(y))
+                                   float(dac_gain), pipeline.size, ptr(pipeline), int(held_force is not None),
+                                   ptr(held_force if held_force is not None else np.zeros(1)), ptr(force_noise), ptr(u), ptr(y))
         if status != 0:
             raise ValueError(f"the loop harness holds at most 128 states and 65 samples of extra delay (got {x.size}, {pipeline.size})")
         return u, y

@@ -4,6 +4,9 @@
  * reference firmware's core, n samples at once, for sim_backends/emulated_target.py: the same
  * arithmetic as its Python loop (it replaces it for speed), compiled with the firmware's core.
  * Row 0 of C is the response the recorder sees; with `lagged` row 1 is what the target's ADC sees.
+ * With `force_channel` the board's second ADC reads the force at the structure's input, sampled
+ * with the sensor: the drive held since the previous sample (*held_force carries it across calls),
+ * plus its own ADC's noise (force_noise).
  */
 #include <stddef.h>
 #include <string.h>
@@ -17,7 +20,7 @@
  * the structure is larger than this harness holds. */
 int sil_run(setmem_target *t, size_t n, size_t nx, const double *Ad, const double *Bd, const double *C, int lagged,
             double *x, const double *r, const double *noise, double dac_gain, size_t extra, double *pipeline,
-            double *u_out, double *y_out)
+            int force_channel, double *held_force, const double *force_noise, double *u_out, double *y_out)
 {
     double next[SIL_MAX_STATES];
     size_t k, i, j;
@@ -31,6 +34,8 @@ int sil_run(setmem_target *t, size_t n, size_t nx, const double *Ad, const doubl
             for (j = 0; j < nx; ++j)
                 seen += C[nx + j] * x[j];
         y += noise[k];
+        if (force_channel)
+            setmem_target_force_sample(t, *held_force + force_noise[k]);
         v = setmem_target_tick(t, lagged ? seen + noise[k] : y);
         if (extra > 0) {
             double oldest = pipeline[0];
@@ -47,6 +52,7 @@ int sil_run(setmem_target *t, size_t n, size_t nx, const double *Ad, const doubl
             next[i] = acc;
         }
         memcpy(x, next, nx * sizeof *x);
+        *held_force = u;
         u_out[k] = u;
         y_out[k] = y;
     }

@@ -53,6 +53,11 @@ def test_the_firmware_compiles_without_a_warning_for_a_board_and_for_the_pc_port
             cmd.append("-lm")
         done = subprocess.run(cmd, capture_output=True, text=True)
         assert done.returncode == 0, done.stderr
+    # a board with a force channel: main.c with -DSETMEM_HAL_FORCE needs hal_read_force (compiled, not linked)
+    flags = [f for f in CFLAGS if f not in ("-shared", "-fPIC")]
+    done = subprocess.run([cc, *flags, "-DSETMEM_HAL_FORCE", "-c", str(SOURCE_DIR / "main.c"), "-o", str(tmp_path / "main.o")],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
 
 
 def test_the_core_computes_what_sosfilt_computes_on_2000_samples():
@@ -167,7 +172,7 @@ def test_the_driver_loads_engages_and_bypasses_the_firmware_with_everything_read
 
     target = RealTimeTarget(SerialLineChannel(firmware_on_a_pty, timeout_s=5.0), firmware_on_a_pty)
     identity = target.identity()
-    assert identity.fs_hz == 2000.0 and identity.delay_samples == 2 and identity.version == "1.0"
+    assert identity.fs_hz == 2000.0 and identity.delay_samples == 2 and identity.version == "1.1"
     sos = lightly_damped_sections()
     assert target.load(sos, 1.0) == compensator_checksum(sos, 1.0)
     target.set_drive_limit(5.0)
@@ -223,6 +228,32 @@ def test_the_analyser_refuses_what_its_state_forbids():
     assert core.command("STATE?") == "TRIPPED drive_limit" and core.command("ANALYSIS?") == "IDLE"
     assert core.command("ANALYSE 0 10").startswith("ERR tripped")
 
+
+def test_the_force_channels_sums_are_the_sums_of_the_force_samples_and_a_board_without_one_says_so():
+    """Issue 63 item 1: a board with a second ADC on the force transducer calls
+    setmem_target_force_sample before each tick; SUMS? F is the sums of those samples against the
+    injection's phase (written out here in numpy from the samples fed). A board that never fed one
+    refuses SUMS? F by name."""
+    core = loaded_core(np.array([[0.0, 0, 0, 1, 0, 0]]))
+    assert core.command("INJECT 0.1 50") == "OK" and core.command("ANALYSE 2 40") == "OK"
+    for _ in range(42):
+        core.tick(0.0)
+    assert core.command("ANALYSIS?").startswith("DONE") and core.command("SUMS? F") == "ERR no force channel on this board"
+
+    core = loaded_core(np.array([[0.0, 0, 0, 1, 0, 0]]))
+    fs, w = FS, 50.0
+    assert core.command("INJECT 0.1 50") == "OK" and core.command("ANALYSE 5 300") == "OK"
+    rng = np.random.default_rng(7)
+    force = 0.3 * np.sin(w * np.arange(400) / fs + 0.4) + 0.02 * rng.standard_normal(400) + 0.05
+    for f in force:
+        core.force_sample(f)
+        core.tick(0.0)
+    first = int(core.command("ANALYSIS?").split()[1])
+    n = np.arange(first, first + 300)
+    summed = force[n]  # the injection's sample n is the n-th tick here (INJECT before the first tick)
+    expected = [np.sum(summed * np.sin(w * n / fs)), np.sum(summed * np.cos(w * n / fs)), np.sum(summed), np.sum(summed ** 2)]
+    got = [float(v) for v in core.command("SUMS? F").split()]
+    assert got == pytest.approx(expected, rel=1e-12, abs=1e-12)
 
 def test_the_analysers_sums_give_the_fit_the_samples_give():
     """Second formulation: the beam in closed loop with the core (the emulated rig), the target's

@@ -180,6 +180,41 @@ def test_an_effect_on_the_analogue_side_is_named_at_the_plants_terminals(small_r
     assert found["side"] == "actuator or sensor"  # no force channel on the board: the side is not told
 
 
+
+@pytest.mark.parametrize("emulation, effect, parameter, truth, side", [
+    ("extra_delay_samples = 60", "time_delay", "delay_s", 0.060, "actuator"),  # the DAC's pipeline
+    ("dac_gain = 1.3", "loop_gain", "gain", 1.3, "actuator"),  # the amplifier's gain
+    ("antialias_corner_hz = 2.8", "first_order_lag", "corner_rad_s", 2 * np.pi * 2.8, "sensor"),  # before the sensor's ADC
+])
+def test_a_force_channel_on_the_board_tells_the_side_of_an_analogue_effect(small_run, tmp_path, capsys, emulation, effect,
+                                                                        parameter, truth, side):
+    """Issue 63 item 1, the side: the board's second ADC reads the force at the structure's input,
+    so F/U isolates the actuator's path and Y/F the sensor's. Truth: where the emulation puts each
+    effect (the DAC's pipeline and gain before the force the structure feels, the anti-alias lag
+    on the sensor's channel only), and its parameter within 10 %."""
+    target = target_file(tmp_path, emulation=emulation + "\nforce_channel = true", verify=FEW, target='measure = "analyser"')
+    code, doc, err = run_verify(small_run, target, tmp_path / "out", capsys)
+    assert code == 3, err
+    found = doc["discrepancy"]
+    assert (found["effect"], found["where"], found["side"]) == (effect, "plant_terminals", side), found.get("side_from_force")
+    assert found["parameters"][parameter] == pytest.approx(truth, rel=0.10), found["parameters"]
+    assert f"the {side}'s side" in err
+    other = "sensor" if side == "actuator" else "actuator"
+    assert found["side_from_force"]["off"][other] < found["side_from_force"]["off"][side]
+
+
+def test_a_clean_loop_with_a_force_channel_is_verified_and_reads_the_held_drive_as_its_force(small_run, tmp_path, capsys):
+    """The force channel on a loop as modelled: exit 0, and at every point F/U is the held drive
+    sampled a sample later (exp(-j w Ts): the emulation's physics), within the point's bound."""
+    target = target_file(tmp_path, emulation="force_channel = true", verify=FEW, target='measure = "analyser"')
+    code, doc, err = run_verify(small_run, target, tmp_path / "out", capsys)
+    assert code == 0, err
+    points = [p for s in doc["steps"] for p in s["points"]]
+    assert points and all(p["inside"] for p in points)
+    for p in points:
+        held = np.exp(-1j * p["omega_rad_s"] / doc["target"]["fs_hz"])
+        assert abs(complex(p["A_re"], p["A_im"]) - held) <= max(p["A_bound"], 1e-9), p
+
 def test_the_analogue_clean_loop_on_the_boards_analyser_is_verified_with_every_point_informative(small_run, tmp_path, capsys):
     code, doc, err = run_verify(small_run, target_file(tmp_path, verify=FEW, target='measure = "analyser"'), tmp_path / "out", capsys)
     assert code == 0, err

@@ -46,6 +46,7 @@ class AnalyserSums:
     reference: tuple[float, float, float, float, float]
     peak_drive: float
     peak_response: float
+    f: tuple[float, float, float, float] | None = None  # the force channel's sums (``SUMS? F``), None without one
 
     @property
     def response_rms(self) -> float:
@@ -57,7 +58,8 @@ class AnalyserSums:
         """The sums as arrays (for a record file)."""
         return {"omega_rad_s": self.omega_rad_s, "fs_hz": self.fs_hz, "first_n": self.first_n, "count": self.count,
                 "sums_r": np.array(self.r), "sums_u": np.array(self.u), "sums_y": np.array(self.y),
-                "sums_reference": np.array(self.reference), "peak_drive": self.peak_drive, "peak_response": self.peak_response}
+                "sums_reference": np.array(self.reference), "peak_drive": self.peak_drive, "peak_response": self.peak_response,
+                **({"sums_f": np.array(self.f)} if self.f is not None else {})}
 
 
 def sine_fit_from_sums(signal: tuple[float, float, float, float], reference: tuple[float, ...], count: int,
@@ -82,10 +84,16 @@ def sine_fit_from_sums(signal: tuple[float, float, float, float], reference: tup
 
 
 def closed_loop_point_from_sums(sums: AnalyserSums, confidence: float = CONFIDENCE) -> ClosedLoopPoint:
-    """``S = U/R`` and ``G = Y/U`` with their bounds, and the response's free part, from the sums."""
+    """``S = U/R`` and ``G = Y/U`` with their bounds, and the response's free part, from the sums;
+    with a force channel also ``A = F/U`` (the actuator's path, drive to force) and its bound."""
     fr, fu, fy = (sine_fit_from_sums(v, sums.reference, sums.count, sums.omega_rad_s) for v in (sums.r, sums.u, sums.y))
     S, cov_s = phasor_ratio(fu, fr)
     G, cov_g = phasor_ratio(fy, fu)
     free_rms = fy.noise_rms * math.sqrt((sums.count - 3) / sums.count)  # the residual's rms, as from samples
+    A, A_bound = complex(math.nan, math.nan), math.nan
+    if sums.f is not None:
+        A, cov_a = phasor_ratio(sine_fit_from_sums(sums.f, sums.reference, sums.count, sums.omega_rad_s), fu)
+        A_bound = confidence_radius(cov_a, confidence)
     return ClosedLoopPoint(sums.omega_rad_s, S, confidence_radius(cov_s, confidence), G, confidence_radius(cov_g, confidence),
-                           float(abs(fr.phasor)), sums.peak_drive, sums.peak_response, float(abs(fy.phasor)), free_rms, math.nan)
+                           float(abs(fr.phasor)), sums.peak_drive, sums.peak_response, float(abs(fy.phasor)), free_rms, math.nan,
+                           A, A_bound)

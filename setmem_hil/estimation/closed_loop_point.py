@@ -18,6 +18,8 @@ a free part larger than the forced one (:mod:`setmem_hil.verify.plan` stops ther
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +45,12 @@ class ClosedLoopPoint:
     forced_response_amplitude: float = float("nan")  # |Y|: the response's part at the injection's frequency
     free_response_rms: float = float("nan")  # rms of the rest (the fit's residual)
     free_response_omega_rad_s: float = float("nan")  # the rest's largest spectral line
+    A: complex = complex(float("nan"), float("nan"))  # F/U: drive to the force at the structure (a force channel; nan: none)
+    A_bound: float = float("nan")
+
+    @property
+    def has_force(self) -> bool:
+        return math.isfinite(self.A_bound)
 
 
 def free_part_peak_omega(t_s: np.ndarray, residual: np.ndarray) -> float:

@@ -37,6 +37,7 @@ class TargetEmulationSettings:
     drop_link_after_lines: int | None = None
     undamped: bool = False
     noise_rms: float = 1e-5
+    force_channel: bool = False
 
 
 @dataclass(frozen=True)
@@ -97,6 +98,8 @@ SCHEMA: tuple[KeySpec, ...] = (
     _key("target.emulation", "drop_link_after_lines", "integer", "lines", None, "the link dies after this many lines", gt=0),
     _key("target.emulation", "undamped", "bool", "", False, "every mode's damping removed"),
     _key("target.emulation", "noise_rms", "number", "", 1e-5, "sensor noise", ge=0.0),
+    _key("target.emulation", "force_channel", "bool", "", False, "the board's second ADC reads the force at the structure's input "
+         "(SUMS? F: the side of an effect is told)"),
     _key("verify", "gains", "numbers", "", (0.25, 0.5, 1.0), "gain steps, ascending", gt=0.0, le=2.0),
     _key("verify", "injection_amplitude", "number", "drive units", 0.05, "the injected sine's amplitude", gt=0.0),
     _key("verify", "periods", "integer", "periods", 20, "periods recorded per point", gt=2),
@@ -139,7 +142,8 @@ def parse_target_text(text: str, source: str = "<target>") -> VerifyProcedure:
                       "use measure = \"analyser\" (the target's own)")
     emulation = TargetEmulationSettings(
         extra_delay_samples=e.value("extra_delay_samples"), dac_gain=e.value("dac_gain"), antialias_corner_hz=e.value("antialias_corner_hz"),
-        drop_link_after_lines=e.value("drop_link_after_lines"), undamped=e.value("undamped"), noise_rms=e.value("noise_rms"))
+        drop_link_after_lines=e.value("drop_link_after_lines"), undamped=e.value("undamped"), noise_rms=e.value("noise_rms"),
+        force_channel=e.value("force_channel"))
     target = TargetSettings(kind=kind, fs_hz=t.value("fs_hz"), delay_samples=t.value("delay_samples"), drive_limit=t.value("drive_limit"),
                             port=t.value("port"), baudrate=t.value("baudrate"), watchdog_s=t.value("watchdog_s"), measure=measure,
                             emulation=emulation)

@@ -28,8 +28,23 @@ of squares over the number of points), is where the effect is named, with ``wher
 
 What cannot be told apart without a force channel: an actuator-side effect (the DAC, the
 amplifier) and a sensor-side one (the ADC's filter) both multiply ``G``; ``gamma`` names the
-effect and its parameter, not its side. Our choice: where the target's record has no force
-channel (the shipped firmware's analyser has none) ``side`` is ``"actuator or sensor"``.
+effect and its parameter, not its side: ``side`` is ``"actuator or sensor"``.
+
+**The side, from a force channel.** A board whose second ADC reads the force transducer at the
+structure's input (``setmem_target_force_sample``, ``SUMS? F``; docs/real-time-target.md) gives
+``A = F/U`` at each point besides ``G = Y/U``. The force ADC samples the drive held since the
+previous sample, so as modelled ``A = exp(-j w Ts)``; the measured ``gamma`` splits exactly into
+the actuator's ratio ``alpha = A exp(j w Ts)`` (drive to force: the DAC, its pipeline, the
+amplifier, the shaker's attachment) and the sensor's ``beta = gamma / alpha`` (force to the
+firmware's sensor sample over the box's ``G``: the structure beyond the box, the sensor, its
+conditioning, the anti-alias filter). The side whose as-modelled ratio is further off, in units of
+its own uncertainty per point (``alpha``: the bound of ``A``; ``beta``: ``gamma``'s plus ``A``'s),
+is ``side`` (``"actuator"`` / ``"sensor"``), and the effect and its parameter are fitted to that
+side's ratio alone. Limits: a filter common to both ADC channels (the same anti-alias filter on
+force and sensor) delays ``F`` and ``Y`` alike, so it cancels from ``beta`` and is named on the
+actuator's side; a force transducer's own error (sensitivity, its conditioning's lag) is read as
+the actuator's, with the opposite sign on the sensor's. ``side`` is ``"actuator or sensor"``
+again when neither ratio is off by more than its uncertainty.
 """
 
 from __future__ import annotations
@@ -75,6 +90,37 @@ def _plant_ratios(points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     gamma = np.array([p.measured.G for p in kept], dtype=complex) / centre if kept else np.zeros(0, dtype=complex)
     sigma = np.array([(p.prediction.plant.radius + p.measured.G_bound) / abs(p.prediction.plant.center) for p in kept])
     return w, gamma, np.maximum(sigma, SIGMA_FLOOR)
+
+
+def _side_ratios(points, fs_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(w, alpha, alpha_sigma, beta, beta_sigma)`` at the points with a force channel where the
+    box bounds ``G`` (module docstring: ``gamma = alpha beta``)."""
+    kept = [p for p in points if p.measured.has_force and p.prediction.plant is not None
+            and np.isfinite(p.prediction.plant.radius) and abs(p.prediction.plant.center) > 0]
+    w, gamma, gamma_sigma = _plant_ratios(kept)
+    A = np.array([p.measured.A for p in kept], dtype=complex)
+    alpha = A * np.exp(1j * w / fs_hz)  # the force ADC reads the drive held since the previous sample
+    alpha_sigma = np.array([p.measured.A_bound for p in kept]) / np.maximum(np.abs(A), 1e-300)
+    beta = gamma / np.where(alpha == 0, 1e-300, alpha)
+    return w, alpha, np.maximum(alpha_sigma, SIGMA_FLOOR), beta, np.maximum(gamma_sigma + alpha_sigma, SIGMA_FLOOR)
+
+
+def _told_side(points, fs_hz: float) -> dict | None:
+    """The side of the plant an effect named at its terminals sits on, from the force channel:
+    ``{"side", "effect", "parameters", "actuator_fits", "sensor_fits", "off"}``, or None without
+    one (fewer than two points with a force channel)."""
+    w, alpha, alpha_sigma, beta, beta_sigma = _side_ratios(points, fs_hz)
+    if w.size < 2:
+        return None
+    sides = {"actuator": (alpha, alpha_sigma), "sensor": (beta, beta_sigma)}
+    off = {side: float(np.sum(np.abs((ratio - 1.0) / sigma) ** 2)) / w.size for side, (ratio, sigma) in sides.items()}
+    fits = {side: _fits(w, ratio, sigma) for side, (ratio, sigma) in sides.items()}
+    side = max(off, key=off.get)
+    best = min(fits[side], key=lambda name: fits[side][name][0])
+    told = off[side] > 1.0
+    return {"side": side if told else "actuator or sensor", "effect": best if told else None,
+            "parameters": fits[side][best][1] if told else {}, "off": off,
+            **{f"{name}_fits": {e: {"residual": r, **params} for e, (r, params) in fit.items()} for name, fit in fits.items()}}
 
 
 SIGMA_FLOOR = 1e-3
@@ -133,9 +179,13 @@ def closed_loop_discrepancy(points, setup) -> dict:
     best = min(chosen["fits"], key=lambda name: chosen["fits"][name][0])
     residual = chosen["fits"][best][0]
     named = off[where] > 1.0 and residual < EXPLAINS * chosen["as_modelled"]
-    return {"effect": best if named else "unexplained", "parameters": chosen["fits"][best][1] if named else {},
-            "where": where if named else None,
-            "side": ("the compensator's path (inside the target)" if where == "compensator" else "actuator or sensor") if named else None,
+    effect, parameters = (best, chosen["fits"][best][1]) if named else ("unexplained", {})
+    side = ("the compensator's path (inside the target)" if where == "compensator" else "actuator or sensor") if named else None
+    told = _told_side(step, setup.fs_hz) if named and where == "plant_terminals" else None
+    if told is not None and told["effect"] is not None:  # the force channel says which side, and fits it there alone
+        side, effect, parameters = told["side"], told["effect"], told["parameters"]
+    return {"effect": effect, "parameters": parameters, "where": where if named else None, "side": side,
+            **({"side_from_force": told} if told is not None else {}),
             "residual": residual, "residual_as_modelled": chosen["as_modelled"],
             "fits": {name: {"residual": r, **params} for name, (r, params) in compensator["fits"].items()},
             "terminal_fits": {name: {"residual": r, **params} for name, (r, params) in terminals["fits"].items()},

@@ -123,7 +123,8 @@ class VerifiedPoint:
                 "predicted_abs_S_min": lo, "predicted_abs_S_max": hi if math.isfinite(hi) else None, "inside": bool(self.inside),
                 "informative": bool(self.informative),
                 "G_re": m.G.real, "G_im": m.G.imag, "G_bound": m.G_bound, "weighted_performance": self.weighted_performance,
-                "peak_drive": m.peak_drive, "peak_response": m.peak_response}
+                "peak_drive": m.peak_drive, "peak_response": m.peak_response,
+                **({"A_re": m.A.real, "A_im": m.A.imag, "A_bound": m.A_bound} if m.has_force else {})}
 
 
 @dataclass

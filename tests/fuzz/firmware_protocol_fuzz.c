@@ -76,7 +76,7 @@ static void random_line(char *line, size_t cap)
     }
     n = (size_t)snprintf(line, cap, "%s", COMMANDS[pick(sizeof COMMANDS / sizeof *COMMANDS)]);
     if (pick(3) == 0 && !strcmp(line, "SUMS?"))
-        n = (size_t)snprintf(line, cap, "SUMS? %s", pick(2) ? "REF" : (pick(2) ? "R" : "Q"));
+        n = (size_t)snprintf(line, cap, "SUMS? %s", pick(2) ? "REF" : (pick(2) ? "R" : (pick(2) ? "F" : "Q")));
     for (k = 0; k < count && n + 1 < cap; ++k) {
         number(field, sizeof field);
         n += (size_t)snprintf(line + n, cap - n, " %s", field);
@@ -143,7 +143,10 @@ int main(int argc, char **argv)
         samples = pick(4) == 0 ? pick(3000) : pick(20);
         for (k = 0; k < samples; ++k) {
             double y = pick(1000) == 0 ? NAN : ((double)pick(2001) - 1000.0) / 500.0;
-            double drive = setmem_target_tick(&t, y);
+            double drive;
+            if (i > lines / 2) /* the second half: a board with a force channel (any value, NaN too) */
+                setmem_target_force_sample(&t, pick(1000) == 0 ? NAN : ((double)pick(2001) - 1000.0) / 100.0);
+            drive = setmem_target_tick(&t, y);
             ++ticks;
             if (!(fabs(drive) <= t.drive_limit))
                 return fail("a drive outside the limit (or NaN) reached the output", line, i);

@@ -114,5 +114,7 @@ def _named(discrepancy: dict | None) -> str:
     values = ", ".join(f"{k.replace('_', ' ')} {v:.4g}" for k, v in discrepancy["parameters"].items())
     where = {"compensator": "in the compensator's path", "plant_terminals": "at the plant's terminals"}.get(discrepancy.get("where"), "")
     side = f" ({discrepancy['side']})" if discrepancy.get("where") == "plant_terminals" and discrepancy.get("side") else ""
+    if discrepancy.get("side") in ("actuator", "sensor"):
+        side = f" (the {discrepancy['side']}'s side, told by the force channel)"
     return f"; the discrepancy names {discrepancy['effect']} ({values}) {where}{side}"
 
