@@ -356,10 +356,13 @@ class AffineConeProgram:
                     break
         return best, y_at, status, res
 
-    def bound_box(self, C, box_lo, box_hi) -> BoxSolution:
+    def bound_box(self, C, box_lo, box_hi, objectives=None) -> BoxSolution:
         """Certified bounds of every free parameter over ``box_lo <= x <= box_hi`` (Problem 3.2).
 
         The first solve doubles as the feasibility test: a box proved empty costs one solve.
+        ``objectives``: only these ``(parameter, +1 lower / -1 upper)`` bounds are solved, in this
+        order (the others keep the box's own bound, a valid outer bound, and are not reported
+        unverified); None: every free parameter both ways.
         """
         box_lo = np.asarray(box_lo, dtype=float)
         box_hi = np.asarray(box_hi, dtype=float)
@@ -374,42 +377,47 @@ class AffineConeProgram:
         solves_before = self.n_solves
         self.last_certificates = {}
         free_idx = np.flatnonzero(self.free)
-        for k, p in enumerate(free_idx):
-            for sign in (1.0, -1.0):
-                q = np.zeros(self.n_free + self.n_aux)
-                q[k] = sign
-                bound, y_at, status, res = self._bound_objective(q, b, ylo, yhi)
-                if bound is not None and np.isfinite(bound):
-                    self.last_certificates[(int(p), int(sign))] = (self._best_z, float(bound))
-                if bound is None:
-                    return BoxSolution(False, lower, upper, argmin, argmax, self.n_solves - solves_before,
-                                       self._certificate(res))
-                if not np.isfinite(bound):
-                    unverified.append(f"{'lower' if sign > 0 else 'upper'} bound of parameter {p}: solver status {status}, box bound kept")
-                    kept.append((int(p), int(sign)))
-                    continue
-                x_at = None
-                if y_at is not None:
-                    x_at = self.fixed_values.copy()
-                    x_at[self.free] = self.centre[self.free] + self.half[self.free] * y_at
-                # y-bound -> x-bound, outward by the rounding of centre + half * y
-                yb = bound if sign > 0 else -bound
-                value = self.centre[p] + self.half[p] * yb
-                slack = 4 * _EPS * (abs(self.centre[p]) + abs(self.half[p] * yb))
-                if (value - slack > box_hi[p]) if sign > 0 else (value + slack < box_lo[p]):
-                    # a certified bound beyond the box: weak duality says no point of the box
-                    # fits (the Farkas test is this with q = 0). Kept as a bound it made the box
-                    # lie outside itself (a group search's boxes reached 1e143, stop 55).
-                    return BoxSolution(False, lower, upper, argmin, argmax, self.n_solves - solves_before,
-                                       self._certificate(res))
-                if sign > 0:
-                    lower[p] = max(box_lo[p], value - slack)
-                    if x_at is not None:
-                        argmin[p] = x_at
-                else:
-                    upper[p] = min(box_hi[p], value + slack)
-                    if x_at is not None:
-                        argmax[p] = x_at
+        column = {int(p): k for k, p in enumerate(free_idx)}
+        if objectives is None:
+            objectives = [(int(p), sign) for p in free_idx for sign in (1.0, -1.0)]
+        for p, sign in objectives:
+            if int(p) not in column:
+                continue  # a fixed parameter: its value is its bound
+            k, sign = column[int(p)], float(sign)
+            q = np.zeros(self.n_free + self.n_aux)
+            q[k] = sign
+            bound, y_at, status, res = self._bound_objective(q, b, ylo, yhi)
+            if bound is not None and np.isfinite(bound):
+                self.last_certificates[(int(p), int(sign))] = (self._best_z, float(bound))
+            if bound is None:
+                return BoxSolution(False, lower, upper, argmin, argmax, self.n_solves - solves_before,
+                                   self._certificate(res))
+            if not np.isfinite(bound):
+                unverified.append(f"{'lower' if sign > 0 else 'upper'} bound of parameter {p}: solver status {status}, box bound kept")
+                kept.append((int(p), int(sign)))
+                continue
+            x_at = None
+            if y_at is not None:
+                x_at = self.fixed_values.copy()
+                x_at[self.free] = self.centre[self.free] + self.half[self.free] * y_at
+            # y-bound -> x-bound, outward by the rounding of centre + half * y
+            yb = bound if sign > 0 else -bound
+            value = self.centre[p] + self.half[p] * yb
+            slack = 4 * _EPS * (abs(self.centre[p]) + abs(self.half[p] * yb))
+            if (value - slack > box_hi[p]) if sign > 0 else (value + slack < box_lo[p]):
+                # a certified bound beyond the box: weak duality says no point of the box
+                # fits (the Farkas test is this with q = 0). Kept as a bound it made the box
+                # lie outside itself (a group search's boxes reached 1e143, stop 55).
+                return BoxSolution(False, lower, upper, argmin, argmax, self.n_solves - solves_before,
+                                   self._certificate(res))
+            if sign > 0:
+                lower[p] = max(box_lo[p], value - slack)
+                if x_at is not None:
+                    argmin[p] = x_at
+            else:
+                upper[p] = min(box_hi[p], value + slack)
+                if x_at is not None:
+                    argmax[p] = x_at
         return BoxSolution(True, lower, upper, argmin, argmax, self.n_solves - solves_before,
                            unverified=tuple(unverified), kept=tuple(kept))
 

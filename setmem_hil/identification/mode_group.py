@@ -144,6 +144,13 @@ class GroupSettings:
     workers: int = field(default_factory=lambda: min(2, os.cpu_count() or 1))
 
 
+class GroupProvedEmpty(ValueError):
+    """Every box of a group's search was proved empty by a checked certificate. Its own class:
+    callers read it as a proof about the data, and no other error (a ValueError from a bug) may be
+    read so (stop 67: a group of one mode raised one from an empty concatenation, and the data were
+    called inconsistent although the truth fitted them)."""
+
+
 @dataclass(frozen=True)
 class GroupResult:
     """Bounds of a group's parameters, shape ``(m, 4)`` each, and the search's figures."""
@@ -622,8 +629,9 @@ def _multiplied_modes(omega, E, lo, hi, lift_pairs: tuple = ()) -> list:
     rest_of_one, rest_of_two = ranked[1:].sum(axis=0), ranked[2:].sum(axis=0)
     choice = []
     for j in range(np.size(omega)):
-        first, second = int(order[0, j]), int(order[1, j])
-        top_two = tuple(sorted((first, second)))
+        first = int(order[0, j])
+        second = int(order[1, j]) if m > 1 else first  # a group of one (the tight path of a lone mode)
+        top_two = tuple(sorted({first, second}))
         alone_below = NEGLIGIBLE_REST * E[j] if top_two in pairs else E[j]
         if rest_of_one[j] <= alone_below:
             choice.append((first,))
@@ -1259,7 +1267,7 @@ def identify_group(omega_rad_s, g, E, lo, hi, settings: GroupSettings = GroupSet
         flat_pieces = ()
         n_solves += search.n_solves
         if not leaves:
-            raise ValueError("every box of the group was proved empty")
+            raise GroupProvedEmpty("every box of the group was proved empty")
         box_lo, box_hi, flags = _hull(leaves)  # the next stage's root: its flags carry over
         anchor = search.anchor  # fits the subset: where the search with every point starts looking
     reason = "; ".join(sorted(set(flags.values())))

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from setmem_hil.identification.feasible_points import farthest_fitting, misfit
-from setmem_hil.identification.mode_group import GroupSettings, identify_group
+from setmem_hil.identification.mode_group import GroupProvedEmpty, GroupSettings, identify_group
 from setmem_hil.identification.mode_mismatch import mode_mismatch_bounds
 from setmem_hil.model.modal_model import IntervalModel
 
@@ -176,7 +176,7 @@ def _shave_side(omega, g, E, lo, hi, i: int, p: int, side: int, reach: float, se
         searched += 1
         try:
             found = identify_group(omega, g_local, E_local, slab_lo, slab_hi, _slab_settings(len(rows), settings.slab_boxes))
-        except ValueError:  # every box of the slab proved empty by a checked certificate
+        except GroupProvedEmpty:  # every box of the slab proved empty by a checked certificate
             emptied += 1
             if side < 0:
                 lo[i, p] = slab_hi[at, p]
@@ -195,11 +195,14 @@ def proved_empty(omega_rad_s, g, E, lo, hi, boxes: int = 2 * SLAB_BOXES) -> bool
     """Is every parameter of the box ``[lo, hi]`` (every mode together) proved not to fit, each of
     the branch-and-bound's boxes by a checked Farkas certificate? Asked where no witness was found:
     the split (eq. 3.11) cannot see a joint inconsistency, the joint relaxation can. ``False`` says
-    only that no proof was found in ``boxes`` boxes."""
+    only that no proof was found in ``boxes`` boxes; with one mode it is always ``False`` (the group
+    search needs two; Algorithm 3.2 already bounded the mode alone, which is then the whole model)."""
+    if np.shape(lo)[0] < 2:
+        return False
     try:
         identify_group(omega_rad_s, g, E, np.asarray(lo, dtype=float), np.asarray(hi, dtype=float),
                        _slab_settings(np.shape(lo)[0], boxes))
-    except ValueError:
+    except GroupProvedEmpty:
         return True
     return False
 
