@@ -16,6 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "discrepancy": ("discrepancy", "find and name what the model lacks, add it, show the gap shrink"),
     "export": ("export", "write a run's measurements, bounds and mu-bar per iteration as CSV"),
     "identify": ("identify", "guaranteed interval bounds of a modal model from frequency data"),
+    "identify-matrix": ("identify_matrix", "guaranteed intervals of a structure's FRF matrix (several exciters and sensors, shared poles)"),
     "prior": ("prior", "propose a prior (PRIOR.toml) from a measured FRF"),
     "probe": ("probe", "connect to the procedure's instruments, check identities; outputs stay off"),
     "report": ("report", "write DIR/report.html: figures 6-12, 6-13, 6-14, sample transfer functions, pole-zero patterns, "
