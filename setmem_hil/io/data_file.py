@@ -21,6 +21,21 @@ from setmem_hil.model.frequency_data import MAX_MAGNITUDE, FrequencyData
 DATA_COLUMNS = ("omega", "re", "im", "bound")
 
 
+def parse_cell(cell: str, name: str, source: str, line: int) -> float:
+    """One numeric cell of a data file: a finite number within the identification's range
+    (:data:`~setmem_hil.model.frequency_data.MAX_MAGNITUDE`), else an error naming line and column."""
+    try:
+        v = float(cell)
+    except ValueError:
+        raise InputFormatError(source, f"line {line}", f"column {name}: expected a number, found {cell.strip()!r}") from None
+    if not math.isfinite(v):
+        raise InputFormatError(source, f"line {line}", f"column {name}: expected a finite number, found {cell.strip()}")
+    if abs(v) > MAX_MAGNITUDE:
+        raise InputFormatError(source, f"line {line}", f"column {name}: {cell.strip()} is outside the range the "
+                               f"identification computes with (|x| <= {MAX_MAGNITUDE:g}; check the units)")
+    return v
+
+
 def parse_data_csv(text: str, source: str = "<data>") -> FrequencyData:
     """Parse the text of a data CSV; raise :class:`InputFormatError` naming line and column.
 
@@ -41,18 +56,7 @@ def parse_data_csv(text: str, source: str = "<data>") -> FrequencyData:
     for line, row in rows[1:]:
         if len(row) != 4:
             raise InputFormatError(source, f"line {line}", f"expected 4 columns, found {len(row)}")
-        parsed = []
-        for name, cell in zip(DATA_COLUMNS, row):
-            try:
-                v = float(cell)
-            except ValueError:
-                raise InputFormatError(source, f"line {line}", f"column {name}: expected a number, found {cell.strip()!r}") from None
-            if not math.isfinite(v):
-                raise InputFormatError(source, f"line {line}", f"column {name}: expected a finite number, found {cell.strip()}")
-            if abs(v) > MAX_MAGNITUDE:
-                raise InputFormatError(source, f"line {line}", f"column {name}: {cell.strip()} is outside the range the "
-                                       f"identification computes with (|x| <= {MAX_MAGNITUDE:g}; check the units)")
-            parsed.append(v)
+        parsed = [parse_cell(cell, name, source, line) for name, cell in zip(DATA_COLUMNS, row)]
         if parsed[0] <= 0:
             raise InputFormatError(source, f"line {line}", f"column omega: expected a positive frequency, found {parsed[0]:g}")
         if parsed[3] < 0:

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 from pathlib import Path
 
 import numpy as np
 
 from setmem_hil.errors import InputFormatError
-from setmem_hil.model.frequency_data import MAX_MAGNITUDE, FrequencyData
+from setmem_hil.io.data_file import parse_cell
+from setmem_hil.model.frequency_data import FrequencyData
 
 __all__ = ["MATRIX_COLUMNS", "MatrixData", "parse_matrix_csv", "read_matrix_csv", "matrix_csv_text"]
 
@@ -32,19 +32,6 @@ class MatrixData:
     @property
     def n_points(self) -> int:
         return sum(d.omega_rad_s.size for d in self.columns.values())
-
-
-def _number(cell: str, name: str, source: str, line: int) -> float:
-    try:
-        v = float(cell)
-    except ValueError:
-        raise InputFormatError(source, f"line {line}", f"column {name}: expected a number, found {cell.strip()!r}") from None
-    if not math.isfinite(v):
-        raise InputFormatError(source, f"line {line}", f"column {name}: expected a finite number, found {cell.strip()}")
-    if abs(v) > MAX_MAGNITUDE:
-        raise InputFormatError(source, f"line {line}", f"column {name}: {cell.strip()} is outside the range the identification "
-                               f"computes with (|x| <= {MAX_MAGNITUDE:g}; check the units)")
-    return v
 
 
 def parse_matrix_csv(text: str, source: str = "<matrix>") -> MatrixData:
@@ -69,7 +56,7 @@ def parse_matrix_csv(text: str, source: str = "<matrix>") -> MatrixData:
         for name, value in (("sensor", sensor), ("exciter", exciter)):
             if not value:
                 raise InputFormatError(source, f"line {line}", f"column {name}: expected a name, found an empty cell")
-        w, re_, im_, bound = (_number(c, n, source, line) for c, n in zip(row[2:], MATRIX_COLUMNS[2:]))
+        w, re_, im_, bound = (parse_cell(c, n, source, line) for c, n in zip(row[2:], MATRIX_COLUMNS[2:]))
         if w <= 0:
             raise InputFormatError(source, f"line {line}", f"column omega: expected a positive frequency, found {w:g}")
         if bound < 0:
