@@ -77,7 +77,6 @@ def partition_union(problem, boxes: list[tuple[np.ndarray, np.ndarray, np.ndarra
             continue
         for objective in phase_one:
             solved[(b, objective)] = sol
-    union.n_skipped = 0
     while True:
         union.lower[:], union.upper[:] = np.inf, -np.inf
         union.argmin[:], union.argmax[:] = np.nan, np.nan
@@ -91,9 +90,7 @@ def partition_union(problem, boxes: list[tuple[np.ndarray, np.ndarray, np.ndarra
         for objective in phase_two:
             p, sign = objective
             edge = (lambda b: boxes[b][1][p]) if sign > 0 else (lambda b: -boxes[b][2][p])
-            for b in sorted(feasible, key=lambda b: (edge(b), b)):
-                if b in empty:
-                    continue
+            for b in sorted(feasible, key=lambda b: (edge(b), b)):  # a box found empty ends the pass
                 if not _may_move(union, winners, objective, b, edge(b)):
                     skipped += 1
                     continue
@@ -143,12 +140,11 @@ def _may_move(union: PartitionUnion, winners: dict, objective: tuple[int, float]
 
 
 def _unverified(feasible: list[int], solved: dict) -> list[str]:
-    """The feasible boxes' uncertified bounds, each box once, in the partition's order."""
-    out: list[str] = []
-    for b in feasible:
-        seen: set[int] = set()
-        for (box, _), sol in sorted(solved.items(), key=lambda item: (item[0][0], item[0][1][0], -item[0][1][1])):
-            if box == b and id(sol) not in seen:
-                seen.add(id(sol))
-                out.extend(sol.unverified)
+    """The feasible boxes' uncertified bounds, each solve once (a box's phase-one solve answers
+    several objectives), box by box in the partition's order."""
+    kept, seen, out = set(feasible), set(), []
+    for (box, _), sol in sorted(solved.items(), key=lambda item: (item[0][0], item[0][1][0], -item[0][1][1])):
+        if box in kept and id(sol) not in seen:
+            seen.add(id(sol))
+            out.extend(sol.unverified)
     return out
