@@ -20,6 +20,8 @@ the ``yield`` expression. The plan says *what* to do; the engine runs it, whiche
 * **replay marks** (:class:`Emit` ``key``): a document whose key the stopped run already holds is
   sent marked ``replayed`` (stores do not store it twice), and its ``check`` values must equal the
   stored ones, else :class:`~setmem_hil.errors.ReplayError`;
+* **a stop signal Python dropped** (it landed in a finaliser) is raised before the next request
+  (:mod:`setmem_hil.run.signal_latch`), so it stops the run as if it had been delivered;
 * **the plan's own computation** runs inside ``compute`` (by default single-threaded BLAS,
   :func:`setmem_hil.numerics.blas_threads.blas_one_thread`: small matrices, results independent of
   the machine's thread count); the handlers run outside it. The engine clocks it: every document
@@ -43,6 +45,7 @@ from datetime import datetime, timezone
 from typing import Any, Callable, Generator, Hashable, Mapping, Sequence
 
 from setmem_hil.errors import ReplayError, RunAborted
+from setmem_hil.run import signal_latch
 from setmem_hil.numerics.blas_threads import blas_one_thread
 
 __all__ = ["RunEngine", "RunStart", "Emit", "Checkpoint", "Subscriber", "START", "STOP", "NOTE",
@@ -163,6 +166,7 @@ class RunEngine:
                 self.plan_s += time.perf_counter() - wall
                 self.plan_cpu_s += time.process_time() - cpu
             try:
+                signal_latch.raise_pending()  # a stop signal dropped in a finaliser stops the run here
                 reply, error = self._perform(request), None
             except BaseException as exc:  # noqa: BLE001 - thrown into the plan, so its finally runs
                 reply, error = None, exc

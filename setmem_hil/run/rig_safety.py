@@ -26,6 +26,7 @@ from typing import Any, Callable, Iterator
 
 from rich.console import Console
 
+from setmem_hil.run import signal_latch
 from setmem_hil.run.engine import NOTE
 from setmem_hil.errors import SetmemError
 from setmem_hil.io.journal import Journal
@@ -59,7 +60,10 @@ class Terminated(KeyboardInterrupt):
 @contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
     """Turn SIGTERM into an interrupt for the duration of the campaign, so the exciter is
-    zeroed and the journal closed (the default action would end the process on the spot)."""
+    zeroed and the journal closed (the default action would end the process on the spot).
+
+    A stop signal that lands in a finaliser, where Python drops its exception, is latched and
+    stops the run at its next request (:mod:`setmem_hil.run.signal_latch`)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -69,7 +73,8 @@ def sigterm_as_interrupt() -> Iterator[None]:
 
     previous = signal.signal(signal.SIGTERM, handler)
     try:
-        yield
+        with signal_latch.latching_dropped_interrupts():
+            yield
     finally:
         signal.signal(signal.SIGTERM, previous)
 
