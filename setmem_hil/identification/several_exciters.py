@@ -13,10 +13,12 @@ a sensor on opposite sides of a node see the mode with opposite signs), so each 
 interval is the prior's made symmetric about zero: ``[-B, B]`` with ``B`` the larger of
 ``|b0_min|``, ``|b0_max|`` (``b1`` likewise). That is our choice where the thesis is silent.
 
-Not used yet (left for the next step, said in the docs): the rank-one structure of each mode's
-residue matrix (``R = psi phi^T``), which couples the pairs and would tighten the intervals
-where one pair sees a mode well and another poorly; here each pair's residues are bounded alone
-given the shared poles. Cost: the pairs are solved as outputs, so a close pair of modes (the
+Then each real mode's residue matrix is contracted by its rank (``B0 = psi phi^T``,
+:mod:`setmem_hil.identification.rank_one`): a pair that sees a mode poorly, or was never measured,
+is bounded by the pairs that see it well. Only where the prior fixes ``b1 = 0`` (real modes); a
+mode whose box holds no rank-one matrix keeps its box and is said not to be one real mode
+(``rank_one_consistent`` False). Not used yet: the rank inside the cone programs, where it would
+also narrow the poles. Cost: the pairs are solved as outputs, so a close pair of modes (the
 two-plane beam) takes the several-output path without the close-mode groups of one output.
 """
 
@@ -29,6 +31,7 @@ import numpy as np
 
 from setmem_hil.errors import InputFormatError
 from setmem_hil.identification.algorithm import IdentifySettings, identify_outputs
+from setmem_hil.identification.rank_one import contract_rank_one
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_matrix import ModalMatrix
 from setmem_hil.model.modal_model import A0, A1, B0, B1
@@ -52,6 +55,9 @@ class MatrixIdentification:
     exciters: tuple[str, ...]
     verified: np.ndarray
     n_solves: int
+    # per mode: True / False whether a rank-one residue matrix fits the box (contracted when True);
+    # None where the rank was not used (b1 not fixed at zero: a complex mode)
+    rank_one_consistent: tuple[bool | None, ...] = ()
 
     def contains(self, truth: ModalMatrix) -> bool:
         """Does every interval hold ``truth``'s poles and every pair's residues?"""
@@ -77,6 +83,8 @@ class MatrixIdentification:
                           "a0": [float(self.lower_poles[i, 1]), float(self.upper_poles[i, 1])],
                           "b0": matrix(self.lower_b0, self.upper_b0), "b1": matrix(self.lower_b1, self.upper_b1),
                           "verified": bool(self.verified[i])})
+            if i < len(self.rank_one_consistent):
+                modes[-1]["rank_one_consistent"] = self.rank_one_consistent[i]
         return {"sensors": list(self.sensors), "exciters": list(self.exciters), "modes": modes}
 
 
@@ -122,6 +130,23 @@ def identify_matrix(columns: dict[tuple[int, int], FrequencyData], prior: Prior,
             lo[i], hi[i] = getattr(m, lo_attr), getattr(m, hi_attr)
         for (k, l), model in zip(pairs, result.models):
             lo[:, k, l], hi[:, k, l] = model.lower[:, col], model.upper[:, col]
+    rank_one = _contract_real_modes(prior, *bounds["b0"])
     first = result.models[0]
     return MatrixIdentification(first.lower[:, [A1, A0]].copy(), first.upper[:, [A1, A0]].copy(), *bounds["b1"], *bounds["b0"],
-                                tuple(sensors), tuple(exciters), np.asarray(result.verified, dtype=bool), int(result.n_solves))
+                                tuple(sensors), tuple(exciters), np.asarray(result.verified, dtype=bool), int(result.n_solves),
+                                rank_one)
+
+
+def _contract_real_modes(prior: Prior, lo: np.ndarray, hi: np.ndarray) -> tuple[bool | None, ...]:
+    """Each real mode's (``b1`` fixed at zero by the prior) ``b0`` matrix contracted by its rank,
+    in place (:func:`~setmem_hil.identification.rank_one.contract_rank_one`); per mode whether a
+    rank-one matrix fits its box (None: not a real mode, not contracted)."""
+    consistent: list[bool | None] = []
+    for i, m in enumerate(prior.modes):
+        if not (m.b1_min == m.b1_max == 0.0):
+            consistent.append(None)
+            continue
+        contracted = contract_rank_one(lo[i], hi[i])
+        lo[i], hi[i] = contracted.lower, contracted.upper
+        consistent.append(contracted.consistent)
+    return tuple(consistent)
