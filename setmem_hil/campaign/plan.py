@@ -56,7 +56,7 @@ from setmem_hil.identification.calibration_scale import measured_scale_prior, pl
 from setmem_hil.io.procedure import Procedure
 from setmem_hil.model.experiment import CalibrationScaledExperiment, Measurement
 from setmem_hil.model.frequency_data import FrequencyData
-from setmem_hil.model.mu_floor import floor_message, floor_modes
+from setmem_hil.model.mu_floor import floor_modes, floor_sentence
 from setmem_hil.robust.robust_design import FINAL_TUNING
 
 __all__ = ["thesis_plan", "EXACT_RESOLVE_EVENT", "FLOOR_EVENT", "UNPRODUCTIVE_REGION_EVENT", "BATCH_EVENT", "WITNESS_EVENT"]
@@ -177,6 +177,7 @@ class Identified:
     sensor_models: Any
     data: FrequencyData
     floor: tuple[int, ...]  # modes whose box blocks every compensator (setmem_hil.model.mu_floor)
+    floor_evidence: tuple = ()  # per floor mode, whether the data hold it (identification.floor_evidence)
 
 
 def measure_points(procedure: Procedure, omegas, iteration: int, role: str, done: int):
@@ -224,7 +225,27 @@ def _identify(loop: LoopSettings, state: LoopState):
         yield _document(NOTE, {"kind": WITNESS_EVENT, "message": _witness_message(state.k, result)}, state.k)
     model = result.model if state.previous_model is None else result.model.intersect(state.previous_model)
     yield InformModel(model, sensor_models)  # later dwells model their transients with these poles
-    return Identified(result, model, sensor_models, data, floor_modes(model))
+    floor = floor_modes(model)
+    return Identified(result, model, sensor_models, data, floor, _floor_evidence(floor, data, model, result, sensor_models))
+
+
+def _floor_sentences(step: Identified) -> list[str]:
+    """The floor's sentences, each with the data's verdict where it was checked."""
+    if step.floor_evidence:
+        return [e.sentence() for e in step.floor_evidence]
+    return [floor_sentence(m) for m in step.floor]
+
+
+def _floor_evidence(floor: tuple[int, ...], data: FrequencyData, model, result, sensor_models) -> tuple:
+    """Each floor mode checked against the data (one output; with several sensors the floor plant
+    must fit every output at once, which is not built: no verdict, the sentence as before)."""
+    if not floor or sensor_models is not None:
+        return ()
+    from setmem_hil.identification.floor_evidence import floor_evidence
+
+    residuals = getattr(result, "residuals", None) or {}
+    return tuple(floor_evidence(data.omega_rad_s, data.response, data.bound, model.lower, model.upper, mode, residuals)
+                 for mode in floor)
 
 
 def _witness_message(k: int, result) -> str:
@@ -286,7 +307,7 @@ def _announce(loop: LoopSettings, state: LoopState, step: Identified, outcome: S
     plant = step.model if loop.scales is None else plant_bounds(step.model, loop.scales[0])
     yield Emit("iteration", dict(k=state.k, n_points=len(state.measured), mu_peak=outcome.mu_peak,
                                  mu_peak_omega=float(outcome.analysis.mu_peak_omega), safeguard=outcome.branch, design=kept,
-                                 floor_modes=step.floor, rig_s=float(sum(m.rig_s for m in state.measured)),
+                                 floor_modes=step.floor, floor_sentences=_floor_sentences(step), rig_s=float(sum(m.rig_s for m in state.measured)),
                                  mu_peak_certified=outcome.certified, outputs=_outputs_document(loop, step),
                                  identification=step.result, data=step.data, model=step.model, plant=plant, gain=loop.gain,
                                  analysis=outcome.analysis))
@@ -320,7 +341,7 @@ def _record(loop: LoopSettings, state: LoopState, step: Identified, outcome: Saf
     next_omega = None if choice is None else choice.next_omega_rad_s
     yield _document(ITERATION_RECORD, {"k": k, "choice": choice}, k, next_omega=next_omega)
     if floor:
-        yield _document(NOTE, {"kind": FLOOR_EVENT, "message": f"iteration {k}: {floor_message(floor)}"}, k)
+        yield _document(NOTE, {"kind": FLOOR_EVENT, "message": f"iteration {k}: {'; '.join(_floor_sentences(step))}"}, k)
     if choice is not None and np.size(choice.resolved_omega_rad_s):
         resolved = {"k": k, "omega_rad_s": [float(w) for w in choice.resolved_omega_rad_s],
                     "improvement": [None if not math.isfinite(v) else float(v) for v in choice.resolved_improvement]}

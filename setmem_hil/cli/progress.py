@@ -189,9 +189,10 @@ class CampaignProgress:
             )
             floor = tuple(info.get("floor_modes") or ())
             if floor:
-                from setmem_hil.model.mu_floor import floor_message
+                from setmem_hil.model.mu_floor import floor_sentence
 
-                self._line(f"iteration {self.k}: {floor_message(floor)}")
+                sentences = info.get("floor_sentences") or [floor_sentence(m) for m in floor]
+                self._line(f"iteration {self.k}: {'; '.join(sentences)}")
             for line in output_lines(info.get("outputs")):
                 self._line(line)
         elif event == "note" and info.get("kind") == "left-out":
