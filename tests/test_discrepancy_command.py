@@ -30,7 +30,7 @@ b1 = 0
 CONTRACT_KEYS = {"disagreement_bands", "effects", "before", "after"}
 
 
-def test_prior_path_names_a_lag_and_writes_report_and_plot(tmp_path):
+def test_prior_path_names_a_lag_and_writes_report_and_plot(tmp_path, capsys):
     case = draw_hidden_effect_case("first_order_lag", 31)
     write_data_csv(case.data, tmp_path / "d.csv")
     (tmp_path / "p.toml").write_text(PRIOR_TOML)
@@ -46,6 +46,11 @@ def test_prior_path_names_a_lag_and_writes_report_and_plot(tmp_path):
     assert doc["after"]["max_normalized_residual"] <= 1.05 < doc["before"]["max_normalized_residual"]
     assert all(lo <= hi for lo, hi in doc["disagreement_bands"]) and doc["disagreement_bands"]
     assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # every long step said on stderr before it starts, with the time since the command began
+    steps = [line for line in capsys.readouterr().err.splitlines() if line.startswith("discrepancy: [")]
+    assert any("identifying 3 mode(s) from the prior" in line for line in steps)
+    assert any("bound inflation: identifying with the bounds x" in line for line in steps)
+    assert any("first_order_lag interval" in line for line in steps) and "re-identifying with first_order_lag" in steps[-1]
 
 
 def test_model_path_with_zero_width_truth_on_clean_data_says_none(tmp_path):

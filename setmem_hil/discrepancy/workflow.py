@@ -57,6 +57,7 @@ Example
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 
@@ -68,6 +69,9 @@ from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.prior import ModePrior, Prior
+
+Progress = Callable[[str], None]
+"""``progress(text)``: what the workflow starts next (a display's line)."""
 
 ONE_PARAMETER_EFFECTS = ("time_delay", "first_order_lag", "feedthrough", "residual_mass")
 EFFECT_ALIASES = {"feedthrough": ("residual_flexibility",)}
@@ -235,7 +239,7 @@ def _identify_feasible(data: FrequencyData, prior: Prior, cheap: bool = False):
 
 
 def bound_inflation_factor(data: FrequencyData, prior: Prior, upper: float, steps: int = 6,
-                           known_infeasible: bool = False) -> float:
+                           known_infeasible: bool = False, progress: Progress | None = None) -> float:
     """Smallest ``k`` (to bisection precision, from above) with ``identify`` feasible on bounds ``k R``.
 
     ``upper`` must be a factor known (or expected) to be feasible, e.g. the best exact fit's
@@ -245,6 +249,7 @@ def bound_inflation_factor(data: FrequencyData, prior: Prior, upper: float, step
     partitioning: a looser relaxation, so the factor is never overstated by that choice).
     """
     def ok(k):
+        _say(progress, f"bound inflation: identifying with the bounds x{k:.4g}")
         return _identify_feasible(FrequencyData(data.omega_rad_s, data.response, k * data.bound), prior, cheap=True)[0]
 
     if not known_infeasible and ok(1.0):
@@ -348,6 +353,7 @@ def check_discrepancy(
     prior: Prior | None,
     settings: DiscrepancySettings = DiscrepancySettings(),
     identification_feasible: bool | None = None,
+    progress: Progress | None = None,
 ) -> DiscrepancyReport:
     """Run the discrepancy workflow on data against a model (campaign hook; inputs untouched).
 
@@ -366,6 +372,9 @@ def check_discrepancy(
         Whether the identification behind ``model`` succeeded. Default: ``model is not None``
         when a prior is given; for a model without prior, whether some member of its box is
         consistent with the data (worst normalised residual <= 1).
+    progress : callable, optional
+        ``progress(text)`` before each long step (the bound inflation's trials, the candidates'
+        fits, the re-identification), for a display: on real data the workflow takes minutes.
 
     Returns
     -------
@@ -389,6 +398,7 @@ def check_discrepancy(
     bands = disagreement_bands(data.omega_rad_s, old.normalized_residual)
 
     box = _prior_box(prior, data, old.modal.values)
+    _say(progress, "fitting the candidate effects")
     fits, decision = _fit_candidates(data, box, settings)
     none = fits["none"]
     before = {
@@ -399,7 +409,7 @@ def check_discrepancy(
     }
     if not identification_feasible and settings.inflation_steps > 0:
         before["bound_inflation_factor"] = bound_inflation_factor(
-            data, prior, none.max_normalized_residual, settings.inflation_steps, known_infeasible=given_prior)
+            data, prior, none.max_normalized_residual, settings.inflation_steps, known_infeasible=given_prior, progress=progress)
     elif identification_feasible:
         before["bound_inflation_factor"] = 1.0
 
@@ -417,7 +427,7 @@ def check_discrepancy(
     rival = ambiguous_alternative(fits, decision, settings.threshold, float(np.max(data.omega_rad_s)))
     if rival is not None:
         return replace(report, effects=(_ambiguous_effect(data, fits[decision], fits[rival], settings),))
-    return _report_with_effect(report, data, prior, fits, decision, settings, given_prior, identification_feasible)
+    return _report_with_effect(report, data, prior, fits, decision, settings, given_prior, identification_feasible, progress)
 
 
 def _unexplained_effect(fits: dict, settings: DiscrepancySettings) -> dict:
@@ -443,7 +453,8 @@ def _ambiguous_effect(data: FrequencyData, a, b, settings: DiscrepancySettings) 
 
 
 def _report_with_effect(report: DiscrepancyReport, data: FrequencyData, prior: Prior, fits: dict, decision: str,
-                        settings: DiscrepancySettings, given_prior: bool, identification_feasible: bool) -> DiscrepancyReport:
+                        settings: DiscrepancySettings, given_prior: bool, identification_feasible: bool,
+                        progress: Progress | None = None) -> DiscrepancyReport:
     """The chosen effect: its parameters (re-identified with it, when asked), the evidence, the gap after."""
     before, none = report.before, fits["none"]
     chosen = fits[decision]
@@ -453,7 +464,7 @@ def _report_with_effect(report: DiscrepancyReport, data: FrequencyData, prior: P
     if settings.reidentify:
         from setmem_hil.discrepancy.reidentify import reidentify_with_effect
 
-        re = reidentify_with_effect(data, prior, chosen, settings)
+        re = reidentify_with_effect(data, prior, chosen, settings, progress)
         after["feasible"] = re.feasible
         if re.message:
             after["identification_message"] = re.message
@@ -483,8 +494,16 @@ def _report_with_effect(report: DiscrepancyReport, data: FrequencyData, prior: P
     return replace(report, effects=(effect,), after=after, new_fit=chosen, new_model=new_model)
 
 
-def discrepancy_from_prior(data: FrequencyData, prior: Prior, settings: DiscrepancySettings = DiscrepancySettings()) -> DiscrepancyReport:
+def discrepancy_from_prior(data: FrequencyData, prior: Prior, settings: DiscrepancySettings = DiscrepancySettings(),
+                           progress: Progress | None = None) -> DiscrepancyReport:
     """Identify with ``prior`` first (``--prior``), then :func:`check_discrepancy`."""
+    _say(progress, f"identifying {prior.n_modes} mode(s) from the prior")
     feasible, result, _ = _identify_feasible(data, prior)
-    return check_discrepancy(data, result.model if feasible else None, prior, settings, identification_feasible=feasible)
+    return check_discrepancy(data, result.model if feasible else None, prior, settings, identification_feasible=feasible,
+                             progress=progress)
+
+
+def _say(progress: Progress | None, text: str) -> None:
+    if progress is not None:
+        progress(text)
 

@@ -45,12 +45,13 @@ def run(args: argparse.Namespace) -> int:
     if len(outputs) > 1:
         return _run_outputs(args, outputs)
     data = outputs[0][1]
+    progress = _progress_lines()
     if args.prior:
-        report = discrepancy_from_prior(data, load_prior(args.prior))
+        report = discrepancy_from_prior(data, load_prior(args.prior), progress=progress)
     else:
         from setmem_hil.io.result_file import read_result
 
-        report = check_discrepancy(data, read_result(args.model), None)
+        report = check_discrepancy(data, read_result(args.model), None, progress=progress)
     write_json(report.to_document(), args.out)
     if args.plot:
         from setmem_hil.discrepancy.plot import plot_discrepancy
@@ -65,6 +66,24 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _progress_lines():
+    """Each step on stderr with the seconds since the command began (on real data the workflow
+    takes minutes; a silent terminal looks hung)."""
+    import time
+
+    start = time.monotonic()
+
+    def progress(text: str) -> None:
+        print(f"discrepancy: [{time.monotonic() - start:6.1f} s] {text}", file=sys.stderr, flush=True)
+
+    return progress
+
+
+def _for_output(progress, name: str):
+    """The progress lines of one output's workflow, named."""
+    return lambda text: progress(f"{name}: {text}")
+
+
 def _run_outputs(args: argparse.Namespace, outputs) -> int:
     """The workflow once per output; the report names the output of every finding."""
     from pathlib import Path
@@ -74,13 +93,16 @@ def _run_outputs(args: argparse.Namespace, outputs) -> int:
     if args.prior:
         priors, names = load_output_priors(args.prior, len(outputs))
         names = names or tuple(name for name, _ in outputs)
-        reports = [discrepancy_from_prior(data, prior) for (_, data), prior in zip(outputs, priors)]
+        progress = _progress_lines()
+        reports = [discrepancy_from_prior(data, prior, progress=_for_output(progress, name))
+                   for name, (_, data), prior in zip(names, outputs, priors)]
     else:
         from setmem_hil.io.result_file import read_result_outputs
 
         models = read_result_outputs(args.model, len(outputs))
         names = tuple(name for name, _ in outputs)
-        reports = [check_discrepancy(data, model, None) for (_, data), model in zip(outputs, models)]
+        progress = _progress_lines()
+        reports = [check_discrepancy(data, model, None, progress=_for_output(progress, name)) for (name, data), model in zip(outputs, models)]
     doc = combined_document(names, [r.to_document() for r in reports])
     write_json(doc, args.out)
     if args.plot:
