@@ -31,13 +31,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
 from setmem_hil.discrepancy.effect_models import EFFECT_MODELS
 from setmem_hil.io.result_file import result_document
 from setmem_hil.discrepancy.effects import CandidateFit
+from setmem_hil.discrepancy.progress import Progress, say
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.prior import ModePrior, Prior
@@ -95,14 +95,13 @@ def _feasible(data: FrequencyData, prior: Prior, cheap: bool = True):
 
 
 def effect_interval(effect: str, value: float, data: FrequencyData, prior: Prior, steps: int = 6,
-                    lower_limit: float = -np.inf, progress: Callable[[str], None] | None = None) -> tuple[float, float]:
+                    lower_limit: float = -np.inf, progress: Progress | None = None) -> tuple[float, float]:
     """Set-membership interval of a one-parameter effect around ``value`` (expansion, then bisection).
 
     Returns ``(value, value)`` if the identification is infeasible even at ``value``.
     """
     def ok(p):
-        if progress is not None:
-            progress(f"{effect} interval: identifying with the effect at {p:.6g}")
+        say(progress, f"{effect} interval: identifying with the effect at {p:.6g}")
         return _feasible(transform_data(effect, p, data), prior)[0]
 
     if not ok(value):
@@ -183,16 +182,12 @@ def _with_fitted_residues(prior: Prior, fit: CandidateFit, k: int) -> Prior:
 
 
 def reidentify_with_effect(data: FrequencyData, prior: Prior, fit: CandidateFit, settings,
-                           progress: Callable[[str], None] | None = None) -> Reidentification:
+                           progress: Progress | None = None) -> Reidentification:
     """Identify again with ``fit``'s effect in the structure (see the module docstring);
     ``progress(text)`` before each identification."""
-    def say(text: str) -> None:
-        if progress is not None:
-            progress(text)
-
     if fit.name == "extra_mode":
         prior4, k = extra_mode_prior(prior, fit.params["omega_n"], settings.extra_mode_margin)
-        say(f"re-identifying with a mode added near {fit.params['omega_n']:.6g} rad/s ({prior4.n_modes} modes)")
+        say(progress, f"re-identifying with a mode added near {fit.params['omega_n']:.6g} rad/s ({prior4.n_modes} modes)")
         ok, result, msg = _feasible(data, prior4, cheap=False)
         residues_from_fit = False
         if not ok and "residue" in msg:
@@ -201,7 +196,7 @@ def reidentify_with_effect(data: FrequencyData, prior: Prior, fit: CandidateFit,
             # bounded from the fit: b0 within +-100% of the fitted value (stated in the document).
             prior4 = _with_fitted_residues(prior4, fit, k)
             residues_from_fit = True
-            say("re-identifying with the modelled modes' residues bounded from the fit")
+            say(progress, "re-identifying with the modelled modes' residues bounded from the fit")
             ok, result, msg = _feasible(data, prior4, cheap=False)
         if not ok:
             return Reidentification(False, msg)
@@ -234,7 +229,7 @@ def reidentify_with_effect(data: FrequencyData, prior: Prior, fit: CandidateFit,
     delta = max(value - p_lo, p_hi - value)
     transformed = transform_data(name, value, data, delta)
     inflation = float(np.max(transformed.bound / np.maximum(data.bound, 1e-300)))
-    say(f"re-identifying with {name} at {value:.6g}")
+    say(progress, f"re-identifying with {name} at {value:.6g}")
     ok, result, msg = _feasible(transformed, prior, cheap=False)
     if not ok:
         return Reidentification(False, msg, None, intervals, inflation)

@@ -57,7 +57,6 @@ Example
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import numpy as np
 
@@ -65,13 +64,11 @@ from setmem_hil.io.atomic_file import json_safe
 from setmem_hil.discrepancy.effects import (
     CandidateFit, ModalBox, fit_candidate, fit_none, initial_modal_estimate,
 )
+from setmem_hil.discrepancy.progress import Progress, say
 from setmem_hil.errors import InconsistentDataError, InputFormatError
 from setmem_hil.model.frequency_data import FrequencyData
 from setmem_hil.model.modal_model import IntervalModel
 from setmem_hil.model.prior import ModePrior, Prior
-
-Progress = Callable[[str], None]
-"""``progress(text)``: what the workflow starts next (a display's line)."""
 
 ONE_PARAMETER_EFFECTS = ("time_delay", "first_order_lag", "feedthrough", "residual_mass")
 EFFECT_ALIASES = {"feedthrough": ("residual_flexibility",)}
@@ -249,7 +246,7 @@ def bound_inflation_factor(data: FrequencyData, prior: Prior, upper: float, step
     partitioning: a looser relaxation, so the factor is never overstated by that choice).
     """
     def ok(k):
-        _say(progress, f"bound inflation: identifying with the bounds x{k:.4g}")
+        say(progress, f"bound inflation: identifying with the bounds x{k:.4g}")
         return _identify_feasible(FrequencyData(data.omega_rad_s, data.response, k * data.bound), prior, cheap=True)[0]
 
     if not known_infeasible and ok(1.0):
@@ -398,7 +395,7 @@ def check_discrepancy(
     bands = disagreement_bands(data.omega_rad_s, old.normalized_residual)
 
     box = _prior_box(prior, data, old.modal.values)
-    _say(progress, "fitting the candidate effects")
+    say(progress, "fitting the candidate effects")
     fits, decision = _fit_candidates(data, box, settings)
     none = fits["none"]
     before = {
@@ -497,13 +494,9 @@ def _report_with_effect(report: DiscrepancyReport, data: FrequencyData, prior: P
 def discrepancy_from_prior(data: FrequencyData, prior: Prior, settings: DiscrepancySettings = DiscrepancySettings(),
                            progress: Progress | None = None) -> DiscrepancyReport:
     """Identify with ``prior`` first (``--prior``), then :func:`check_discrepancy`."""
-    _say(progress, f"identifying {prior.n_modes} mode(s) from the prior")
+    say(progress, f"identifying {prior.n_modes} mode(s) from the prior")
     feasible, result, _ = _identify_feasible(data, prior)
     return check_discrepancy(data, result.model if feasible else None, prior, settings, identification_feasible=feasible,
                              progress=progress)
 
-
-def _say(progress: Progress | None, text: str) -> None:
-    if progress is not None:
-        progress(text)
 

@@ -90,10 +90,10 @@ def _run_outputs(args: argparse.Namespace, outputs) -> int:
 
     from setmem_hil.discrepancy.workflow import check_discrepancy, discrepancy_from_prior
 
+    progress = _progress_lines()
     if args.prior:
         priors, names = load_output_priors(args.prior, len(outputs))
         names = names or tuple(name for name, _ in outputs)
-        progress = _progress_lines()
         reports = [discrepancy_from_prior(data, prior, progress=_for_output(progress, name))
                    for name, (_, data), prior in zip(names, outputs, priors)]
     else:
@@ -101,7 +101,6 @@ def _run_outputs(args: argparse.Namespace, outputs) -> int:
 
         models = read_result_outputs(args.model, len(outputs))
         names = tuple(name for name, _ in outputs)
-        progress = _progress_lines()
         reports = [check_discrepancy(data, model, None, progress=_for_output(progress, name)) for (name, data), model in zip(outputs, models)]
     doc = combined_document(names, [r.to_document() for r in reports])
     write_json(doc, args.out)
